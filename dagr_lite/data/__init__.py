@@ -1,0 +1,8 @@
+"""The EventEgoHands data layer: layout, reading, writing, validation, samples and batches."""
+from dagr_lite.data.augment import TrainAugment, hflip, zoom_translate
+from dagr_lite.data.collate import Batch, collate
+from dagr_lite.data.dataset import EventEgoHands, Sample
+from dagr_lite.data.reader import DatasetFormatError, EventFile, Problem, read_frame, read_labels
+
+__all__ = ["Batch", "DatasetFormatError", "EventEgoHands", "EventFile", "Problem", "Sample", "TrainAugment",
+           "collate", "hflip", "read_frame", "read_labels", "zoom_translate"]

@@ -1,0 +1,95 @@
+"""Training augmentation applied consistently to the image, the events and the boxes.
+
+Coordinates are continuous with pixel ``i`` covering ``[i, i + 1)``: an event at integer pixel
+``x`` sits at ``x + 0.5``, a box edge at ``x1`` sits at ``x1``. A horizontal flip maps ``u`` to
+``W - u``; a zoom ``s`` with translation ``(tx, ty)`` maps ``u`` to ``s * u + tx``. Events keep
+fractional pixel coordinates after a zoom; events that leave ``[0, W - 1] x [0, H - 1]`` are
+dropped, boxes are clipped to the image and dropped when thinner than ``min_box_size``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from dagr_lite.data.dataset import Sample
+
+
+def hflip(sample: Sample) -> Sample:
+    """Mirror the sample left-right."""
+    width = sample.width
+    events = sample.events.clone()  # (N, 4)
+    events[:, 0] = (width - 1) - events[:, 0]
+    boxes = sample.boxes.clone()  # (M, 4)
+    boxes[:, [0, 2]] = width - sample.boxes[:, [2, 0]]
+    return sample.replace(events=events, image=sample.image.flip(-1), boxes=boxes)
+
+
+def zoom_translate(sample: Sample, scale: float, tx: float, ty: float, *, min_box_size: float = 2.0) -> Sample:
+    """Map ``u -> scale * u + (tx, ty)`` at unchanged image size (``scale > 1`` zooms in).
+
+    The image is resampled bilinearly (zeros outside the source), events are moved and those
+    leaving the frame dropped, boxes are moved, clipped and dropped when thinner than
+    ``min_box_size`` pixels.
+    """
+    height, width = sample.height, sample.width
+    # Image: output pixel centre u' samples the source at (u' - t) / scale.
+    us = (torch.arange(width, dtype=torch.float32) + 0.5 - tx) / scale  # (W,)
+    vs = (torch.arange(height, dtype=torch.float32) + 0.5 - ty) / scale  # (H,)
+    grid = torch.stack(torch.meshgrid(2 * us / width - 1, 2 * vs / height - 1, indexing="xy"), dim=-1)  # (H, W, 2)
+    image = F.grid_sample(sample.image[None].float(), grid[None], mode="bilinear", padding_mode="zeros",
+                          align_corners=False)[0]  # (3, H, W)
+    image = image.round().clamp(0, 255).to(torch.uint8)
+
+    events = sample.events.clone()  # (N, 4)
+    events[:, 0] = scale * (events[:, 0] + 0.5) + tx - 0.5
+    events[:, 1] = scale * (events[:, 1] + 0.5) + ty - 0.5
+    inside = (events[:, 0] >= 0) & (events[:, 0] <= width - 1) & (events[:, 1] >= 0) & (events[:, 1] <= height - 1)
+    events = events[inside]
+
+    boxes = sample.boxes * scale + torch.tensor([tx, ty, tx, ty], dtype=torch.float32)  # (M, 4)
+    boxes[:, [0, 2]] = boxes[:, [0, 2]].clamp(0, width)
+    boxes[:, [1, 3]] = boxes[:, [1, 3]].clamp(0, height)
+    keep = ((boxes[:, 2] - boxes[:, 0]) >= min_box_size) & ((boxes[:, 3] - boxes[:, 1]) >= min_box_size)
+    return sample.replace(events=events, image=image, boxes=boxes[keep], labels=sample.labels[keep])
+
+
+@dataclass
+class TrainAugment:
+    """Random horizontal flip, zoom/crop and translation, drawn from the generator it is given.
+
+    Args:
+        flip_prob: probability of a horizontal flip.
+        zoom: ``(min, max)`` zoom factor; 1 keeps the scale, above 1 crops a random part and
+            enlarges it.
+        translate: largest extra shift, as a fraction of the image size, in each direction.
+        min_box_size: boxes thinner than this many pixels after the transform are dropped.
+    """
+
+    flip_prob: float = 0.5
+    zoom: tuple[float, float] = (1.0, 1.5)
+    translate: float = 0.1
+    min_box_size: float = 2.0
+
+    def __post_init__(self):
+        low, high = self.zoom
+        if not 0 < low <= high:
+            raise ValueError(f"zoom must be (min, max) with 0 < min <= max, got {tuple(self.zoom)}")
+        if not 0 <= self.flip_prob <= 1:
+            raise ValueError(f"flip_prob must be in [0, 1], got {self.flip_prob}")
+        if self.translate < 0:
+            raise ValueError(f"translate must be >= 0, got {self.translate}")
+
+    def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
+        if rng.random() < self.flip_prob:
+            sample = hflip(sample)
+        scale = float(rng.uniform(*self.zoom))
+        offsets = []
+        for size in (sample.width, sample.height):
+            crop = rng.uniform(min(0.0, size * (1 - scale)), max(0.0, size * (1 - scale)))  # keep the crop inside
+            offsets.append(crop + rng.uniform(-self.translate, self.translate) * size)
+        if scale == 1.0 and offsets == [0.0, 0.0]:
+            return sample
+        return zoom_translate(sample, scale, offsets[0], offsets[1], min_box_size=self.min_box_size)

@@ -1,0 +1,207 @@
+"""Validate a dataset in the EventEgoHands layout: ``python -m dagr_lite.data.check ROOT``.
+
+Walks every split present and reports each problem with its file and key: missing keys,
+unequal lengths, unsorted ``t``, polarities outside {0, 1}, ``timeidx`` not matching ``t``,
+frames missing or of the wrong size, boxes outside the image or of non-positive size, and
+labels for frames or videos that do not exist. Exits with status 1 when anything is wrong.
+Event arrays are streamed in blocks, so files of any size are checked in bounded memory.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from dagr_lite.data import format as fmt
+from dagr_lite.data.reader import (DatasetFormatError, Problem, box_problems, frame_size, header_problems,
+                                   list_frames, list_videos, load_labels_json, open_h5, parse_boxes,
+                                   read_frame)
+
+BLOCK_EVENTS = 1 << 22
+
+
+def check_events_file(path: Path, *, num_frames: int | None, width: int | None, height: int | None,
+                      fps: float = fmt.DEFAULT_FPS) -> list[Problem]:
+    """Full check of one event file: the header checks, then every event in blocks."""
+    try:
+        h5 = open_h5(path)
+    except DatasetFormatError as err:
+        return err.problems
+    with h5:
+        problems = [Problem(path, key, msg) for key, msg in header_problems(h5, num_frames, fps)]
+        keys = (*fmt.EVENT_KEYS, fmt.KEY_TIMEIDX)
+        if not all(key in h5 and getattr(h5[key], "ndim", 0) == 1 for key in keys):
+            return problems
+        if len({h5[key].shape[0] for key in fmt.EVENT_KEYS}) != 1:
+            return problems
+        n = h5[fmt.KEY_T].shape[0]
+        timeidx = h5[fmt.KEY_TIMEIDX][()]
+        frame_times = fmt.frame_time_us(np.arange(len(timeidx)), fps)
+        counted = np.zeros(len(timeidx), dtype=np.int64)
+        last_t, sorted_ok = None, True
+        found = {"x": [], "y": [], "p": []}
+        for start in range(0, n, BLOCK_EVENTS):
+            stop = min(n, start + BLOCK_EVENTS)
+            t = h5[fmt.KEY_T][start:stop]
+            if sorted_ok:
+                steps = np.diff(t)
+                if np.any(steps < 0) or (last_t is not None and t[0] < last_t):
+                    i = start + (int(np.argmax(steps < 0)) + 1 if np.any(steps < 0) else 0)
+                    problems.append(Problem(path, fmt.KEY_T, f"not sorted ascending at index {i}"))
+                    sorted_ok = False
+                counted += np.searchsorted(t, frame_times, side="left")
+            last_t = t[-1]
+            for name, key, size in (("x", fmt.KEY_X, width), ("y", fmt.KEY_Y, height)):
+                a = h5[key][start:stop]
+                if not found[name] and (a.min() < 0 or (size is not None and a.max() >= size)):
+                    problems.append(Problem(path, key, f"values must lie in [0, {size}), found "
+                                                       f"[{a.min()}, {a.max()}] in events {start}..{stop - 1}"))
+                    found[name].append(True)
+            p = h5[fmt.KEY_P][start:stop]
+            if not found["p"] and not np.all((p == 0) | (p == 1)):
+                problems.append(Problem(path, fmt.KEY_P, f"values must be 0 or 1, found "
+                                                         f"{np.unique(p)[:5].tolist()}"))
+                found["p"].append(True)
+        if sorted_ok and not any(p.key == fmt.KEY_TIMEIDX for p in problems):
+            wrong = np.flatnonzero(counted != timeidx)
+            if len(wrong):
+                k = int(wrong[0])
+                problems.append(Problem(path, fmt.KEY_TIMEIDX, f"{len(wrong)} entries disagree with events/t, "
+                                                               f"first at frame {k}: {timeidx[k]} stored, "
+                                                               f"{counted[k]} expected"))
+    return problems
+
+
+def check_frames(directory: Path, *, num_frames: int | None, expected_hw: tuple[int, int] | None,
+                 decode: bool) -> tuple[list[Problem], tuple[int, int] | None, int]:
+    """Frames of one video: names contiguous from 0, one per ``timeidx`` entry, all the same size.
+
+    Returns the problems, the frame size found and the number of frames.
+    """
+    try:
+        frames = list_frames(directory)
+    except DatasetFormatError as err:
+        return err.problems, None, 0
+    problems = []
+    count = len(frames)
+    expected = set(range(num_frames if num_frames is not None else (max(frames) + 1 if frames else 0)))
+    missing = sorted(expected - set(frames))
+    if missing:
+        problems.append(Problem(directory, "", f"{len(missing)} frames missing, first "
+                                               f"{fmt.frame_name(missing[0])}"))
+    extra = sorted(set(frames) - expected)
+    if extra:
+        problems.append(Problem(directory, "", f"{len(extra)} frames beyond the {num_frames} frames of timeidx, "
+                                               f"first {fmt.frame_name(extra[0])}"))
+    size = expected_hw
+    for k in sorted(frames):
+        path = directory / frames[k]
+        try:
+            hw = read_frame(path).shape[:2] if decode else frame_size(path)
+        except DatasetFormatError as err:
+            problems += err.problems
+            continue
+        if size is None:
+            size = hw
+        elif hw != tuple(size):
+            problems.append(Problem(path, "", f"frame is {hw[1]}x{hw[0]} (WxH), expected {size[1]}x{size[0]}"))
+    return problems, size, count
+
+
+def check_dataset(root: Path | str, *, fps: float = fmt.DEFAULT_FPS, decode_frames: bool = False,
+                  expected_hw: tuple[int, int] | None = None, progress: bool = False) -> list[Problem]:
+    """Every problem found in the dataset at ``root`` (an empty list when it is valid)."""
+    root = Path(root)
+    if not root.is_dir():
+        return [Problem(root, "", "dataset folder is missing")]
+    splits = [s for s in fmt.SPLITS if (root / s).is_dir()]
+    if not splits:
+        return [Problem(root, "", f"no split folder found (expected one or more of {', '.join(fmt.SPLITS)})")]
+    problems: list[Problem] = []
+    videos: dict[str, tuple[int, tuple[int, int] | None]] = {}  # video -> (frame count, (H, W))
+    jobs = []
+    for split in splits:
+        try:
+            names = list_videos(root, split)
+        except DatasetFormatError as err:
+            problems += err.problems
+            events_dir = root / split / fmt.EVENTS_DIR
+            names = sorted(p.name[: -len(fmt.EVENTS_SUFFIX)] for p in events_dir.glob("*" + fmt.EVENTS_SUFFIX)
+                           if fmt.frames_dir(root, split, p.name[: -len(fmt.EVENTS_SUFFIX)]).is_dir())
+        jobs += [(split, name) for name in names]
+    for split, video in tqdm(jobs, desc="checking videos", disable=not progress):
+        if video in videos:
+            problems.append(Problem(fmt.events_path(root, split, video), "", "video name appears in two splits"))
+        num_frames = None
+        try:
+            with open_h5(fmt.events_path(root, split, video)) as h5:
+                if fmt.KEY_TIMEIDX in h5 and h5[fmt.KEY_TIMEIDX].ndim == 1:
+                    num_frames = h5[fmt.KEY_TIMEIDX].shape[0]
+        except DatasetFormatError:
+            pass
+        frame_problems, hw, count = check_frames(fmt.frames_dir(root, split, video), num_frames=num_frames,
+                                                 expected_hw=expected_hw, decode=decode_frames)
+        problems += frame_problems
+        height, width = hw if hw is not None else (None, None)
+        problems += check_events_file(fmt.events_path(root, split, video), num_frames=count,
+                                      width=width, height=height, fps=fps)
+        videos[video] = (count, hw)
+    problems += check_labels(root, videos)
+    return problems
+
+
+def check_labels(root: Path, videos: dict[str, tuple[int, tuple[int, int] | None]]) -> list[Problem]:
+    """Problems of ``bounding_boxes.json`` against the videos found (name -> frame count, size)."""
+    path = fmt.labels_path(root)
+    try:
+        raw = load_labels_json(root)
+    except DatasetFormatError as err:
+        return err.problems
+    problems = []
+    for key, value in raw.items():
+        parsed = fmt.parse_label_key(key)
+        if parsed is None:
+            problems.append(Problem(path, key, "key is not of the form <video>_frame_<k>"))
+            continue
+        video, k = parsed
+        if video not in videos:
+            problems.append(Problem(path, key, f"label for video {video!r}, which no split holds"))
+            continue
+        count, hw = videos[video]
+        if k >= count:
+            problems.append(Problem(path, key, f"label for frame {k}, but the video has {count} frames"))
+        try:
+            boxes = parse_boxes(value)
+        except ValueError as err:
+            problems.append(Problem(path, key, str(err)))
+            continue
+        if hw is not None:
+            problems += [Problem(path, key, msg) for msg in box_problems(boxes, *hw)]
+    return problems
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m dagr_lite.data.check", description=__doc__.splitlines()[0])
+    parser.add_argument("root", type=Path, help="dataset folder holding train/, valid/, test/ and bounding_boxes.json")
+    parser.add_argument("--fps", type=float, default=fmt.DEFAULT_FPS, help="frame rate defining frame times")
+    parser.add_argument("--decode-frames", action="store_true",
+                        help="decode every JPEG fully (slower; finds corrupt image data, not only bad headers)")
+    parser.add_argument("--max-report", type=int, default=200, help="print at most this many problems")
+    args = parser.parse_args(argv)
+    problems = check_dataset(args.root, fps=args.fps, decode_frames=args.decode_frames, progress=True)
+    for problem in problems[: args.max_report]:
+        print(problem)
+    if len(problems) > args.max_report:
+        print(f"... and {len(problems) - args.max_report} more")
+    if problems:
+        print(f"{args.root}: {len(problems)} problem(s) found", file=sys.stderr)
+        return 1
+    print(f"{args.root}: no problems found")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,93 @@
+"""Batching samples with different numbers of events and boxes."""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Sequence
+
+import torch
+
+from dagr_lite.data.dataset import Sample
+
+
+@dataclass
+class Batch:
+    """A batch of ``B`` samples.
+
+    Attributes:
+        events: ``(N, 4)`` float32 x, y, t, p of all samples, concatenated in sample order.
+        batch_index: ``(N,)`` int64 sample of each event.
+        ptr: ``(B + 1,)`` int64 offsets: the events of sample ``b`` are ``events[ptr[b]:ptr[b + 1]]``.
+        images: ``(B, 3, H, W)`` uint8.
+        boxes: ``B`` tensors ``(M_b, 4)`` float32 x1, y1, x2, y2 in pixels.
+        labels: ``B`` tensors ``(M_b,)`` int64.
+        videos, frames, image_frames: names of the samples (video and label frame).
+        t_start_us, t_end_us: ``(B,)`` int64 event windows.
+    """
+
+    events: torch.Tensor
+    batch_index: torch.Tensor
+    ptr: torch.Tensor
+    images: torch.Tensor
+    boxes: list[torch.Tensor]
+    labels: list[torch.Tensor]
+    videos: list[str]
+    frames: torch.Tensor
+    image_frames: torch.Tensor
+    t_start_us: torch.Tensor
+    t_end_us: torch.Tensor
+
+    def __len__(self) -> int:
+        return len(self.videos)
+
+    def _map(self, fn) -> "Batch":
+        values = {}
+        for field in fields(self):
+            value = getattr(self, field.name)
+            if isinstance(value, torch.Tensor):
+                value = fn(value)
+            elif isinstance(value, list) and value and isinstance(value[0], torch.Tensor):
+                value = [fn(v) for v in value]
+            values[field.name] = value
+        return Batch(**values)
+
+    def to(self, device, non_blocking: bool = False) -> "Batch":
+        return self._map(lambda t: t.to(device, non_blocking=non_blocking))
+
+    def pin_memory(self) -> "Batch":
+        return self._map(lambda t: t.pin_memory())
+
+    def padded_boxes(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Boxes padded to ``(B, M_max, 4)`` with a ``(B, M_max)`` bool mask of real boxes."""
+        m_max = max((len(b) for b in self.boxes), default=0)
+        padded = self.images.new_zeros((len(self), m_max, 4), dtype=torch.float32)  # (B, M_max, 4)
+        mask = torch.zeros((len(self), m_max), dtype=torch.bool, device=self.images.device)  # (B, M_max)
+        for b, boxes in enumerate(self.boxes):
+            padded[b, : len(boxes)] = boxes
+            mask[b, : len(boxes)] = True
+        return padded, mask
+
+
+def collate(samples: Sequence[Sample]) -> Batch:
+    """Concatenate events (with a sample index per event), stack images, list boxes."""
+    if not samples:
+        raise ValueError("cannot collate an empty list of samples")
+    sizes = {tuple(s.image.shape) for s in samples}
+    if len(sizes) != 1:
+        names = ", ".join(f"{s.video} frame {s.frame}: {tuple(s.image.shape)}" for s in samples)
+        raise ValueError(f"images of one batch must have the same shape, got {names}")
+    counts = torch.tensor([len(s.events) for s in samples], dtype=torch.int64)  # (B,)
+    ptr = torch.zeros(len(samples) + 1, dtype=torch.int64)  # (B + 1,)
+    torch.cumsum(counts, 0, out=ptr[1:])
+    return Batch(
+        events=torch.cat([s.events for s in samples]),  # (N, 4)
+        batch_index=torch.repeat_interleave(torch.arange(len(samples)), counts),  # (N,)
+        ptr=ptr,
+        images=torch.stack([s.image for s in samples]),  # (B, 3, H, W)
+        boxes=[s.boxes for s in samples],
+        labels=[s.labels for s in samples],
+        videos=[s.video for s in samples],
+        frames=torch.tensor([s.frame for s in samples], dtype=torch.int64),
+        image_frames=torch.tensor([s.image_frame for s in samples], dtype=torch.int64),
+        t_start_us=torch.tensor([s.t_start_us for s in samples], dtype=torch.int64),
+        t_end_us=torch.tensor([s.t_end_us for s in samples], dtype=torch.int64),
+    )

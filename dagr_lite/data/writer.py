@@ -1,0 +1,210 @@
+"""Writing datasets in the released EventEgoHands layout (see :mod:`dagr_lite.data.format`).
+
+Files are written under a temporary name and renamed when complete, so an interrupted write
+never leaves a file that looks finished. Existing files are never replaced unless asked.
+A video's events file is written last: its presence marks the video as complete.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Iterable
+
+import h5py
+import hdf5plugin
+import numpy as np
+from PIL import Image
+
+from dagr_lite.data import format as fmt
+
+# Events per HDF5 chunk. A 33 ms window touches ceil(n / CHUNK) + 1 chunks, so chunks of
+# 32768 events (256 KiB of int64 timestamps) keep the overhead of a slice read to about one
+# chunk per array while still compressing well.
+DEFAULT_CHUNK_EVENTS = 1 << 15
+
+COMPRESSIONS = (None, "gzip", "blosc")
+
+X_DTYPE, Y_DTYPE, T_DTYPE, P_DTYPE = np.uint16, np.uint16, np.int64, np.uint8
+
+
+def _compression_kwargs(compression: str | None) -> dict:
+    if compression is None:
+        return {}
+    if compression == "gzip":
+        return {"compression": "gzip", "compression_opts": 4, "shuffle": True}
+    if compression == "blosc":
+        return dict(hdf5plugin.Blosc(cname="lz4", clevel=5, shuffle=hdf5plugin.Blosc.SHUFFLE))
+    raise ValueError(f"compression must be one of {COMPRESSIONS}, got {compression!r}")
+
+
+def _check_target(path: Path, overwrite: bool) -> None:
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path}: already exists (pass overwrite=True to replace it)")
+
+
+class EventFileWriter:
+    """Writes one ``<video>.h5`` event file, in appended pieces of any size.
+
+    ``timeidx`` is counted as the pieces arrive (for each frame, how many events lie before its
+    time), so the whole stream is never held in memory. The file appears under its final name
+    only on :meth:`close`; leaving the ``with`` block through an exception removes it.
+
+    Args:
+        path: target ``.h5`` file.
+        num_frames: number of frames of the video (length of ``timeidx``).
+        fps: frame rate defining the frame times.
+        compression: None, ``"gzip"`` or ``"blosc"`` (LZ4 with byte shuffle; readers need
+            ``import hdf5plugin``).
+        chunk_events: events per HDF5 chunk.
+        height, width: when given, every event must lie inside the image.
+        overwrite: replace an existing file.
+    """
+
+    def __init__(self, path: Path | str, *, num_frames: int, fps: float = fmt.DEFAULT_FPS,
+                 compression: str | None = "blosc", chunk_events: int = DEFAULT_CHUNK_EVENTS,
+                 height: int | None = None, width: int | None = None, overwrite: bool = False):
+        self.path = Path(path)
+        _check_target(self.path, overwrite)
+        if num_frames < 0:
+            raise ValueError(f"num_frames must be >= 0, got {num_frames}")
+        self.height, self.width = height, width
+        self._frame_times = fmt.frame_time_us(np.arange(num_frames), fps)  # (K,)
+        self._timeidx = np.zeros(num_frames, dtype=np.int64)  # (K,)
+        self._count = 0
+        self._last_t: int | None = None
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp_path = self.path.with_name(self.path.name + f".tmp{os.getpid()}")
+        self._h5 = h5py.File(self._tmp_path, "w")
+        options = _compression_kwargs(compression)
+        self._datasets = {
+            key: self._h5.create_dataset(key, shape=(0,), maxshape=(None,), dtype=dtype,
+                                         chunks=(int(chunk_events),), **options)
+            for key, dtype in zip(fmt.EVENT_KEYS, (X_DTYPE, Y_DTYPE, T_DTYPE, P_DTYPE))
+        }
+
+    def append(self, x, y, t, p) -> None:
+        """Append events; ``t`` must be sorted and not earlier than anything appended before."""
+        arrays = [np.asarray(a).reshape(-1) for a in (x, y, t, p)]
+        n = len(arrays[2])
+        for name, a in zip("xytp", arrays):
+            if len(a) != n:
+                raise ValueError(f"{self.path}: events/{name} has {len(a)} values, events/t has {n}")
+        if n == 0:
+            return
+        x, y, t, p = arrays
+        if np.any(np.diff(t) < 0) or (self._last_t is not None and t[0] < self._last_t):
+            raise ValueError(f"{self.path}: events/t must be sorted ascending across appends")
+        if t[0] < 0:
+            raise ValueError(f"{self.path}: events/t must be >= 0 (microseconds from the video start), "
+                             f"found {t[0]}")
+        if not np.all((p == 0) | (p == 1)):
+            raise ValueError(f"{self.path}: events/p must be 0 or 1, found {np.unique(p).tolist()}")
+        for name, a, size in (("x", x, self.width), ("y", y, self.height)):
+            if a.min() < 0 or (size is not None and a.max() >= size):
+                raise ValueError(f"{self.path}: events/{name} must lie in [0, {size}), "
+                                 f"found [{a.min()}, {a.max()}]")
+        for key, a in zip(fmt.EVENT_KEYS, (x, y, t, p)):
+            dataset = self._datasets[key]
+            dataset.resize((self._count + n,))
+            dataset[self._count:] = a.astype(dataset.dtype)
+        self._timeidx += np.searchsorted(t, self._frame_times, side="left")
+        self._count += n
+        self._last_t = int(t[-1])
+
+    def close(self) -> Path:
+        """Write ``timeidx``, close, and move the file to its final name."""
+        if self._h5 is None:
+            return self.path
+        self._h5.create_dataset(fmt.KEY_TIMEIDX, data=self._timeidx)
+        self._h5.close()
+        self._h5 = None
+        os.replace(self._tmp_path, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        """Discard what was written."""
+        if self._h5 is not None:
+            self._h5.close()
+            self._h5 = None
+        self._tmp_path.unlink(missing_ok=True)
+
+    def __enter__(self) -> "EventFileWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def write_events(path: Path | str, x, y, t, p, *, num_frames: int, **kwargs) -> Path:
+    """Write a whole event stream to ``path`` in one go (see :class:`EventFileWriter` for options)."""
+    with EventFileWriter(path, num_frames=num_frames, **kwargs) as writer:
+        writer.append(x, y, t, p)
+    return writer.path
+
+
+def write_frame(path: Path | str, image: np.ndarray, *, quality: int = 95, overwrite: bool = False) -> Path:
+    """Write an ``(H, W, 3)`` uint8 RGB frame as JPEG (atomically)."""
+    path = Path(path)
+    _check_target(path, overwrite)
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise ValueError(f"{path}: expected an (H, W, 3) uint8 image, got {image.shape} {image.dtype}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    Image.fromarray(image).save(tmp, format="JPEG", quality=quality)
+    os.replace(tmp, path)
+    return path
+
+
+def write_labels(root: Path | str, labels: dict[str, dict[int, np.ndarray]], *, merge: bool = False,
+                 overwrite: bool = False) -> Path:
+    """Write ``bounding_boxes.json`` from ``{video: {k: (M, 4) x_tl, y_tl, w, h}}``.
+
+    Every frame given gets a key, an empty list when it has no boxes. ``merge`` adds to (and
+    replaces the given frames of) an existing file; otherwise an existing file is an error
+    unless ``overwrite``.
+    """
+    path = fmt.labels_path(root)
+    content: dict[str, list] = {}
+    if path.exists():
+        if merge:
+            from dagr_lite.data.reader import load_labels_json
+            content = load_labels_json(root)
+        elif not overwrite:
+            raise FileExistsError(f"{path}: already exists (pass merge=True or overwrite=True)")
+    for video, frames in labels.items():
+        for k, boxes in sorted(frames.items()):
+            boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+            content[fmt.label_key(video, k)] = [[round(float(v), 3) for v in box] for box in boxes]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    with open(tmp, "w") as f:
+        json.dump(content, f)
+    os.replace(tmp, path)
+    return path
+
+
+def write_video(root: Path | str, split: str, video: str, *, events: dict[str, np.ndarray],
+                frames: Iterable[np.ndarray], fps: float = fmt.DEFAULT_FPS,
+                compression: str | None = "blosc", overwrite: bool = False) -> int:
+    """Write one video's frames and then its event file; returns the number of frames.
+
+    ``events`` holds arrays ``x, y, t, p``. The events file is written last, so a video whose
+    events file exists is complete.
+    """
+    if split not in fmt.SPLITS:
+        raise ValueError(f"split must be one of {fmt.SPLITS}, got {split!r}")
+    num_frames, size = 0, None
+    for k, image in enumerate(frames):
+        size = image.shape[:2]
+        write_frame(fmt.frame_path(root, split, video, k), image, overwrite=overwrite)
+        num_frames += 1
+    height, width = size if size is not None else (None, None)
+    write_events(fmt.events_path(root, split, video), events["x"], events["y"], events["t"], events["p"],
+                 num_frames=num_frames, fps=fps, compression=compression, height=height, width=width,
+                 overwrite=overwrite)
+    return num_frames

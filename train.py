@@ -1,0 +1,14 @@
+"""Train a detector: ``python train.py [dataset=v6] [key=value ...]`` (configs in conf/)."""
+import hydra
+from omegaconf import DictConfig
+
+from dagr_lite.engine.train import train
+
+
+@hydra.main(config_path="conf", config_name="train", version_base=None)
+def main(cfg: DictConfig) -> None:
+    train(cfg)
+
+
+if __name__ == "__main__":
+    main()
