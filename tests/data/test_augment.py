@@ -1,0 +1,98 @@
+import numpy as np
+import pytest
+import torch
+
+from dagr_lite.data.augment import TrainAugment, hflip, zoom_translate
+from dagr_lite.data.dataset import Sample
+
+H, W = 40, 60
+
+
+def make_sample(box=(10.0, 8.0, 30.0, 20.0)):
+    """A bright rectangle on black, events at its pixels, and its box."""
+    x1, y1, x2, y2 = (int(v) for v in box)
+    image = torch.zeros(3, H, W, dtype=torch.uint8)
+    image[:, y1:y2, x1:x2] = 200
+    ys, xs = torch.meshgrid(torch.arange(y1, y2), torch.arange(x1, x2), indexing="ij")
+    n = xs.numel()
+    events = torch.stack([xs.flatten().float(), ys.flatten().float(), torch.arange(n).float(), torch.ones(n)], 1)
+    return Sample(events=events, image=image, boxes=torch.tensor([box]), labels=torch.zeros(1, dtype=torch.int64),
+                  video="v", frame=1, image_frame=0, t_start_us=0, t_end_us=33333)
+
+
+def bright_extent(image):
+    ys, xs = torch.nonzero(image[0] > 100, as_tuple=True)
+    return xs.min().item(), ys.min().item(), xs.max().item() + 1, ys.max().item() + 1
+
+
+def test_hflip_moves_image_events_and_boxes_together():
+    sample = make_sample()
+    flipped = hflip(sample)
+    assert flipped.boxes.tolist() == [[30.0, 8.0, 50.0, 20.0]]
+    assert bright_extent(flipped.image) == (30, 8, 50, 20)
+    assert flipped.events[:, 0].min() == 30 and flipped.events[:, 0].max() == 49
+    again = hflip(flipped)
+    assert torch.equal(again.image, sample.image) and torch.equal(again.events, sample.events)
+    assert torch.equal(again.boxes, sample.boxes)
+
+
+def test_zoom_translate_moves_image_events_and_boxes_together():
+    sample = make_sample()
+    out = zoom_translate(sample, 1.5, -6.0, 4.0)
+    expected = [10 * 1.5 - 6, 8 * 1.5 + 4, 30 * 1.5 - 6, 20 * 1.5 + 4]  # [9, 16, 39, 34]
+    np.testing.assert_allclose(out.boxes.numpy(), [expected])
+    assert bright_extent(out.image) == (9, 16, 39, 34)
+    ex, ey = out.events[:, 0], out.events[:, 1]
+    assert ex.min() >= 9 - 0.5 and ex.max() <= 39 - 0.5 and ey.min() >= 16 - 0.5 and ey.max() <= 34 - 0.5
+    assert len(out.events) == len(sample.events)  # nothing left the frame
+    np.testing.assert_allclose(out.events[:, 0].numpy(), 1.5 * (sample.events[:, 0].numpy() + 0.5) - 6 - 0.5)
+    assert torch.equal(out.events[:, 2:], sample.events[:, 2:])
+
+
+def test_identity_transform_changes_nothing():
+    sample = make_sample()
+    out = zoom_translate(sample, 1.0, 0.0, 0.0)
+    assert torch.equal(out.image, sample.image) and torch.equal(out.events, sample.events)
+    assert torch.equal(out.boxes, sample.boxes)
+
+
+def test_boxes_leaving_the_frame_are_clipped_and_tiny_ones_dropped():
+    sample = make_sample()
+    sample = sample.replace(boxes=torch.tensor([[10.0, 8.0, 30.0, 20.0], [50.0, 30.0, 59.0, 39.0]]),
+                            labels=torch.zeros(2, dtype=torch.int64))
+    out = zoom_translate(sample, 1.0, 35.0, 0.0, min_box_size=2.0)
+    # First box moves to [45, 65] and is clipped at 60; the second moves fully out and is dropped.
+    np.testing.assert_allclose(out.boxes.numpy(), [[45.0, 8.0, 60.0, 20.0]])
+    assert out.labels.tolist() == [0]
+    assert (out.events[:, 0] <= W - 1).all() and len(out.events) < len(sample.events)
+    thin = zoom_translate(sample, 1.0, 59.0, 0.0, min_box_size=2.0)  # 1 px of the first box stays
+    assert thin.boxes.shape == (0, 4)
+
+
+def test_train_augment_is_reproducible_and_consistent():
+    augment = TrainAugment(flip_prob=0.5, zoom=(1.0, 1.5), translate=0.1)
+    sample = make_sample((5.0, 12.0, 20.0, 28.0))  # left of centre: a flip sends it right
+    first = augment(sample, np.random.default_rng(5))
+    second = augment(sample, np.random.default_rng(5))
+    assert torch.equal(first.image, second.image) and torch.equal(first.boxes, second.boxes)
+    flips = kept = 0
+    for seed in range(60):
+        out = augment(sample, np.random.default_rng(seed))
+        if not len(out.boxes):
+            continue
+        kept += 1
+        x1, y1, x2, y2 = out.boxes[0].tolist()
+        ex, ey = out.events[:, 0] + 0.5, out.events[:, 1] + 0.5  # pixel centres
+        assert ((ex >= x1 - 1e-3) & (ex <= x2 + 1e-3) & (ey >= y1 - 1e-3) & (ey <= y2 + 1e-3)).all()
+        # Unflipped, the centre stays below 25 px; flipped, it lies above 35 px.
+        centre = (x1 + x2) / 2
+        assert centre < 25 or centre > 35
+        flips += int(centre > 35)
+    assert kept > 40 and 0.25 * kept < flips < 0.75 * kept
+
+
+def test_bad_settings():
+    with pytest.raises(ValueError, match="zoom"):
+        TrainAugment(zoom=(1.5, 1.0))
+    with pytest.raises(ValueError, match="flip_prob"):
+        TrainAugment(flip_prob=2)

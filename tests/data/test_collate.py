@@ -1,0 +1,37 @@
+import pytest
+import torch
+
+from dagr_lite.data.collate import collate
+from dagr_lite.data.dataset import Sample
+
+
+def sample(n_events, n_boxes, frame, size=(8, 10)):
+    return Sample(events=torch.rand(n_events, 4), image=torch.zeros(3, *size, dtype=torch.uint8),
+                  boxes=torch.rand(n_boxes, 4), labels=torch.zeros(n_boxes, dtype=torch.int64),
+                  video=f"v{frame}", frame=frame, image_frame=frame - 1, t_start_us=0, t_end_us=10)
+
+
+def test_collate_concatenates_events_with_a_batch_index():
+    samples = [sample(3, 1, 1), sample(0, 0, 2), sample(2, 3, 3)]
+    batch = collate(samples)
+    assert len(batch) == 3
+    assert batch.events.shape == (5, 4)
+    assert batch.batch_index.tolist() == [0, 0, 0, 2, 2]
+    assert batch.ptr.tolist() == [0, 3, 3, 5]
+    for b, s in enumerate(samples):
+        assert torch.equal(batch.events[batch.ptr[b]:batch.ptr[b + 1]], s.events)
+        assert torch.equal(batch.boxes[b], s.boxes)
+    assert batch.images.shape == (3, 3, 8, 10)
+    assert batch.frames.tolist() == [1, 2, 3] and batch.videos == ["v1", "v2", "v3"]
+    padded, mask = batch.padded_boxes()
+    assert padded.shape == (3, 3, 4) and mask.sum(1).tolist() == [1, 0, 3]
+    assert torch.equal(padded[2], samples[2].boxes) and torch.equal(padded[0, 0], samples[0].boxes[0])
+    moved = batch.to("cpu")
+    assert torch.equal(moved.events, batch.events) and moved.videos == batch.videos
+
+
+def test_collate_refuses_mixed_image_sizes():
+    with pytest.raises(ValueError, match="same shape"):
+        collate([sample(1, 0, 1), sample(1, 0, 2, size=(9, 10))])
+    with pytest.raises(ValueError, match="empty"):
+        collate([])

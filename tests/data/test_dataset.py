@@ -1,0 +1,149 @@
+import json
+
+import h5py
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from dagr_lite.data import format as fmt
+from dagr_lite.data.collate import collate
+from dagr_lite.data.dataset import EventEgoHands
+from dagr_lite.data.reader import DatasetFormatError, read_frame
+from tests.conftest import make_dataset
+
+
+def test_sample_matches_brute_force(dataset):
+    ds = EventEgoHands(dataset.root, "train", image_lag=2, window_us=50_000)
+    assert ds.videos == ["CARDS_COURTYARD_B_T", "vid_b"]
+    assert len(ds) == 2 * (12 - 2)  # frames k < image_lag give no sample
+    for index in range(len(ds)):
+        sample = ds[index]
+        video, k = ds.sample_name(index)
+        assert (sample.video, sample.frame, sample.image_frame) == (video, k, k - 2)
+        raw = dataset.events[video]
+        t_end = fmt.frame_time_us(k)
+        mask = (raw["t"] >= t_end - 50_000) & (raw["t"] < t_end)
+        expected = np.stack([raw["x"][mask], raw["y"][mask], raw["t"][mask] - (t_end - 50_000), raw["p"][mask]], 1)
+        np.testing.assert_array_equal(sample.events.numpy(), expected.astype(np.float32))
+        assert (sample.t_start_us, sample.t_end_us) == (t_end - 50_000, t_end)
+        image = read_frame(fmt.frame_path(dataset.root, "train", video, k - 2))
+        np.testing.assert_array_equal(sample.image.permute(1, 2, 0).numpy(), image)
+        boxes = dataset.labels[video].get(k, np.zeros((0, 4))).reshape(-1, 4)
+        np.testing.assert_allclose(sample.boxes.numpy(), fmt.xywh_to_xyxy(boxes), atol=1e-3)
+        assert sample.boxes.dtype == torch.float32 and sample.labels.tolist() == [0] * len(boxes)
+
+
+def test_frames_without_boxes_are_samples_with_zero_boxes(dataset):
+    ds = EventEgoHands(dataset.root, "valid", image_lag=0)
+    by_frame = {ds.sample_name(i)[1]: ds[i] for i in range(len(ds))}
+    assert set(by_frame) == set(range(12))
+    assert by_frame[1].boxes.shape == (0, 4)  # labelled with an empty list
+    assert by_frame[3].boxes.shape == (0, 4)  # no key at all
+    assert by_frame[2].boxes.shape[0] >= 1
+
+
+def test_event_cap_subsamples_uniformly_and_reproducibly(dataset):
+    full = EventEgoHands(dataset.root, "train", max_events=None)
+    capped = EventEgoHands(dataset.root, "train", max_events=50, seed=3)
+    index = 7
+    all_events, sub = full[index].events, capped[index].events
+    assert len(all_events) > 50 and len(sub) == 50
+    assert torch.all(sub[1:, 2] >= sub[:-1, 2])  # time order kept
+    rows = {tuple(r) for r in all_events.tolist()}
+    assert all(tuple(r) in rows for r in sub.tolist())  # a subset of the window's events
+    assert torch.equal(capped[index].events, sub)  # same seed and epoch: same events
+    capped.set_epoch(1)
+    assert not torch.equal(capped[index].events, sub)
+    other = EventEgoHands(dataset.root, "train", max_events=50, seed=4)
+    assert not torch.equal(other[index].events, sub)
+    # Uniform: over many draws every event is kept about equally often.
+    counts = np.zeros(len(all_events))
+    lookup = {tuple(r): i for i, r in enumerate(all_events.tolist())}
+    for epoch in range(300):
+        capped.set_epoch(epoch)
+        for r in capped[index].events.tolist():
+            counts[lookup[tuple(r)]] += 1
+    expected = 300 * 50 / len(all_events)
+    assert np.abs(counts - expected).max() < 5 * np.sqrt(expected)
+
+
+def test_window_with_no_events_gives_zero_events(tmp_path):
+    written = make_dataset(tmp_path, videos={"v": "train"}, num_frames=6, events_per_video=1)
+    t_event = int(written.events["v"]["t"][0])
+    ds = EventEgoHands(tmp_path, "train", image_lag=0, window_us=1000)
+    for i in range(len(ds)):
+        sample = ds[i]
+        inside = sample.t_start_us <= t_event < sample.t_end_us
+        assert sample.events.shape == ((1, 4) if inside else (0, 4))
+
+
+def test_loader_workers_reopen_files(dataset):
+    ds = EventEgoHands(dataset.root, "train", max_events=100)
+    ds[0]  # open the file in the main process first: workers must not reuse that handle
+    loader = DataLoader(ds, batch_size=4, num_workers=2, collate_fn=collate)
+    batches = list(loader)
+    assert sum(len(b) for b in batches) == len(ds)
+    first = collate([ds[i] for i in range(4)])
+    assert torch.equal(batches[0].events, first.events)
+
+
+def test_missing_split_folder(dataset):
+    with pytest.raises(DatasetFormatError, match=r"valid: split folder is missing"):
+        EventEgoHands(dataset.root / "nowhere", "valid")
+
+
+def test_frame_count_disagreeing_with_timeidx(dataset_copy):
+    frames = fmt.frames_dir(dataset_copy.root, "train", "vid_b")
+    (frames / "frame_11.jpg").unlink()
+    with pytest.raises(DatasetFormatError, match=r"vid_b\.h5: timeidx: has 12 entries but 11 frames exist on disk"):
+        EventEgoHands(dataset_copy.root, "train")
+    (frames / "frame_5.jpg").unlink()
+    with pytest.raises(DatasetFormatError, match=r"frames/vid_b: frames are not numbered 0\.\.9: frame_5\.jpg is missing"):
+        EventEgoHands(dataset_copy.root, "train")
+
+
+def test_events_file_with_no_events(dataset_copy):
+    path = fmt.events_path(dataset_copy.root, "test", "vid_d")
+    with h5py.File(path, "a") as h5:
+        for key in fmt.EVENT_KEYS:
+            del h5[key]
+            h5[key] = np.zeros(0, np.int64)
+        h5[fmt.KEY_TIMEIDX][...] = 0
+    with pytest.raises(DatasetFormatError, match=r"vid_d\.h5: events/t: the file holds no events"):
+        EventEgoHands(dataset_copy.root, "test")
+
+
+def test_corrupt_jpeg_names_the_file(dataset_copy):
+    ds = EventEgoHands(dataset_copy.root, "valid", image_lag=1)
+    path = fmt.frame_path(dataset_copy.root, "valid", "vid_c", 4)
+    path.write_bytes(path.read_bytes()[:200])
+    index = [ds.sample_name(i)[1] for i in range(len(ds))].index(5)
+    with pytest.raises(DatasetFormatError, match=r"vid_c/frame_4\.jpg: cannot decode image"):
+        ds[index]
+
+
+def test_configured_size_must_match_the_frames(dataset):
+    with pytest.raises(DatasetFormatError, match=r"frame_0\.jpg: frame is 64x48 \(WxH\), but the dataset is configured as 640x360"):
+        EventEgoHands(dataset.root, "train", image_size=(360, 640))
+    assert EventEgoHands(dataset.root, "train").image_size == (48, 64)
+
+
+def test_bad_boxes_are_refused_or_clipped(dataset_copy):
+    path = fmt.labels_path(dataset_copy.root)
+    labels = json.loads(path.read_text())
+    labels["vid_c_frame_2"] = [[60, 40, 10, 10], [5, 5, -1, 3]]
+    path.write_text(json.dumps(labels))
+    with pytest.raises(DatasetFormatError, match=r"vid_c_frame_2: box \[60.0, 40.0, 10.0, 10.0\] leaves the 64x48 image"):
+        EventEgoHands(dataset_copy.root, "valid")
+    ds = EventEgoHands(dataset_copy.root, "valid", image_lag=0, clip_boxes=True)
+    sample = ds[2]
+    assert sample.frame == 2
+    np.testing.assert_allclose(sample.boxes.numpy(), [[60, 40, 64, 48]])
+
+
+@pytest.mark.parametrize("kwargs,match", [(dict(image_lag=-1), "image_lag"), (dict(window_us=0), "window_us"),
+                                          (dict(max_events=0), "max_events"), (dict(videos=["nope"]), "nope")])
+def test_bad_arguments(dataset, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        EventEgoHands(dataset.root, "train", **kwargs)

@@ -1,0 +1,90 @@
+"""Every option of every config group composes and resolves; bad configs fail at once."""
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
+
+from dagr_lite.config import ConfigError, build_dataset, resolve_config
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+VERSIONS = {"v1": (720, 1280, 1, 1, "clean"), "v2": (180, 320, 4, 1, "clean"), "v3": (360, 640, 2, 1, "clean"),
+            "v4": (360, 640, 2, 41, "clean"), "v5": (360, 640, 2, 41, "noisy"), "v6": (360, 640, 2, 41, "mixed")}
+
+
+def options(group):
+    return sorted(p.stem for p in (CONF / group).glob("*.yaml"))
+
+
+def compose_cfg(name, overrides=()):
+    with initialize_config_dir(config_dir=str(CONF), version_base=None):
+        return compose(config_name=name, overrides=list(overrides))
+
+
+def test_groups_hold_the_expected_options():
+    assert options("dataset") == ["custom", "stub", "v1", "v2", "v3", "v4", "v5", "v6"]
+    assert {"hybrid", "events_only", "image_only"} <= set(options("model"))
+    assert options("optim") == ["adamw"]
+
+
+@pytest.mark.parametrize("config,group", [("train", "dataset"), ("train", "model"), ("train", "optim"),
+                                          ("evaluate", "dataset"), ("evaluate", "model")])
+def test_every_option_composes_and_resolves(config, group, tmp_path):
+    for option in options(group):
+        cfg = resolve_config(compose_cfg(config, [f"{group}={option}", f"dataset.root={tmp_path}"]))
+        assert cfg[group].name == option
+        assert cfg.dataset.root == str(tmp_path)
+
+
+def test_default_dataset_is_the_stub():
+    cfg = resolve_config(compose_cfg("train"))
+    assert cfg.dataset.name == "stub" and cfg.dataset.root is None
+    assert (cfg.dataset.height, cfg.dataset.width) == (180, 320)
+    assert cfg.optim.lr == pytest.approx(2e-4) and cfg.loader.batch_size == 16
+
+
+@pytest.mark.parametrize("version", sorted(VERSIONS))
+def test_versions_carry_the_paper_table_and_read_the_root_from_the_environment(version, monkeypatch, tmp_path):
+    monkeypatch.setenv("EVENTEGOHANDS_ROOT", str(tmp_path))
+    cfg = resolve_config(compose_cfg("train", [f"dataset={version}"]))
+    d = cfg.dataset
+    assert (d.height, d.width, d.scale, d.upsample, d.dvs_model) == VERSIONS[version]
+    assert d.root == str(tmp_path / version)
+    override = resolve_config(compose_cfg("train", [f"dataset={version}", "dataset.root=/data/x"]))
+    assert override.dataset.root == "/data/x"
+
+
+def test_unset_root_names_the_variable_and_the_override():
+    with pytest.raises(ConfigError, match=r"EVENTEGOHANDS_ROOT.*dataset\.root=/path/to/v6"):
+        resolve_config(compose_cfg("train", ["dataset=v6"]))
+    with pytest.raises(ConfigError, match=r"dataset\.root"):
+        resolve_config(compose_cfg("train", ["dataset=custom"]))
+
+
+def test_unknown_keys_fail_at_composition():
+    with pytest.raises(ConfigCompositionException):
+        compose_cfg("train", ["data.windw_us=10"])
+    with pytest.raises(ConfigCompositionException):
+        compose_cfg("train", ["dataset=v7"])
+
+
+def test_inconsistent_values_fail(tmp_path):
+    with pytest.raises(ConfigError, match=r"dataset\.height"):
+        resolve_config(compose_cfg("train", ["dataset=custom", f"dataset.root={tmp_path}", "dataset.height=10"]))
+    cfg = resolve_config(compose_cfg("train", ["dataset=v6", f"dataset.root={tmp_path / 'absent'}"]))
+    with pytest.raises(ConfigError, match=r"dataset\.root=.*absent of v6 is not a folder"):
+        build_dataset(cfg, "train", train=True)
+
+
+def test_custom_dataset_takes_its_resolution_from_the_frames(dataset):
+    cfg = resolve_config(compose_cfg("train", ["dataset=custom", f"dataset.root={dataset.root}"]))
+    ds = build_dataset(cfg, "train", train=True)
+    assert ds.image_size == (48, 64) and ds.transform is not None
+    assert build_dataset(cfg, "valid", train=False).transform is None
+    wrong = resolve_config(compose_cfg("train", ["dataset=custom", f"dataset.root={dataset.root}",
+                                                 "dataset.height=360", "dataset.width=640"]))
+    with pytest.raises(ValueError, match=r"frame is 64x48 \(WxH\), but the dataset is configured as 640x360"):
+        build_dataset(wrong, "train", train=True)
+    v6 = resolve_config(compose_cfg("train", ["dataset=v6", f"dataset.root={dataset.root}"]))
+    with pytest.raises(ValueError, match=r"configured as 640x360"):
+        build_dataset(v6, "train", train=True)
