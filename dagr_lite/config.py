@@ -39,7 +39,9 @@ def resolve_config(cfg: DictConfig) -> DictConfig:
     try:
         container = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
     except OmegaConfBaseException as err:
-        cause = err.__cause__ if isinstance(err.__cause__, ConfigError) else None
+        cause = err
+        while cause is not None and not isinstance(cause, ConfigError):
+            cause = cause.__cause__ or cause.__context__
         raise ConfigError(str(cause) if cause else f"invalid configuration: {err}") from err
     resolved = OmegaConf.create(container)
     OmegaConf.set_struct(resolved, True)
