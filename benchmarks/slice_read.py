@@ -1,6 +1,6 @@
 """Slice reads through ``timeidx`` against reading whole arrays, on one large event file.
 
-    python benchmarks/slice_read.py [--events 50000000] [--compression blosc|gzip|none] [--out DIR]
+    python benchmarks/slice_read.py [--events 50000000] [--compression blosc|gzip|none] [--chunk N] [--out DIR]
 
 Writes a file of N events (90 s at 30 fps, as one EventEgoHands video) with the project's
 writer, then in the same run measures:
@@ -24,20 +24,21 @@ from tqdm import tqdm
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.reader import EventFile
-from dagr_lite.data.writer import EventFileWriter
+from dagr_lite.data.writer import DEFAULT_CHUNK_EVENTS, EventFileWriter
 
 DURATION_S = 90.0
 HEIGHT, WIDTH = 360, 640
 
 
-def write_file(path: Path, num_events: int, compression: str | None, seed: int = 0) -> None:
+def write_file(path: Path, num_events: int, compression: str | None, chunk: int, seed: int = 0) -> None:
     rng = np.random.default_rng(seed)
     num_frames = int(DURATION_S * fmt.DEFAULT_FPS)
     duration_us = int(DURATION_S * 1e6)
     piece = 2_000_000
     # Sorted uniform timestamps made piecewise: piece i covers its share of the duration.
     bounds = np.linspace(0, duration_us, -(-num_events // piece) + 1).astype(np.int64)
-    with EventFileWriter(path, num_frames=num_frames, compression=compression, overwrite=True) as writer:
+    with EventFileWriter(path, num_frames=num_frames, compression=compression, chunk_events=chunk,
+                         overwrite=True) as writer:
         for i in tqdm(range(len(bounds) - 1), desc="writing", unit="piece"):
             n = min(piece, num_events - i * piece)
             t = np.sort(rng.integers(bounds[i], bounds[i + 1], n))
@@ -69,13 +70,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--events", type=int, default=50_000_000)
     parser.add_argument("--compression", choices=["blosc", "gzip", "none"], default="blosc")
+    parser.add_argument("--chunk", type=int, default=DEFAULT_CHUNK_EVENTS, help="events per HDF5 chunk")
     parser.add_argument("--repeats", type=int, default=200)
     parser.add_argument("--out", type=Path, default=None, help="folder for the file (default: a temporary one)")
     args = parser.parse_args()
     compression = None if args.compression == "none" else args.compression
     with tempfile.TemporaryDirectory(dir=args.out) as tmp:
         path = Path(tmp) / "bench.h5"
-        write_file(path, args.events, compression)
+        write_file(path, args.events, compression, args.chunk)
         size_mb = path.stat().st_size / 2**20
         reader = EventFile(path, num_frames=int(DURATION_S * fmt.DEFAULT_FPS))
         rng = np.random.default_rng(1)
@@ -84,7 +86,7 @@ def main() -> None:
         per_event = full / args.events
         times, counts = window_reads(reader, 33_333, args.repeats, rng)
         median_time, median_count = statistics.median(times), statistics.median(counts)
-        print(f"file: {args.events:,} events, {args.compression}, {size_mb:.0f} MiB")
+        print(f"file: {args.events:,} events, {args.compression}, chunks of {args.chunk:,} events, {size_mb:.0f} MiB")
         print(f"full np.asarray read of x, y, t, p: {full:.2f} s ({per_event * 1e9:.1f} ns/event)")
         print(f"33 ms slice: median {median_time * 1e3:.2f} ms for a median {median_count:,.0f} events "
               f"({median_count / args.events:.5%} of the file)")

@@ -100,9 +100,7 @@ def header_problems(h5: h5py.File, num_frames: int | None = None,
     if problems or num_events == 0:
         return problems
     t = h5[fmt.KEY_T]
-    for k in sorted({0, len(timeidx) // 2, len(timeidx) - 1}):
-        if k < 0:
-            continue
+    for k in sorted({0, len(timeidx) // 2, len(timeidx) - 1} if len(timeidx) else ()):
         i, t_frame = int(timeidx[k]), fmt.frame_time_us(k, fps)
         if (i < num_events and t[i] < t_frame) or (i > 0 and t[i - 1] >= t_frame):
             problems.append((fmt.KEY_TIMEIDX, f"entry {k} = {i} is not the first event at or after "
@@ -169,27 +167,47 @@ class EventFile:
         h5 = self._file()
         return {name: h5[key][start:stop] for name, key in zip("xytp", fmt.EVENT_KEYS)}
 
-    def index_of_time(self, t_us: int) -> int:
-        """Index of the first event with ``t >= t_us``.
+    def _bracket(self, t_us: int) -> tuple[int, int]:
+        """``[lo, hi]`` holding the index of the first event with ``t >= t_us``, from ``timeidx`` alone.
 
-        ``timeidx`` brackets the answer between two frame times; only the timestamps of that
-        one frame interval are read. A frame time itself is answered without any read.
+        Events before ``lo`` are earlier than the last frame time ``<= t_us``; events from ``hi`` on
+        are not earlier than the next frame time. ``lo == hi`` at a frame time.
         """
         j = int(np.searchsorted(self.frame_times, t_us, side="right")) - 1  # last frame with time <= t_us
         if j >= 0 and self.frame_times[j] == t_us:
-            return int(self.timeidx[j])
+            return int(self.timeidx[j]), int(self.timeidx[j])
         lo = 0 if j < 0 else int(self.timeidx[j])
         hi = int(self.timeidx[j + 1]) if j + 1 < self.num_frames else self.num_events
+        return lo, hi
+
+    def index_of_time(self, t_us: int) -> int:
+        """Index of the first event with ``t >= t_us``.
+
+        ``timeidx`` brackets the answer within one frame interval; only the timestamps of that
+        interval are read, and none at a frame time.
+        """
+        lo, hi = self._bracket(t_us)
         if hi <= lo:
             return lo
         t_segment = self._file()[fmt.KEY_T][lo:hi]  # (hi - lo,)
         return lo + int(np.searchsorted(t_segment, t_us, side="left"))
 
     def window(self, t_start_us: int, t_end_us: int) -> dict[str, np.ndarray]:
-        """All events with ``t_start_us <= t < t_end_us`` (empty arrays if there are none)."""
-        start = self.index_of_time(t_start_us)
-        stop = self.index_of_time(t_end_us) if t_end_us > t_start_us else start
-        return self.read(start, stop)
+        """All events with ``t_start_us <= t < t_end_us`` (empty arrays if there are none).
+
+        One read of ``t`` covers the window plus at most one frame interval at each end; the
+        other arrays are read for the window's own events only.
+        """
+        t_end_us = max(t_end_us, t_start_us)
+        lo, _ = self._bracket(t_start_us)
+        _, hi = self._bracket(t_end_us)
+        h5 = self._file()
+        t = h5[fmt.KEY_T][lo:hi]  # (hi - lo,)
+        start = int(np.searchsorted(t, t_start_us, side="left"))
+        stop = int(np.searchsorted(t, t_end_us, side="left"))
+        events = {name: h5[key][lo + start: lo + stop] for name, key in zip("xyp", (fmt.KEY_X, fmt.KEY_Y, fmt.KEY_P))}
+        events["t"] = t[start:stop]
+        return {name: events[name] for name in "xytp"}
 
 
 # Frames.

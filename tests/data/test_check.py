@@ -1,4 +1,6 @@
 import json
+import subprocess
+import sys
 
 import h5py
 import numpy as np
@@ -124,3 +126,11 @@ def test_missing_pieces(tmp_path, dataset_copy):
     found = messages(check_dataset(root))
     assert any("frames/vid_d: frame folder has no events file" in m for m in found)
     assert f"{fmt.labels_path(root)}: label file is missing" in found
+
+
+def test_command_line_reports_and_exits_non_zero(dataset_copy):
+    fmt.labels_path(dataset_copy.root).write_text(json.dumps({"vid_b_frame_50": []}))
+    run = subprocess.run([sys.executable, "-m", "dagr_lite.data.check", str(dataset_copy.root)],
+                         capture_output=True, text=True)
+    assert run.returncode == 1
+    assert "vid_b_frame_50: label for frame 50, but the video has 12 frames" in run.stdout
