@@ -3,8 +3,8 @@
 Coordinates are continuous with pixel ``i`` covering ``[i, i + 1)``: an event at integer pixel
 ``x`` sits at ``x + 0.5``, a box edge at ``x1`` sits at ``x1``. A horizontal flip maps ``u`` to
 ``W - u``; a zoom ``s`` with translation ``(tx, ty)`` maps ``u`` to ``s * u + tx``. Events keep
-fractional pixel coordinates after a zoom; events that leave ``[0, W - 1] x [0, H - 1]`` are
-dropped, boxes are clipped to the image and dropped when thinner than ``min_box_size``.
+fractional pixel coordinates after a zoom; events whose pixel centre leaves the image are
+dropped (the rest stay within ``[0, W - 1] x [0, H - 1]``), boxes are clipped to the image and dropped when thinner than ``min_box_size``.
 """
 from __future__ import annotations
 
@@ -46,8 +46,12 @@ def zoom_translate(sample: Sample, scale: float, tx: float, ty: float, *, min_bo
     events = sample.events.clone()  # (N, 4)
     events[:, 0] = scale * (events[:, 0] + 0.5) + tx - 0.5
     events[:, 1] = scale * (events[:, 1] + 0.5) + ty - 0.5
-    inside = (events[:, 0] >= 0) & (events[:, 0] <= width - 1) & (events[:, 1] >= 0) & (events[:, 1] <= height - 1)
+    # Keep events whose pixel centre stays inside the image, at pixel coordinates in [0, W - 1].
+    inside = ((events[:, 0] >= -0.5) & (events[:, 0] < width - 0.5)
+              & (events[:, 1] >= -0.5) & (events[:, 1] < height - 0.5))
     events = events[inside]
+    events[:, 0].clamp_(0, width - 1)
+    events[:, 1].clamp_(0, height - 1)
 
     boxes = sample.boxes * scale + torch.tensor([tx, ty, tx, ty], dtype=torch.float32)  # (M, 4)
     boxes[:, [0, 2]] = boxes[:, [0, 2]].clamp(0, width)

@@ -31,47 +31,69 @@ def check_events_file(path: Path, *, num_frames: int | None, width: int | None, 
     except DatasetFormatError as err:
         return err.problems
     with h5:
-        problems = [Problem(path, key, msg) for key, msg in header_problems(h5, num_frames, fps)]
-        keys = (*fmt.EVENT_KEYS, fmt.KEY_TIMEIDX)
-        if not all(key in h5 and getattr(h5[key], "ndim", 0) == 1 for key in keys):
+        try:
+            problems = [Problem(path, key, msg) for key, msg in header_problems(h5, num_frames, fps)]
+        except OSError as err:
+            return [Problem(path, "", f"cannot read the file's index ({err})")]
+        if not _readable_in_blocks(h5):
             return problems
-        if len({h5[key].shape[0] for key in fmt.EVENT_KEYS}) != 1:
-            return problems
-        n = h5[fmt.KEY_T].shape[0]
-        timeidx = h5[fmt.KEY_TIMEIDX][()]
-        frame_times = fmt.frame_time_us(np.arange(len(timeidx)), fps)
-        counted = np.zeros(len(timeidx), dtype=np.int64)
-        last_t, sorted_ok = None, True
-        found = {"x": [], "y": [], "p": []}
-        for start in range(0, n, BLOCK_EVENTS):
-            stop = min(n, start + BLOCK_EVENTS)
-            t = h5[fmt.KEY_T][start:stop]
-            if sorted_ok:
-                steps = np.diff(t)
-                if np.any(steps < 0) or (last_t is not None and t[0] < last_t):
-                    i = start + (int(np.argmax(steps < 0)) + 1 if np.any(steps < 0) else 0)
-                    problems.append(Problem(path, fmt.KEY_T, f"not sorted ascending at index {i}"))
-                    sorted_ok = False
-                counted += np.searchsorted(t, frame_times, side="left")
-            last_t = t[-1]
-            for name, key, size in (("x", fmt.KEY_X, width), ("y", fmt.KEY_Y, height)):
-                a = h5[key][start:stop]
-                if not found[name] and (a.min() < 0 or (size is not None and a.max() >= size)):
-                    problems.append(Problem(path, key, f"values must lie in [0, {size}), found "
-                                                       f"[{a.min()}, {a.max()}] in events {start}..{stop - 1}"))
-                    found[name].append(True)
-            p = h5[fmt.KEY_P][start:stop]
-            if not found["p"] and not np.all((p == 0) | (p == 1)):
-                problems.append(Problem(path, fmt.KEY_P, f"values must be 0 or 1, found "
-                                                         f"{np.unique(p)[:5].tolist()}"))
-                found["p"].append(True)
-        if sorted_ok and not any(p.key == fmt.KEY_TIMEIDX for p in problems):
-            wrong = np.flatnonzero(counted != timeidx)
-            if len(wrong):
-                k = int(wrong[0])
-                problems.append(Problem(path, fmt.KEY_TIMEIDX, f"{len(wrong)} entries disagree with events/t, "
-                                                               f"first at frame {k}: {timeidx[k]} stored, "
-                                                               f"{counted[k]} expected"))
+        try:
+            timeidx_reported = any(p.key == fmt.KEY_TIMEIDX for p in problems)
+            problems += _check_event_blocks(h5, path, width=width, height=height, fps=fps,
+                                            check_timeidx=not timeidx_reported)
+        except OSError as err:
+            problems.append(Problem(path, "", f"cannot read the events ({err})"))
+    return problems
+
+
+def _readable_in_blocks(h5) -> bool:
+    """Whether the arrays exist as 1-D integer datasets of one non-zero length."""
+    keys = (*fmt.EVENT_KEYS, fmt.KEY_TIMEIDX)
+    if not all(key in h5 and getattr(h5[key], "ndim", 0) == 1 and np.issubdtype(h5[key].dtype, np.integer)
+               for key in keys):
+        return False
+    return len({h5[key].shape[0] for key in fmt.EVENT_KEYS}) == 1 and h5[fmt.KEY_T].shape[0] > 0
+
+
+def _check_event_blocks(h5, path: Path, *, width: int | None, height: int | None, fps: float,
+                        check_timeidx: bool) -> list[Problem]:
+    """Sortedness, coordinate and polarity ranges and (if asked) ``timeidx`` against ``t``, block by block."""
+    problems = []
+    n = h5[fmt.KEY_T].shape[0]
+    timeidx = h5[fmt.KEY_TIMEIDX][()].astype(np.int64)
+    frame_times = fmt.frame_time_us(np.arange(len(timeidx)), fps)
+    counted = np.zeros(len(timeidx), dtype=np.int64)
+    last_t, sorted_ok, reported = None, True, set()
+    for start in range(0, n, BLOCK_EVENTS):
+        stop = min(n, start + BLOCK_EVENTS)
+        t = h5[fmt.KEY_T][start:stop].astype(np.int64)
+        if sorted_ok:
+            down = np.flatnonzero(t[1:] < t[:-1])
+            if last_t is not None and t[0] < last_t:
+                problems.append(Problem(path, fmt.KEY_T, f"not sorted ascending at index {start}"))
+                sorted_ok = False
+            elif len(down):
+                problems.append(Problem(path, fmt.KEY_T, f"not sorted ascending at index {start + down[0] + 1}"))
+                sorted_ok = False
+            counted += np.searchsorted(t, frame_times, side="left")
+        last_t = t[-1]
+        for key, size in ((fmt.KEY_X, width), (fmt.KEY_Y, height)):
+            a = h5[key][start:stop].astype(np.int64)
+            if key not in reported and (a.min() < 0 or (size is not None and a.max() >= size)):
+                problems.append(Problem(path, key, f"values must lie in [0, {size}), found "
+                                                   f"[{a.min()}, {a.max()}] in events {start}..{stop - 1}"))
+                reported.add(key)
+        p = h5[fmt.KEY_P][start:stop]
+        if fmt.KEY_P not in reported and not np.all((p == 0) | (p == 1)):
+            problems.append(Problem(path, fmt.KEY_P, f"values must be 0 or 1, found {np.unique(p)[:5].tolist()}"))
+            reported.add(fmt.KEY_P)
+    if sorted_ok and check_timeidx:
+        wrong = np.flatnonzero(counted != timeidx)
+        if len(wrong):
+            k = int(wrong[0])
+            problems.append(Problem(path, fmt.KEY_TIMEIDX, f"{len(wrong)} entries disagree with events/t, "
+                                                           f"first at frame {k}: {timeidx[k]} stored, "
+                                                           f"{counted[k]} expected"))
     return problems
 
 

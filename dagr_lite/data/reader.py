@@ -83,23 +83,27 @@ def header_problems(h5: h5py.File, num_frames: int | None = None,
             problems.append((key, f"length {n} differs from {fmt.KEY_T} length {num_events}"))
     if num_events == 0:
         problems.append((fmt.KEY_T, "the file holds no events (expected at least one)"))
-    timeidx = h5[fmt.KEY_TIMEIDX][()]
+    for key in (*fmt.EVENT_KEYS, fmt.KEY_TIMEIDX):
+        if not np.issubdtype(h5[key].dtype, np.integer):
+            problems.append((key, f"dtype {h5[key].dtype} is not an integer type"))
+    if problems:
+        return problems
+    timeidx = h5[fmt.KEY_TIMEIDX][()].astype(np.int64)
     if num_frames is not None and len(timeidx) != num_frames:
         problems.append((fmt.KEY_TIMEIDX, f"has {len(timeidx)} entries but {num_frames} frames exist on disk "
                                           "(expected one entry per frame)"))
-    if not np.issubdtype(timeidx.dtype, np.integer):
-        problems.append((fmt.KEY_TIMEIDX, f"dtype {timeidx.dtype} is not an integer type"))
-        return problems
     if len(timeidx) and (timeidx.min() < 0 or timeidx.max() > num_events):
         problems.append((fmt.KEY_TIMEIDX, f"values must lie in [0, {num_events}], found "
                                           f"[{timeidx.min()}, {timeidx.max()}]"))
-    elif np.any(np.diff(timeidx) < 0):
-        k = int(np.argmax(np.diff(timeidx) < 0))
+    elif np.any(timeidx[1:] < timeidx[:-1]):
+        k = int(np.argmax(timeidx[1:] < timeidx[:-1]))
         problems.append((fmt.KEY_TIMEIDX, f"decreases at frame {k + 1} ({timeidx[k]} -> {timeidx[k + 1]}); "
                                           "expected non-decreasing"))
-    if problems or num_events == 0:
+    if problems:
         return problems
     t = h5[fmt.KEY_T]
+    if t[0] < 0:
+        problems.append((fmt.KEY_T, f"first timestamp is {t[0]}; expected microseconds >= 0 from the video start"))
     for k in sorted({0, len(timeidx) // 2, len(timeidx) - 1} if len(timeidx) else ()):
         i, t_frame = int(timeidx[k]), fmt.frame_time_us(k, fps)
         if (i < num_events and t[i] < t_frame) or (i > 0 and t[i - 1] >= t_frame):
@@ -132,7 +136,10 @@ class EventFile:
         self.path = Path(path)
         self.fps = float(fps)
         with open_h5(self.path) as h5:
-            problems = header_problems(h5, num_frames, self.fps)
+            try:
+                problems = header_problems(h5, num_frames, self.fps)
+            except OSError as err:
+                raise DatasetFormatError.at(self.path, f"cannot read the file's index ({err})") from err
             if problems:
                 raise DatasetFormatError(*(Problem(self.path, key, msg) for key, msg in problems))
             self.num_events = int(h5[fmt.KEY_T].shape[0])
@@ -160,12 +167,19 @@ class EventFile:
             self._h5.close()
         self._h5, self._pid = None, None
 
+    def _read(self, key: str, start: int, stop: int) -> np.ndarray:
+        """``key[start:stop]``; a failing read (a corrupt chunk, a lost disk) names the file and key."""
+        try:
+            values = self._file()[key][start:stop]
+        except OSError as err:
+            raise DatasetFormatError.at(self.path, f"cannot read entries {start}..{stop - 1} ({err})", key=key) from err
+        return values.astype(np.int64) if key == fmt.KEY_T else values
+
     def read(self, start: int, stop: int) -> dict[str, np.ndarray]:
-        """Events ``[start, stop)`` by index, as arrays ``x, y, t, p`` of equal length."""
+        """Events ``[start, stop)`` by index, as arrays ``x, y, t, p`` of equal length (``t`` int64)."""
         start, stop = max(0, int(start)), min(self.num_events, int(stop))
         stop = max(start, stop)
-        h5 = self._file()
-        return {name: h5[key][start:stop] for name, key in zip("xytp", fmt.EVENT_KEYS)}
+        return {name: self._read(key, start, stop) for name, key in zip("xytp", fmt.EVENT_KEYS)}
 
     def _bracket(self, t_us: int) -> tuple[int, int]:
         """``[lo, hi]`` holding the index of the first event with ``t >= t_us``, from ``timeidx`` alone.
@@ -189,7 +203,7 @@ class EventFile:
         lo, hi = self._bracket(t_us)
         if hi <= lo:
             return lo
-        t_segment = self._file()[fmt.KEY_T][lo:hi]  # (hi - lo,)
+        t_segment = self._read(fmt.KEY_T, lo, hi)  # (hi - lo,)
         return lo + int(np.searchsorted(t_segment, t_us, side="left"))
 
     def window(self, t_start_us: int, t_end_us: int) -> dict[str, np.ndarray]:
@@ -201,11 +215,11 @@ class EventFile:
         t_end_us = max(t_end_us, t_start_us)
         lo, _ = self._bracket(t_start_us)
         _, hi = self._bracket(t_end_us)
-        h5 = self._file()
-        t = h5[fmt.KEY_T][lo:hi]  # (hi - lo,)
+        t = self._read(fmt.KEY_T, lo, hi)  # (hi - lo,)
         start = int(np.searchsorted(t, t_start_us, side="left"))
         stop = int(np.searchsorted(t, t_end_us, side="left"))
-        events = {name: h5[key][lo + start: lo + stop] for name, key in zip("xyp", (fmt.KEY_X, fmt.KEY_Y, fmt.KEY_P))}
+        events = {name: self._read(key, lo + start, lo + stop)
+                  for name, key in zip("xyp", (fmt.KEY_X, fmt.KEY_Y, fmt.KEY_P))}
         events["t"] = t[start:stop]
         return {name: events[name] for name in "xytp"}
 

@@ -17,6 +17,7 @@ import numpy as np
 from PIL import Image
 
 from dagr_lite.data import format as fmt
+from dagr_lite.data.reader import list_frames, load_labels_json
 
 # Events per HDF5 chunk. A window read decompresses the chunks it touches, about
 # n / CHUNK + 1 per array, so small chunks keep the constant part of a slice read low; 8192
@@ -70,6 +71,7 @@ class EventFileWriter:
         _check_target(self.path, overwrite)
         if num_frames < 0:
             raise ValueError(f"num_frames must be >= 0, got {num_frames}")
+        options = _compression_kwargs(compression)
         self.height, self.width = height, width
         self._frame_times = fmt.frame_time_us(np.arange(num_frames), fps)  # (K,)
         self._timeidx = np.zeros(num_frames, dtype=np.int64)  # (K,)
@@ -78,7 +80,6 @@ class EventFileWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._tmp_path = self.path.with_name(self.path.name + f".tmp{os.getpid()}")
         self._h5 = h5py.File(self._tmp_path, "w")
-        options = _compression_kwargs(compression)
         self._datasets = {
             key: self._h5.create_dataset(key, shape=(0,), maxshape=(None,), dtype=dtype,
                                          chunks=(int(chunk_events),), **options)
@@ -95,7 +96,11 @@ class EventFileWriter:
         if n == 0:
             return
         x, y, t, p = arrays
-        if np.any(np.diff(t) < 0) or (self._last_t is not None and t[0] < self._last_t):
+        if not all(np.issubdtype(a.dtype, np.integer) for a in arrays):
+            raise ValueError(f"{self.path}: events must be integers, got dtypes "
+                             f"{[str(a.dtype) for a in arrays]} for x, y, t, p")
+        x, y, t = x.astype(np.int64), y.astype(np.int64), t.astype(np.int64)
+        if np.any(t[1:] < t[:-1]) or (self._last_t is not None and t[0] < self._last_t):
             raise ValueError(f"{self.path}: events/t must be sorted ascending across appends")
         if t[0] < 0:
             raise ValueError(f"{self.path}: events/t must be >= 0 (microseconds from the video start), "
@@ -103,8 +108,9 @@ class EventFileWriter:
         if not np.all((p == 0) | (p == 1)):
             raise ValueError(f"{self.path}: events/p must be 0 or 1, found {np.unique(p).tolist()}")
         for name, a, size in (("x", x, self.width), ("y", y, self.height)):
-            if a.min() < 0 or (size is not None and a.max() >= size):
-                raise ValueError(f"{self.path}: events/{name} must lie in [0, {size}), "
+            limit = size if size is not None else np.iinfo(X_DTYPE).max + 1
+            if a.min() < 0 or a.max() >= limit:
+                raise ValueError(f"{self.path}: events/{name} must lie in [0, {limit}), "
                                  f"found [{a.min()}, {a.max()}]")
         for key, a in zip(fmt.EVENT_KEYS, (x, y, t, p)):
             dataset = self._datasets[key]
@@ -118,6 +124,9 @@ class EventFileWriter:
         """Write ``timeidx``, close, and move the file to its final name."""
         if self._h5 is None:
             return self.path
+        if self._count == 0:
+            self.abort()
+            raise ValueError(f"{self.path}: no events were written (a dataset video needs at least one)")
         self._h5.create_dataset(fmt.KEY_TIMEIDX, data=self._timeidx)
         self._h5.close()
         self._h5 = None
@@ -174,8 +183,7 @@ def write_labels(root: Path | str, labels: dict[str, dict[int, np.ndarray]], *, 
     content: dict[str, list] = {}
     if path.exists():
         if merge:
-            from dagr_lite.data.reader import load_labels_json
-            content = load_labels_json(root)
+                content = load_labels_json(root)
         elif not overwrite:
             raise FileExistsError(f"{path}: already exists (pass merge=True or overwrite=True)")
     for video, frames in labels.items():
@@ -200,13 +208,21 @@ def write_video(root: Path | str, split: str, video: str, *, events: dict[str, n
     """
     if split not in fmt.SPLITS:
         raise ValueError(f"split must be one of {fmt.SPLITS}, got {split!r}")
+    events_file = fmt.events_path(root, split, video)
+    _check_target(events_file, overwrite)
+    folder = fmt.frames_dir(root, split, video)
+    if overwrite and folder.is_dir():  # asked to replace the video: no stale frames may stay
+        for name in list_frames(folder).values():
+            (folder / name).unlink()
     num_frames, size = 0, None
     for k, image in enumerate(frames):
         size = image.shape[:2]
         write_frame(fmt.frame_path(root, split, video, k), image, overwrite=overwrite)
         num_frames += 1
-    height, width = size if size is not None else (None, None)
-    write_events(fmt.events_path(root, split, video), events["x"], events["y"], events["t"], events["p"],
+    if num_frames == 0:
+        raise ValueError(f"{folder}: no frames given for video {video!r}")
+    height, width = size
+    write_events(events_file, events["x"], events["y"], events["t"], events["p"],
                  num_frames=num_frames, fps=fps, compression=compression, height=height, width=width,
                  overwrite=overwrite)
     return num_frames

@@ -18,10 +18,14 @@ def describe_dataset(dataset: EventEgoHands) -> str:
 
 def build_loader(dataset: EventEgoHands, *, batch_size: int, num_workers: int, shuffle: bool,
                  seed: int = 0) -> DataLoader:
+    """A loader over ``dataset`` with :func:`collate`.
+
+    Workers are started per epoch (not persistent), so ``dataset.set_epoch`` reaches them.
+    """
     generator = torch.Generator().manual_seed(seed)
     return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle, num_workers=num_workers,
                       collate_fn=collate, drop_last=False, generator=generator,
-                      persistent_workers=num_workers > 0, pin_memory=torch.cuda.is_available())
+                      pin_memory=torch.cuda.is_available())
 
 
 def train(cfg: DictConfig) -> dict:

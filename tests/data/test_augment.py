@@ -96,3 +96,12 @@ def test_bad_settings():
         TrainAugment(zoom=(1.5, 1.0))
     with pytest.raises(ValueError, match="flip_prob"):
         TrainAugment(flip_prob=2)
+
+
+def test_events_whose_pixel_centre_stays_inside_are_kept_within_pixel_range():
+    sample = make_sample((0.0, 0.0, 10.0, 10.0))
+    out = zoom_translate(sample, 1.0, -0.3, 0.0)  # column 0 moves to -0.3: its centre (0.2) is inside
+    assert len(out.events) == len(sample.events)
+    assert out.events[:, 0].min() == 0.0
+    gone = zoom_translate(sample, 1.0, -0.6, 0.0)  # column 0's centre moves to -0.1: outside
+    assert len(gone.events) == len(sample.events) - 10

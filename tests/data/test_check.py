@@ -134,3 +134,28 @@ def test_command_line_reports_and_exits_non_zero(dataset_copy):
                          capture_output=True, text=True)
     assert run.returncode == 1
     assert "vid_b_frame_50: label for frame 50, but the video has 12 frames" in run.stdout
+
+
+def test_unsigned_unsorted_timestamps_are_reported(dataset_copy):
+    path = fmt.events_path(dataset_copy.root, "train", "vid_b")
+
+    def to_unsorted_uint32(h5):
+        t = h5[fmt.KEY_T][()].astype(np.uint32)
+        t[20], t[21] = t[21] + 1, t[20]
+        replace(h5, fmt.KEY_T, t)
+
+    edit_h5(path, to_unsorted_uint32)
+    assert f"{path}: events/t: not sorted ascending at index 21" in messages(check_dataset(dataset_copy.root))
+
+
+def test_unreadable_chunks_are_reported_not_raised(tmp_path):
+    from tests.conftest import make_dataset
+    written = make_dataset(tmp_path / "ds", compression="gzip", events_per_video=20_000)
+    path = fmt.events_path(written.root, "test", "vid_d")
+    with h5py.File(path, "r") as h5:
+        info = h5[fmt.KEY_Y].id.get_chunk_info(1)
+    with open(path, "r+b") as f:
+        f.seek(info.byte_offset)
+        f.write(b"\x00garbage" * (info.size // 8))
+    found = messages(check_dataset(written.root))
+    assert any(m.startswith(f"{path}: cannot read the events") for m in found), found

@@ -88,6 +88,16 @@ def test_loader_workers_reopen_files(dataset):
     assert torch.equal(batches[0].events, first.events)
 
 
+def test_new_epochs_reach_loader_workers(dataset):
+    from dagr_lite.engine.train import build_loader
+    ds = EventEgoHands(dataset.root, "train", max_events=20, seed=0)
+    loader = build_loader(ds, batch_size=8, num_workers=2, shuffle=False)
+    first = next(iter(loader)).events
+    assert torch.equal(next(iter(loader)).events, first)
+    ds.set_epoch(1)
+    assert not torch.equal(next(iter(loader)).events, first)
+
+
 def test_missing_split_folder(dataset):
     with pytest.raises(DatasetFormatError, match=r"valid: split folder is missing"):
         EventEgoHands(dataset.root / "nowhere", "valid")

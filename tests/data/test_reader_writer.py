@@ -7,7 +7,7 @@ import pytest
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.reader import (DatasetFormatError, EventFile, list_videos, read_frame, read_labels)
-from dagr_lite.data.writer import EventFileWriter, write_events, write_frame, write_labels
+from dagr_lite.data.writer import EventFileWriter, write_events, write_frame, write_labels, write_video
 from tests.conftest import make_dataset, random_events
 
 
@@ -109,14 +109,38 @@ def test_writer_never_replaces_and_never_leaves_partial_files(tmp_path):
 
 
 @pytest.mark.parametrize("bad,match", [
-    (dict(t=[5, 3]), "sorted"), (dict(p=[0, 2]), "events/p must be 0 or 1"),
-    (dict(x=[0, 64]), r"events/x must lie in \[0, 64\)"), (dict(t=[-1, 3]), ">= 0"), (dict(y=[1]), "has 1 values"),
+    (dict(t=[5, 3]), "sorted"), (dict(t=np.array([5, 3], np.uint64)), "sorted"),
+    (dict(p=[0, 2]), "events/p must be 0 or 1"), (dict(x=[0, 64]), r"events/x must lie in \[0, 64\)"),
+    (dict(t=[-1, 3]), ">= 0"), (dict(y=[1]), "has 1 values"), (dict(t=[0.5, 1.0]), "must be integers"),
 ])
 def test_writer_rejects_bad_events(tmp_path, bad, match):
     events = {"x": [0, 1], "y": [0, 1], "t": [1, 2], "p": [0, 1], **bad}
     with pytest.raises(ValueError, match=match):
         write_events(tmp_path / "v.h5", **events, num_frames=1, width=64, height=48)
     assert not list(tmp_path.iterdir())
+
+
+def test_writer_checks_coordinates_and_options_before_writing(tmp_path):
+    with pytest.raises(ValueError, match=r"events/x must lie in \[0, 65536\)"):
+        write_events(tmp_path / "v.h5", [70_000], [1], [1], [1], num_frames=1)  # would wrap in uint16
+    with pytest.raises(ValueError, match="compression must be one of"):
+        write_events(tmp_path / "w.h5", [1], [1], [1], [1], num_frames=1, compression="zstd")
+    assert not list(tmp_path.iterdir())
+
+
+def test_rewriting_a_video_removes_its_old_frames(tmp_path):
+    frames = [np.full((8, 8, 3), 50, np.uint8)] * 5
+    events = {"x": [1], "y": [1], "t": [10], "p": [1]}
+    write_video(tmp_path, "train", "v", events=events, frames=frames)
+    with pytest.raises(FileExistsError, match=r"v\.h5"):
+        write_video(tmp_path, "train", "v", events=events, frames=frames[:3])
+    assert len(list(fmt.frames_dir(tmp_path, "train", "v").iterdir())) == 5  # nothing was touched
+    write_video(tmp_path, "train", "v", events=events, frames=frames[:3], overwrite=True)
+    assert sorted(p.name for p in fmt.frames_dir(tmp_path, "train", "v").iterdir()) == [
+        "frame_0.jpg", "frame_1.jpg", "frame_2.jpg"]
+    assert EventFile(fmt.events_path(tmp_path, "train", "v"), num_frames=3).num_frames == 3
+    with pytest.raises(ValueError, match="no frames given"):
+        write_video(tmp_path, "train", "w", events=events, frames=[])
 
 
 def test_reader_errors_name_file_and_key(tmp_path):
@@ -135,9 +159,43 @@ def test_reader_errors_name_file_and_key(tmp_path):
 
 
 def test_file_without_events_is_an_error(tmp_path):
-    path = write_events(tmp_path / "empty.h5", [], [], [], [], num_frames=3)
+    path = tmp_path / "empty.h5"
+    with h5py.File(path, "w") as h5:
+        for key in fmt.EVENT_KEYS:
+            h5[key] = np.zeros(0, np.int64)
+        h5[fmt.KEY_TIMEIDX] = np.zeros(3, np.int64)
     with pytest.raises(DatasetFormatError, match=r"empty\.h5: events/t: the file holds no events"):
         EventFile(path, num_frames=3)
+    # The writer never makes such a file.
+    with pytest.raises(ValueError, match=r"empty2\.h5: no events were written"):
+        write_events(tmp_path / "empty2.h5", [], [], [], [], num_frames=3)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.h5"]
+
+
+def test_unsigned_timestamps_read_and_check_like_signed_ones(tmp_path):
+    path = tmp_path / "u.h5"
+    t = np.array([0, 10, 40_000, 70_000], np.uint32)
+    with h5py.File(path, "w") as h5:
+        h5[fmt.KEY_X], h5[fmt.KEY_Y] = np.arange(4, dtype=np.uint16), np.arange(4, dtype=np.uint16)
+        h5[fmt.KEY_T], h5[fmt.KEY_P] = t, np.ones(4, np.uint8)
+        h5[fmt.KEY_TIMEIDX] = fmt.expected_timeidx(t.astype(np.int64), 3).astype(np.uint32)
+    reader = EventFile(path, num_frames=3)
+    window = reader.window(-33_333, 33_333)  # starts before 0: must not wrap around
+    assert window["t"].dtype == np.int64 and window["t"].tolist() == [0, 10]
+    assert (window["t"] - (-33_333)).tolist() == [33_333, 33_343]
+
+
+def test_corrupt_chunk_names_the_file_and_key(tmp_path):
+    events = random_events(np.random.default_rng(0), 20_000, fmt.frame_time_us(4))
+    path = write_events(tmp_path / "c.h5", **events, num_frames=4, compression="gzip", chunk_events=4096)
+    with h5py.File(path, "r") as h5:
+        info = h5[fmt.KEY_X].id.get_chunk_info(2)
+    with open(path, "r+b") as f:
+        f.seek(info.byte_offset)
+        f.write(b"\x00garbage" * (info.size // 8))
+    reader = EventFile(path, num_frames=4)
+    with pytest.raises(DatasetFormatError, match=r"c\.h5: events/x: cannot read entries"):
+        reader.read(0, 20_000)
 
 
 def test_timeidx_that_disagrees_with_t_is_an_error(tmp_path):
