@@ -198,31 +198,88 @@ def write_labels(root: Path | str, labels: dict[str, dict[int, np.ndarray]], *, 
     return path
 
 
+class VideoWriter:
+    """Writes one video of a split as it is produced: frames one by one, events in pieces.
+
+    Frames go straight to their JPEG files; the events file is created under a temporary name
+    and appears only on :meth:`close`, after all ``num_frames`` frames were added, so a video
+    whose events file exists is complete. Leaving the ``with`` block through an exception
+    discards the events; frames left by an incomplete video are removed when it is written again.
+
+    Args:
+        root, split, video: where the video goes.
+        num_frames: how many frames will be added.
+        height, width: frame size (events must lie inside it).
+        fps, compression: as for :class:`EventFileWriter`.
+        overwrite: replace an existing video (its old frames are removed first).
+    """
+
+    def __init__(self, root: Path | str, split: str, video: str, *, num_frames: int, height: int, width: int,
+                 fps: float = fmt.DEFAULT_FPS, compression: str | None = "blosc", overwrite: bool = False):
+        if split not in fmt.SPLITS:
+            raise ValueError(f"split must be one of {fmt.SPLITS}, got {split!r}")
+        if num_frames <= 0:
+            raise ValueError(f"{fmt.frames_dir(root, split, video)}: a video needs at least one frame, "
+                             f"got num_frames={num_frames}")
+        self.root, self.split, self.video = Path(root), split, video
+        self.num_frames, self.height, self.width = int(num_frames), int(height), int(width)
+        self.folder = fmt.frames_dir(root, split, video)
+        self._events = EventFileWriter(fmt.events_path(root, split, video), num_frames=num_frames, fps=fps,
+                                       compression=compression, height=height, width=width, overwrite=overwrite)
+        # Either the video is being replaced (overwrite) or it never completed (no events file):
+        # in both cases frames left in its folder are stale.
+        if self.folder.is_dir():
+            for name in list_frames(self.folder).values():
+                (self.folder / name).unlink()
+        self.frames_written = 0
+
+    def add_frame(self, image: np.ndarray) -> None:
+        """Write the next frame, an ``(H, W, 3)`` uint8 RGB image."""
+        if self.frames_written >= self.num_frames:
+            raise ValueError(f"{self.folder}: more than the {self.num_frames} frames announced")
+        if image.shape[:2] != (self.height, self.width):
+            raise ValueError(f"{self.folder}: frame {self.frames_written} is {image.shape[1]}x{image.shape[0]} "
+                             f"(WxH), expected {self.width}x{self.height}")
+        write_frame(self.folder / fmt.frame_name(self.frames_written), image, overwrite=True)
+        self.frames_written += 1
+
+    def add_events(self, x, y, t, p) -> None:
+        """Append events (sorted by ``t``, not earlier than those added before)."""
+        self._events.append(x, y, t, p)
+
+    def close(self) -> Path:
+        if self.frames_written != self.num_frames:
+            self.abort()
+            raise ValueError(f"{self.folder}: {self.frames_written} frames written, {self.num_frames} announced")
+        return self._events.close()
+
+    def abort(self) -> None:
+        self._events.abort()
+
+    def __enter__(self) -> "VideoWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
 def write_video(root: Path | str, split: str, video: str, *, events: dict[str, np.ndarray],
                 frames: Iterable[np.ndarray], fps: float = fmt.DEFAULT_FPS,
                 compression: str | None = "blosc", overwrite: bool = False) -> int:
-    """Write one video's frames and then its event file; returns the number of frames.
+    """Write one video's frames and events at once (see :class:`VideoWriter`); returns the frame count.
 
-    ``events`` holds arrays ``x, y, t, p``. The events file is written last, so a video whose
-    events file exists is complete.
+    ``events`` holds arrays ``x, y, t, p``.
     """
-    if split not in fmt.SPLITS:
-        raise ValueError(f"split must be one of {fmt.SPLITS}, got {split!r}")
-    events_file = fmt.events_path(root, split, video)
-    _check_target(events_file, overwrite)
-    folder = fmt.frames_dir(root, split, video)
-    if overwrite and folder.is_dir():  # asked to replace the video: no stale frames may stay
-        for name in list_frames(folder).values():
-            (folder / name).unlink()
-    num_frames, size = 0, None
-    for k, image in enumerate(frames):
-        size = image.shape[:2]
-        write_frame(fmt.frame_path(root, split, video, k), image, overwrite=overwrite)
-        num_frames += 1
-    if num_frames == 0:
-        raise ValueError(f"{folder}: no frames given for video {video!r}")
-    height, width = size
-    write_events(events_file, events["x"], events["y"], events["t"], events["p"],
-                 num_frames=num_frames, fps=fps, compression=compression, height=height, width=width,
-                 overwrite=overwrite)
-    return num_frames
+    frames = list(frames)
+    if not frames:
+        raise ValueError(f"{fmt.frames_dir(root, split, video)}: no frames given for video {video!r}")
+    height, width = frames[0].shape[:2]
+    with VideoWriter(root, split, video, num_frames=len(frames), height=height, width=width, fps=fps,
+                     compression=compression, overwrite=overwrite) as writer:
+        for image in frames:
+            writer.add_frame(image)
+        writer.add_events(events["x"], events["y"], events["t"], events["p"])
+    return len(frames)

@@ -1,10 +1,12 @@
-"""A small deterministic EventEgoHands-like dataset for tests and the default run.
+"""The stub dataset: small, deterministic, EventEgoHands-like, made by the dataset pipeline itself.
 
-Skin-toned elliptical "hands" move and rotate over a textured background; frames are rendered
-at 30 fps and events come from log-intensity changes between finely spaced sub-frames
-(a change of one contrast threshold gives one event, timestamps spread across the
-sub-frame interval). Boxes are the exact extents of the visible hands at each frame.
-Everything is written with :mod:`dagr_lite.data.writer`, in the release layout.
+Synthetic egocentric scenes: two to four skin-toned hands (a palm and five fingers each) that
+move fast, rotate, open and close, overlap, and leave and re-enter the frame, over a textured
+background with camera shake and a slowly changing brightness. Frames are rendered at 30 fps;
+the DVS emulator (:mod:`dagr_lite.synth.dvs`) runs over ``STUB_UPSAMPLE`` steps per frame
+interval, the scene itself rendering the in-between frames exactly; frames, events and a box
+per visible hand per frame are written in the release layout by the same code as any other
+dataset (:func:`dagr_lite.synth.video.emulate_video`).
 """
 from __future__ import annotations
 
@@ -18,15 +20,19 @@ from scipy.ndimage import zoom as nd_zoom
 from tqdm import tqdm
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.writer import write_labels, write_video
+from dagr_lite.data.writer import VideoWriter, write_labels
+from dagr_lite.synth.dvs import preset
+from dagr_lite.synth.video import emulate_video
 
 # Bump when the generated data changes, so caches made by an older recipe are not reused.
-STUB_VERSION = 1
+STUB_VERSION = 2
 STUB_HEIGHT, STUB_WIDTH = 180, 320
 STUB_SPLITS = {"train": 4, "valid": 1, "test": 1}
 STUB_SECONDS = 3.0
-STUB_UPSAMPLE = 5
-CONTRAST_THRESHOLD = 0.2
+STUB_UPSAMPLE = 6
+STUB_DVS_MODEL = "clean"
+MIN_BOX_SIZE = 4.0
+SHAKE_MARGIN = 8
 
 
 def default_cache_dir() -> Path:
@@ -46,119 +52,146 @@ def stub_root(cache_dir: Path | str | None = None) -> Path:
         generate_stub(tmp)
         os.rename(tmp, root)
     except OSError:
-        if not root.is_dir():
+        if not root.is_dir():  # another process finished first: use its copy
             raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return root
 
 
-class _Scene:
-    """Hands (ellipses) over a textured background, rendered at any time ``t`` in seconds."""
+# Finger layout of a hand: angle from the hand's axis (rad), length and width relative to the palm.
+_FINGERS = ((-0.55, 0.9, 0.22), (-0.2, 1.05, 0.22), (0.12, 1.0, 0.22), (0.42, 0.85, 0.2), (1.2, 0.75, 0.25))
 
-    def __init__(self, rng: np.random.Generator, height: int, width: int):
-        self.height, self.width = height, width
-        texture = nd_zoom(rng.random((height // 12 + 4, width // 12 + 4, 3)), (12, 12, 1), order=1)
-        self.background = (0.25 + 0.5 * texture[: height + 24, : width + 24]).astype(np.float32)
-        self.num_hands = int(rng.integers(2, 4))
-        self.centre = rng.uniform([0.15 * width, 0.2 * height], [0.85 * width, 0.8 * height], (self.num_hands, 2))
-        self.velocity = rng.uniform(-60, 60, (self.num_hands, 2))  # px/s
-        self.wobble = rng.uniform(10, 40, (self.num_hands, 2))  # px
-        self.freq = rng.uniform(0.3, 1.2, (self.num_hands, 1))  # Hz
-        self.axes = rng.uniform([14, 9], [30, 18], (self.num_hands, 2))  # semi-axes, px
-        self.spin = rng.uniform(-1.5, 1.5, self.num_hands)  # rad/s
-        self.angle0 = rng.uniform(0, np.pi, self.num_hands)
-        self.colour = rng.uniform([0.75, 0.5, 0.4], [0.95, 0.7, 0.55], (self.num_hands, 3)).astype(np.float32)
-        self.shake = rng.uniform(2, 6)
+
+class HandScene:
+    """A synthetic egocentric scene, rendered at any time ``t`` (seconds).
+
+    Implements the frame-source interface of :mod:`dagr_lite.synth.video`.
+    """
+
+    def __init__(self, seed: int, *, height: int = STUB_HEIGHT, width: int = STUB_WIDTH, seconds: float = STUB_SECONDS,
+                 fps: float = fmt.DEFAULT_FPS):
+        rng = np.random.default_rng(seed)
+        self.height, self.width, self.fps = height, width, fps
+        self.num_frames = int(round(seconds * fps))
+        # Background: two scales of smooth noise in non-skin colours, larger than the frame for the shake.
+        big = (height + 2 * SHAKE_MARGIN, width + 2 * SHAKE_MARGIN)
+        coarse = nd_zoom(rng.random((big[0] // 30 + 2, big[1] // 30 + 2)), 30, order=3)[: big[0], : big[1]]
+        fine = nd_zoom(rng.random((big[0] // 6 + 2, big[1] // 6 + 2)), 6, order=1)[: big[0], : big[1]]
+        tint = rng.uniform([0.25, 0.35, 0.4], [0.45, 0.55, 0.7])
+        pattern = np.clip(0.55 * coarse + 0.45 * fine, 0, 1)[..., None]
+        self.background = (tint * (0.5 + 0.8 * pattern) * 255).astype(np.float32)  # (H + 2m, W + 2m, 3)
+        self.shake_amp = rng.uniform(1.0, 3.0, 2)
+        self.shake_freq = rng.uniform(1.5, 4.0, 2)
+        self.light_freq, self.light_phase = rng.uniform(0.2, 0.6), rng.uniform(0, 2 * np.pi)
+        # Hands.
+        n = int(rng.integers(2, 5))
+        self.palm = rng.uniform([14, 10], [22, 15], (n, 2))  # palm semi-axes, px
+        margin = 2.2 * self.palm[:, 0]
+        self.span = np.stack([width + 2 * margin, height + 2 * margin], 1)  # wrap-around period, px
+        self.margin = margin
+        self.start = rng.uniform(0, 1, (n, 2)) * self.span
+        speed = rng.uniform(90, 320, n)  # px/s: 3 to 11 px per frame
+        heading = rng.uniform(0, 2 * np.pi, n)
+        self.velocity = np.stack([np.cos(heading), 0.45 * np.sin(heading)], 1) * speed[:, None]
+        self.wobble = rng.uniform(5, 25, (n, 2))
+        self.wobble_freq = rng.uniform(0.5, 2.0, (n, 1))
+        self.angle0, self.spin = rng.uniform(0, 2 * np.pi, n), rng.uniform(-2.5, 2.5, n)
+        self.grip_freq, self.grip_phase = rng.uniform(0.4, 1.5, n), rng.uniform(0, 2 * np.pi, n)
+        self.skin = rng.uniform([200, 140, 110], [245, 190, 160], (n, 3)).astype(np.float32)
         self.yy, self.xx = np.mgrid[0:height, 0:width].astype(np.float32) + 0.5
 
-    def hands(self, t: float):
-        centre = self.centre + self.velocity * t + self.wobble * np.sin(2 * np.pi * self.freq * t)
-        centre = np.stack([np.mod(centre[:, 0], self.width * 1.3) - 0.15 * self.width,
-                           np.clip(centre[:, 1], 0, self.height)], axis=1)
-        opening = 1 + 0.25 * np.sin(2 * np.pi * self.freq[:, 0] * 1.7 * t)
-        axes = self.axes * np.stack([opening, np.ones_like(opening)], axis=1)
-        return centre, axes, self.angle0 + self.spin * t
+    # Geometry.
+
+    def _hands(self, t: float):
+        pos = self.start + self.velocity * t + self.wobble * np.sin(2 * np.pi * self.wobble_freq * t)
+        pos = np.mod(pos, self.span) - self.margin[:, None]  # leaves one side, re-enters the other
+        angle = self.angle0 + self.spin * t
+        openness = 0.55 + 0.45 * np.sin(2 * np.pi * self.grip_freq * t + self.grip_phase)  # 0.1 .. 1
+        return pos, angle, openness
+
+    def _ellipses(self, t: float):
+        """Per hand, a list of ellipses ``(cx, cy, a, b, angle)``: the palm and five fingers."""
+        out = []
+        for (cx, cy), angle, openness, (a, b) in zip(*self._hands(t), self.palm):
+            parts = [(cx, cy, a, b, angle)]
+            for offset, length, width in _FINGERS:
+                direction = angle + offset * (0.6 + 0.6 * openness)
+                half = 0.5 * length * a * (0.45 + 0.55 * openness)
+                reach = 0.8 * a + half
+                parts.append((cx + reach * np.cos(direction), cy + reach * np.sin(direction), half,
+                              width * b, direction))
+            out.append(parts)
+        return out
+
+    @staticmethod
+    def _extent(a: float, b: float, angle: float) -> tuple[float, float]:
+        return (float(np.hypot(a * np.cos(angle), b * np.sin(angle))),
+                float(np.hypot(a * np.sin(angle), b * np.cos(angle))))
+
+    # Rendering.
 
     def render(self, t: float) -> np.ndarray:
-        """``(H, W, 3)`` float32 RGB in [0, 1]."""
-        dx, dy = (np.round(12 + self.shake * np.sin([3.1 * t, 2.3 * t + 1])).astype(int))
-        image = self.background[dy: dy + self.height, dx: dx + self.width].copy()
-        image *= 0.85 + 0.15 * np.sin(0.9 * t)  # slow brightness change
-        for (cx, cy), (a, b), angle, colour in zip(*self.hands(t), self.colour):
-            # Only the pixels of the hand's bounding square can change.
-            x0, x1 = max(int(cx - a) - 1, 0), min(int(cx + a) + 2, self.width)
-            y0, y1 = max(int(cy - a) - 1, 0), min(int(cy + a) + 2, self.height)
-            if x0 >= x1 or y0 >= y1:
-                continue
-            xx, yy = self.xx[y0:y1, x0:x1] - cx, self.yy[y0:y1, x0:x1] - cy
-            u = xx * np.cos(angle) + yy * np.sin(angle)
-            v = -xx * np.sin(angle) + yy * np.cos(angle)
-            r = (u / a) ** 2 + (v / b) ** 2
-            shade = (1.0 - 0.3 * np.clip(r, 0, 1))[..., None] * colour
-            image[y0:y1, x0:x1] = np.where((r <= 1)[..., None], shade, image[y0:y1, x0:x1])
-        return image
+        """``(H, W, 3)`` float32 RGB in digital numbers at time ``t`` (seconds)."""
+        h, w, m = self.height, self.width, SHAKE_MARGIN
+        shake = self.shake_amp * np.sin(2 * np.pi * self.shake_freq * t + np.array([0.0, 1.3]))
+        ox, oy = m + shake[0], m + shake[1]
+        x0, y0 = int(np.floor(ox)), int(np.floor(oy))
+        fx, fy = ox - x0, oy - y0
+        bg = self.background
+        image = ((1 - fy) * ((1 - fx) * bg[y0:y0 + h, x0:x0 + w] + fx * bg[y0:y0 + h, x0 + 1:x0 + 1 + w])
+                 + fy * ((1 - fx) * bg[y0 + 1:y0 + 1 + h, x0:x0 + w] + fx * bg[y0 + 1:y0 + 1 + h, x0 + 1:x0 + 1 + w]))
+        for parts, skin in zip(self._ellipses(t), self.skin):
+            for cx, cy, a, b, angle in parts:
+                ex, ey = self._extent(a, b, angle)
+                c0, c1 = max(int(cx - ex) - 1, 0), min(int(cx + ex) + 2, w)
+                r0, r1 = max(int(cy - ey) - 1, 0), min(int(cy + ey) + 2, h)
+                if c0 >= c1 or r0 >= r1:
+                    continue
+                dx, dy = self.xx[r0:r1, c0:c1] - cx, self.yy[r0:r1, c0:c1] - cy
+                u = (dx * np.cos(angle) + dy * np.sin(angle)) / a
+                v = (-dx * np.sin(angle) + dy * np.cos(angle)) / b
+                r = u * u + v * v
+                inside = r <= 1
+                shade = skin * (0.7 + 0.3 * (1 - r[..., None]))  # rounded look: darker at the rim
+                region = image[r0:r1, c0:c1]
+                region[inside] = shade[inside]
+        gain = 0.8 + 0.2 * np.sin(2 * np.pi * self.light_freq * t + self.light_phase)
+        return np.clip(image * gain, 0, 255)
 
-    def boxes(self, t: float) -> np.ndarray:
-        """``(M, 4)`` xywh of the visible hands at time ``t``."""
+    def frame(self, k: int) -> np.ndarray:
+        return self.render(k / self.fps)
+
+    def between(self, k: int, alpha: float) -> np.ndarray:
+        return self.render((k + alpha) / self.fps)
+
+    def boxes(self, k: int) -> np.ndarray:
+        """``(M, 4)`` xywh of the hands visible at frame ``k`` (at least ``MIN_BOX_SIZE`` px each way)."""
         out = []
-        for (cx, cy), (a, b), angle in zip(*self.hands(t)):
-            hx = np.sqrt((a * np.cos(angle)) ** 2 + (b * np.sin(angle)) ** 2)
-            hy = np.sqrt((a * np.sin(angle)) ** 2 + (b * np.cos(angle)) ** 2)
-            x1, y1 = max(cx - hx, 0.0), max(cy - hy, 0.0)
-            x2, y2 = min(cx + hx, self.width), min(cy + hy, self.height)
-            if x2 - x1 >= 3 and y2 - y1 >= 3:
+        for parts in self._ellipses(k / self.fps):
+            extents = [(cx - ex, cy - ey, cx + ex, cy + ey)
+                       for cx, cy, a, b, angle in parts for ex, ey in [self._extent(a, b, angle)]]
+            x1, y1 = max(min(e[0] for e in extents), 0.0), max(min(e[1] for e in extents), 0.0)
+            x2 = min(max(e[2] for e in extents), float(self.width))
+            y2 = min(max(e[3] for e in extents), float(self.height))
+            if x2 - x1 >= MIN_BOX_SIZE and y2 - y1 >= MIN_BOX_SIZE:
                 out.append([x1, y1, x2 - x1, y2 - y1])
         return np.asarray(out, dtype=np.float64).reshape(-1, 4)
 
 
-def _log_luma(rgb: np.ndarray) -> np.ndarray:
-    luma = rgb @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
-    return np.log(luma * 255.0 + 1.0)
-
-
-def simulate_video(seed: int, *, num_frames: int, height: int = STUB_HEIGHT, width: int = STUB_WIDTH,
-                   fps: float = fmt.DEFAULT_FPS, upsample: int = STUB_UPSAMPLE):
-    """Frames (uint8), events (x, y, t, p) and per-frame xywh boxes of one synthetic video."""
-    rng = np.random.default_rng(seed)
-    scene = _Scene(rng, height, width)
-    frames, boxes, chunks = [], {}, []
-    memory = _log_luma(scene.render(0.0))
-    t_prev = 0
-    for k in range(num_frames):
-        frames.append((scene.render(k / fps) * 255).round().astype(np.uint8))
-        boxes[k] = scene.boxes(k / fps)
-        if k == num_frames - 1:
-            break
-        for j in range(1, upsample + 1):
-            t_now = fmt.frame_time_us(k, fps) + round((1e6 / fps) * j / upsample)
-            change = _log_luma(scene.render(t_now * 1e-6)) - memory
-            count = np.minimum(np.floor(np.abs(change) / CONTRAST_THRESHOLD), 8).astype(np.int64)
-            memory += np.sign(change) * count * CONTRAST_THRESHOLD
-            ys, xs = np.nonzero(count)
-            n = count[ys, xs]
-            rep = np.repeat(np.arange(len(n)), n)
-            order = np.arange(len(rep)) - np.repeat(np.cumsum(n) - n, n)  # j-th event of its pixel
-            t = t_prev + ((order + 1) / (n[rep] + 1) * (t_now - t_prev)).astype(np.int64)
-            p = (change[ys, xs] > 0).astype(np.uint8)[rep]
-            sort = np.argsort(t, kind="stable")
-            chunks.append((xs[rep][sort], ys[rep][sort], t[sort], p[sort]))
-            t_prev = t_now
-    x, y, t, p = (np.concatenate(c) for c in zip(*chunks)) if chunks else (np.zeros(0, np.int64),) * 4
-    return frames, {"x": x, "y": y, "t": t, "p": p}, boxes
-
-
 def generate_stub(out: Path | str, *, seconds: float = STUB_SECONDS, splits: dict[str, int] | None = None,
-                  seed: int = 0, compression: str | None = "blosc") -> Path:
-    """Write the stub dataset to ``out`` (must not hold a dataset already)."""
+                  seed: int = 0, upsample: int = STUB_UPSAMPLE, dvs_model: str = STUB_DVS_MODEL,
+                  compression: str | None = "blosc", progress: bool = True) -> Path:
+    """Write the stub dataset to ``out``; videos are ``stub_000``, ``stub_001``, ... in split order."""
     out = Path(out)
-    num_frames = int(round(seconds * fmt.DEFAULT_FPS))
     jobs = [split for split, count in (splits or STUB_SPLITS).items() for _ in range(count)]
     labels = {}
-    for index, split in enumerate(tqdm(jobs, desc="stub videos", unit="video")):
+    for index, split in enumerate(tqdm(jobs, desc="stub videos", unit="video", disable=not progress)):
         video = f"stub_{index:03d}"
-        frames, events, boxes = simulate_video(seed * 1000 + index, num_frames=num_frames)
-        write_video(out, split, video, events=events, frames=frames, compression=compression)
-        labels[video] = boxes
+        scene = HandScene(seed * 1000 + index, seconds=seconds)
+        with VideoWriter(out, split, video, num_frames=scene.num_frames, height=scene.height, width=scene.width,
+                         compression=compression) as writer:
+            emulate_video(scene, writer, params=preset(dvs_model), upsample=upsample, seed=seed * 1000 + index)
+        labels[video] = {k: scene.boxes(k) for k in range(scene.num_frames)}
     write_labels(out, labels)
     return out

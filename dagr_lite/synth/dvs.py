@@ -1,0 +1,228 @@
+"""A v2e-style DVS pixel emulator, vectorised over pixels (numpy).
+
+The model follows the published description of v2e (Hu, Liu, Delbruck, CVPR Workshops 2021):
+
+1. Luma from RGB (BT.601 weights), in digital numbers 0..255.
+2. Lin-log conversion: ``log(x)`` above ``lin_log_dn`` (20 DN), the straight line
+   ``x * log(lin_log_dn) / lin_log_dn`` below it, continuous at the joint.
+3. Optional photoreceptor low-pass, first order, with a cutoff that scales with intensity
+   (``cutoff_hz`` at full scale, lower in the dark): ``eps = dt * 2 pi cutoff_hz * (I + 20) / 275``,
+   clamped to 1. ``cutoff_hz = 0`` is unlimited bandwidth.
+4. Per-pixel ON and OFF thresholds drawn once from ``N(theta, sigma)`` and clamped to
+   ``min_threshold``.
+5. At each step, a pixel emits ``floor(|L - M| / theta)`` events of the sign of ``L - M``, where
+   ``L`` is the filtered log intensity and ``M`` the memorised level; ``M`` moves by the emitted
+   events only, so the remainder carries over to the next step.
+6. A pixel's events of one step are spread evenly across the step's interval.
+7. Optional refractory period (events closer than it to the pixel's previous event are not
+   emitted, and ``M`` does not move for them), leak events (``M`` drifts down by
+   ``leak_rate_hz * theta_on`` per second, with a per-pixel rate spread, giving ON events at about
+   ``leak_rate_hz`` per pixel in a static scene) and shot noise (Poisson ON and OFF events at
+   ``shot_noise_rate_hz`` per pixel in the dark, falling to a quarter of it at full intensity).
+
+Everything random is drawn from one seeded generator: the same seed and input give the same
+events. All parameters are overridable; :data:`PRESETS` holds ``clean`` and ``noisy`` as in the
+EventEgoHands paper (Table II, columns resolved by its text).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+LUMA_WEIGHTS = np.array([0.299, 0.587, 0.114])
+# Shot noise rate at full intensity, as a fraction of the rate in the dark.
+SHOT_NOISE_BRIGHT_FACTOR = 0.25
+
+
+@dataclass(frozen=True)
+class DVSParams:
+    """Parameters of the pixel model (thresholds in log-intensity units, rates in Hz)."""
+
+    pos_threshold: float = 0.2
+    neg_threshold: float = 0.2
+    sigma_threshold: float = 0.02
+    min_threshold: float = 0.01
+    cutoff_hz: float = 0.0
+    leak_rate_hz: float = 0.0
+    leak_jitter: float = 0.1  # per-pixel spread of the leak rate, as a fraction of it
+    shot_noise_rate_hz: float = 0.0
+    refractory_us: float = 0.0
+    lin_log_dn: float = 20.0
+
+    def __post_init__(self):
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not math.isfinite(value) or value < 0:
+                raise ValueError(f"DVS parameter {f.name} must be finite and >= 0, got {value}")
+        for name in ("pos_threshold", "neg_threshold", "min_threshold", "lin_log_dn"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"DVS parameter {name} must be > 0, got {getattr(self, name)}")
+
+    def with_overrides(self, **overrides) -> "DVSParams":
+        known = {f.name for f in fields(self)}
+        unknown = sorted(set(overrides) - known)
+        if unknown:
+            raise ValueError(f"unknown DVS parameters {unknown}; known: {sorted(known)}")
+        return replace(self, **overrides)
+
+
+PRESETS = {
+    "clean": DVSParams(sigma_threshold=0.02),
+    "noisy": DVSParams(sigma_threshold=0.03, shot_noise_rate_hz=5.0, leak_rate_hz=0.1, cutoff_hz=30.0),
+}
+
+
+def preset(name: str, **overrides) -> DVSParams:
+    """The ``clean`` or ``noisy`` parameters, with any field overridden."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown DVS preset {name!r}; expected one of {sorted(PRESETS)}")
+    return PRESETS[name].with_overrides(**overrides)
+
+
+def rgb_to_luma(rgb: np.ndarray) -> np.ndarray:
+    """``(H, W, 3)`` RGB (uint8 or float in DN 0..255) -> ``(H, W)`` float64 luma in DN."""
+    rgb = np.asarray(rgb, dtype=np.float64)
+    if rgb.ndim == 2:
+        return rgb
+    return rgb @ LUMA_WEIGHTS
+
+
+def lin_log(luma: np.ndarray, lin_log_dn: float = 20.0) -> np.ndarray:
+    """Log intensity with a linear segment below ``lin_log_dn`` (continuous at the joint)."""
+    luma = np.asarray(luma, dtype=np.float64)
+    slope = math.log(lin_log_dn) / lin_log_dn
+    return np.where(luma <= lin_log_dn, luma * slope, np.log(np.maximum(luma, lin_log_dn)))
+
+
+def _repeat_ranges(counts: np.ndarray) -> np.ndarray:
+    """For counts ``[2, 3]``: ``[0, 1, 0, 1, 2]`` (index of each repeat within its group)."""
+    total = int(counts.sum())
+    starts = np.repeat(np.cumsum(counts) - counts, counts)
+    return np.arange(total) - starts
+
+
+class DVSEmulator:
+    """Turns a sequence of frames into DVS events, one step per frame.
+
+    Call :meth:`reset` with the first frame, then :meth:`step` with each following frame and
+    its time; each step returns the events of the interval since the previous frame, sorted by
+    time.
+
+    Args:
+        height, width: frame size.
+        params: pixel model parameters (see :class:`DVSParams`, :func:`preset`).
+        seed: seed of every random draw (thresholds, leak, shot noise).
+    """
+
+    def __init__(self, height: int, width: int, params: DVSParams = PRESETS["clean"], *, seed: int = 0):
+        self.height, self.width, self.params = int(height), int(width), params
+        self.rng = np.random.default_rng(seed)
+        shape = (self.height, self.width)
+        p = params
+        self.pos_threshold = np.maximum(self.rng.normal(p.pos_threshold, p.sigma_threshold, shape), p.min_threshold)
+        self.neg_threshold = np.maximum(self.rng.normal(p.neg_threshold, p.sigma_threshold, shape), p.min_threshold)
+        self.leak_rate = p.leak_rate_hz * np.maximum(1 + p.leak_jitter * self.rng.standard_normal(shape), 0)
+        self.memory: np.ndarray | None = None  # (H, W) memorised log intensity
+        self.filtered: np.ndarray | None = None  # (H, W) low-passed log intensity
+        self.last_event_us = np.full(shape, -np.inf)  # (H, W)
+        self.t_us: float | None = None
+
+    def reset(self, frame: np.ndarray, t_us: float = 0.0) -> None:
+        """Start from ``frame`` at time ``t_us``: memorised levels equal its log intensity."""
+        luma = self._luma(frame)
+        self.filtered = lin_log(luma, self.params.lin_log_dn)
+        self.memory = self.filtered.copy()
+        if self.params.leak_rate_hz > 0:
+            # A random leak phase per pixel, so leak events do not all fire together.
+            self.memory -= self.rng.random(self.memory.shape) * self.pos_threshold
+        self.last_event_us[:] = -np.inf
+        self.t_us = float(t_us)
+
+    def _luma(self, frame: np.ndarray) -> np.ndarray:
+        luma = rgb_to_luma(frame)
+        if luma.shape != (self.height, self.width):
+            raise ValueError(f"frame is {luma.shape[1]}x{luma.shape[0]} (WxH), expected {self.width}x{self.height}")
+        return luma
+
+    def step(self, frame: np.ndarray, t_us: float) -> dict[str, np.ndarray]:
+        """Events between the previous frame and ``frame`` at ``t_us``: arrays x, y, t (int64 us), p."""
+        if self.memory is None:
+            raise RuntimeError("call reset(first_frame, t_us) before step()")
+        dt_us = float(t_us) - self.t_us
+        if dt_us <= 0:
+            raise ValueError(f"frame time {t_us} us is not after the previous one ({self.t_us} us)")
+        p = self.params
+        luma = self._luma(frame)
+        log_luma = lin_log(luma, p.lin_log_dn)  # (H, W)
+        if p.cutoff_hz > 0:
+            intensity = (luma + 20.0) / 275.0
+            eps = np.minimum(dt_us * 1e-6 * 2 * math.pi * p.cutoff_hz * intensity, 1.0)
+            self.filtered = self.filtered + eps * (log_luma - self.filtered)
+        else:
+            self.filtered = log_luma
+        if p.leak_rate_hz > 0:
+            self.memory -= self.leak_rate * (dt_us * 1e-6) * self.pos_threshold
+        t0 = self.t_us
+        parts = [self._change_events(t0, dt_us)]
+        if p.shot_noise_rate_hz > 0:
+            parts.append(self._shot_noise(luma, t0, dt_us))
+        self.t_us = float(t_us)
+        x, y, t, pol = (np.concatenate(a) for a in zip(*parts))
+        order = np.argsort(t, kind="stable")
+        return {"x": x[order], "y": y[order], "t": t[order], "p": pol[order]}
+
+    def _change_events(self, t0: float, dt_us: float):
+        change = self.filtered - self.memory  # (H, W)
+        on = change > 0
+        threshold = np.where(on, self.pos_threshold, self.neg_threshold)
+        # The tolerance keeps a change of exactly k thresholds at k events despite rounding.
+        counts = np.floor(np.abs(change) / threshold + 1e-9).astype(np.int64)  # (H, W)
+        ys, xs = np.nonzero(counts)
+        n = counts[ys, xs]  # (P,)
+        j = _repeat_ranges(n)  # (E,) index of each event within its pixel
+        pixel = np.repeat(np.arange(len(n)), n)  # (E,)
+        t = t0 + (j + 0.5) / n[pixel] * dt_us  # evenly spread inside the interval
+        if self.params.refractory_us > 0:
+            keep = self._refractory_keep(ys, xs, n, pixel, j, t0, dt_us)
+        else:
+            keep = np.ones(len(t), dtype=bool)
+        emitted = np.bincount(pixel[keep], minlength=len(n))  # (P,)
+        sign = np.where(on[ys, xs], 1.0, -1.0)
+        self.memory[ys, xs] += sign * emitted * threshold[ys, xs]
+        t, pixel = t[keep], pixel[keep]
+        if len(t):
+            np.maximum.at(self.last_event_us, (ys[pixel], xs[pixel]), t)
+        return (xs[pixel], ys[pixel], np.floor(t).astype(np.int64), on[ys, xs][pixel].astype(np.uint8))
+
+    def _refractory_keep(self, ys, xs, n, pixel, j, t0: float, dt_us: float) -> np.ndarray:
+        """Which events stay at least ``refractory_us`` after the previous emitted one of their pixel.
+
+        A pixel's ``n`` events of a step are evenly spaced by ``s = dt / n``: the first one kept is
+        the first at least ``refractory_us`` after the pixel's last event, then every ``m``-th with
+        ``m = ceil(refractory_us / s)``.
+        """
+        refractory = self.params.refractory_us
+        spacing = dt_us / n  # (P,)
+        last = self.last_event_us[ys, xs]  # (P,)
+        first = np.ceil((last + refractory - t0) / spacing - 0.5 - 1e-9)  # (P,) first index far enough
+        first = np.maximum(np.nan_to_num(first, neginf=0.0), 0).astype(np.int64)
+        every = np.maximum(np.ceil(refractory / spacing - 1e-9), 1).astype(np.int64)  # (P,)
+        offset = j - first[pixel]
+        return (offset >= 0) & (offset % every[pixel] == 0)
+
+    def _shot_noise(self, luma: np.ndarray, t0: float, dt_us: float):
+        p = self.params
+        intensity = np.clip(luma / 255.0, 0, 1)
+        rate = p.shot_noise_rate_hz * (1 + (SHOT_NOISE_BRIGHT_FACTOR - 1) * intensity)  # (H, W) ON+OFF per second
+        counts = self.rng.poisson(rate * dt_us * 1e-6)  # (H, W)
+        ys, xs = np.nonzero(counts)
+        n = counts[ys, xs]
+        pixel = np.repeat(np.arange(len(n)), n)
+        on = self.rng.random(len(pixel)) < 0.5
+        t = t0 + self.rng.random(len(pixel)) * dt_us
+        # A noise event resets the pixel like a real one: the memorised level follows it.
+        np.add.at(self.memory, (ys[pixel], xs[pixel]),
+                  np.where(on, self.pos_threshold[ys[pixel], xs[pixel]], -self.neg_threshold[ys[pixel], xs[pixel]]))
+        return (xs[pixel], ys[pixel], np.floor(t).astype(np.int64), on.astype(np.uint8))

@@ -1,0 +1,278 @@
+"""From video frames to a dataset video: scaling, temporal upsampling and DVS emulation.
+
+A frame source gives the frames of one video at its frame rate (``frame(k)``) and any moment
+between two frames (``between(k, alpha)``). :func:`emulate_video` walks a source, runs the DVS
+emulator on ``upsample - 1`` in-between frames per frame interval plus the frames themselves,
+and streams frames and events into a :class:`~dagr_lite.data.writer.VideoWriter`.
+
+v2e makes its in-between frames with the learned SuperSloMo interpolator. Its weights are not
+shipped here: :class:`FolderSource` blends neighbouring frames linearly in intensity, and any
+function with the signature of :func:`linear_interpolate` can replace that. Synthetic scenes
+(the stub dataset) render the true in-between frames instead.
+"""
+from __future__ import annotations
+
+import re
+import zlib
+from pathlib import Path
+from typing import Callable, Protocol
+
+import numpy as np
+from PIL import Image
+
+from dagr_lite.data import format as fmt
+from dagr_lite.data.reader import DatasetFormatError
+from dagr_lite.data.writer import VideoWriter
+from dagr_lite.synth.dvs import DVSEmulator, DVSParams
+
+FRAME_SUFFIXES = (".jpg", ".jpeg", ".png")
+Interpolator = Callable[[np.ndarray, np.ndarray, float], np.ndarray]
+
+
+def linear_interpolate(frame_a: np.ndarray, frame_b: np.ndarray, alpha: float) -> np.ndarray:
+    """``(1 - alpha) * a + alpha * b`` of two float RGB frames (linear in intensity)."""
+    return (1.0 - alpha) * frame_a + alpha * frame_b
+
+
+def downscale_area(frame: np.ndarray, scale: int) -> np.ndarray:
+    """Area-average an ``(H, W, C)`` frame by an integer factor (float64 out).
+
+    The output is ``(H // scale, W // scale)``; rows and columns beyond a multiple of ``scale``
+    are dropped.
+    """
+    frame = np.asarray(frame, dtype=np.float64)
+    if scale == 1:
+        return frame
+    if scale < 1 or int(scale) != scale:
+        raise ValueError(f"scale must be a positive integer, got {scale}")
+    h, w = frame.shape[0] // scale, frame.shape[1] // scale
+    if h == 0 or w == 0:
+        raise ValueError(f"a {frame.shape[1]}x{frame.shape[0]} frame is too small for scale {scale}")
+    cropped = frame[: h * scale, : w * scale]
+    return cropped.reshape(h, scale, w, scale, *frame.shape[2:]).mean(axis=(1, 3))
+
+
+def scale_boxes(boxes_xywh: np.ndarray, scale: int, height: int, width: int) -> np.ndarray:
+    """Boxes of a ``scale``-times larger frame, in pixels of the scaled frame, clipped to it.
+
+    Boxes left with no area are dropped.
+    """
+    xyxy = fmt.xywh_to_xyxy(boxes_xywh) / scale
+    xyxy = np.clip(xyxy, 0, [width, height, width, height])
+    xyxy = xyxy[(xyxy[:, 2] > xyxy[:, 0]) & (xyxy[:, 3] > xyxy[:, 1])]
+    return fmt.xyxy_to_xywh(xyxy)
+
+
+def to_uint8(frame: np.ndarray) -> np.ndarray:
+    return np.clip(np.rint(frame), 0, 255).astype(np.uint8)
+
+
+class FrameSource(Protocol):
+    """The frames of one video: ``num_frames`` frames at ``fps``, each ``(height, width, 3)``."""
+
+    num_frames: int
+    height: int
+    width: int
+
+    def frame(self, k: int) -> np.ndarray:
+        """Frame ``k`` as float RGB in digital numbers 0..255."""
+
+    def between(self, k: int, alpha: float) -> np.ndarray:
+        """The scene at ``alpha`` (0 < alpha < 1) of the way from frame ``k`` to frame ``k + 1``."""
+
+
+def _frame_number(path: Path) -> int | None:
+    numbers = re.findall(r"\d+", path.stem)
+    return int(numbers[-1]) if numbers else None
+
+
+def list_frame_files(folder: Path | str) -> list[Path]:
+    """Image files of a frame folder in frame order (by the last number in each name).
+
+    Accepts ``frame_<k>.jpg`` (the release), ``frame_0001.jpg`` (EgoHands) and similar names.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DatasetFormatError.at(folder, "frame folder is missing")
+    numbered = []
+    for path in folder.iterdir():
+        if path.suffix.lower() in FRAME_SUFFIXES:
+            number = _frame_number(path)
+            if number is None:
+                raise DatasetFormatError.at(path, "frame file name holds no frame number")
+            numbered.append((number, path))
+    if not numbered:
+        raise DatasetFormatError.at(folder, f"no frames ({', '.join(FRAME_SUFFIXES)}) found")
+    numbered.sort()
+    numbers = [n for n, _ in numbered]
+    if len(set(numbers)) != len(numbers):
+        raise DatasetFormatError.at(folder, "two frame files carry the same frame number")
+    if numbers != list(range(numbers[0], numbers[0] + len(numbers))):
+        gap = next(a + 1 for a, b in zip(numbers, numbers[1:]) if b != a + 1)
+        raise DatasetFormatError.at(folder, f"frame numbers are not contiguous: frame {gap} is missing")
+    return [p for _, p in numbered]
+
+
+class FolderSource:
+    """Frames of a folder of images, downscaled by ``scale``, in-between frames by ``interpolator``."""
+
+    def __init__(self, folder: Path | str, *, scale: int = 1, interpolator: Interpolator = linear_interpolate):
+        self.folder, self.scale, self.interpolator = Path(folder), int(scale), interpolator
+        self.files = list_frame_files(self.folder)
+        self.num_frames = len(self.files)
+        self.height = self.width = None
+        self._cache: dict[int, np.ndarray] = {}  # the two frames of the current interval
+        self.height, self.width = self.frame(0).shape[:2]
+
+    @property
+    def first_number(self) -> int:
+        """The number in the name of the first file (1 for EgoHands' ``frame_0001.jpg``)."""
+        return _frame_number(self.files[0])
+
+    def source_size(self) -> tuple[int, int]:
+        """``(H, W)`` of the frames before downscaling."""
+        with Image.open(self.files[0]) as image:
+            return image.size[1], image.size[0]
+
+    def _load(self, k: int) -> np.ndarray:
+        path = self.files[k]
+        try:
+            with Image.open(path) as image:
+                rgb = np.asarray(image.convert("RGB"))
+        except (OSError, SyntaxError, ValueError) as err:
+            raise DatasetFormatError.at(path, f"cannot decode image ({err})") from err
+        frame = downscale_area(rgb, self.scale)
+        if self.height is not None and frame.shape[:2] != (self.height, self.width):
+            raise DatasetFormatError.at(path, f"frame is {rgb.shape[1]}x{rgb.shape[0]} (WxH), unlike the first "
+                                              f"frame of {self.folder}")
+        return frame
+
+    def frame(self, k: int) -> np.ndarray:
+        if k not in self._cache:
+            self._cache[k] = self._load(k)
+            while len(self._cache) > 2:
+                self._cache.pop(next(iter(self._cache)))
+        return self._cache[k]
+
+    def between(self, k: int, alpha: float) -> np.ndarray:
+        """The scene at ``alpha`` (0 < alpha < 1) of the way from frame ``k`` to frame ``k + 1``."""
+
+
+def _frame_number(path: Path) -> int | None:
+    numbers = re.findall(r"\d+", path.stem)
+    return int(numbers[-1]) if numbers else None
+
+
+def list_frame_files(folder: Path | str) -> list[Path]:
+    """Image files of a frame folder in frame order (by the last number in each name).
+
+    Accepts ``frame_<k>.jpg`` (the release), ``frame_0001.jpg`` (EgoHands) and similar names.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DatasetFormatError.at(folder, "frame folder is missing")
+    numbered = []
+    for path in folder.iterdir():
+        if path.suffix.lower() in FRAME_SUFFIXES:
+            number = _frame_number(path)
+            if number is None:
+                raise DatasetFormatError.at(path, "frame file name holds no frame number")
+            numbered.append((number, path))
+    if not numbered:
+        raise DatasetFormatError.at(folder, f"no frames ({', '.join(FRAME_SUFFIXES)}) found")
+    numbered.sort()
+    numbers = [n for n, _ in numbered]
+    if len(set(numbers)) != len(numbers):
+        raise DatasetFormatError.at(folder, "two frame files carry the same frame number")
+    if numbers != list(range(numbers[0], numbers[0] + len(numbers))):
+        gap = next(a + 1 for a, b in zip(numbers, numbers[1:]) if b != a + 1)
+        raise DatasetFormatError.at(folder, f"frame numbers are not contiguous: frame {gap} is missing")
+    return [p for _, p in numbered]
+
+
+class FolderSource:
+    """Frames of a folder of images, downscaled by ``scale``, in-between frames by ``interpolator``."""
+
+    def __init__(self, folder: Path | str, *, scale: int = 1, interpolator: Interpolator = linear_interpolate):
+        self.folder, self.scale, self.interpolator = Path(folder), int(scale), interpolator
+        self.files = list_frame_files(self.folder)
+        self.num_frames = len(self.files)
+        first = self.frame(0)
+        self.height, self.width = first.shape[:2]
+        self._cache: dict[int, np.ndarray] = {}
+
+    @property
+    def first_number(self) -> int:
+        """The number in the name of the first file (1 for EgoHands' ``frame_0001.jpg``)."""
+        return _frame_number(self.files[0])
+
+    def source_size(self) -> tuple[int, int]:
+        """``(H, W)`` of the frames before downscaling."""
+        with Image.open(self.files[0]) as image:
+            return image.size[1], image.size[0]
+
+    def frame(self, k: int) -> np.ndarray:
+        cache = getattr(self, "_cache", {})
+        if k not in cache:
+            path = self.files[k]
+            try:
+                with Image.open(path) as image:
+                    rgb = np.asarray(image.convert("RGB"))
+            except (OSError, SyntaxError, ValueError) as err:
+                raise DatasetFormatError.at(path, f"cannot decode image ({err})") from err
+            frame = downscale_area(rgb, self.scale)
+            if hasattr(self, "height") and frame.shape[:2] != (self.height, self.width):
+                raise DatasetFormatError.at(path, f"frame is {rgb.shape[1]}x{rgb.shape[0]} (WxH), unlike the "
+                                                  f"first frame of {self.folder}")
+            cache.clear()  # keep only the two frames of the current interval
+            cache.update({key: value for key, value in getattr(self, "_last", {}).items() if key == k - 1})
+            cache[k] = frame
+            self._last = {k: frame}
+            if hasattr(self, "_cache"):
+                self._cache = cache
+        return cache[k]
+
+    def between(self, k: int, alpha: float) -> np.ndarray:
+        return self.interpolator(self.frame(k), self.frame(k + 1), alpha)
+
+
+def choose_dvs_model(video: str, *, seed: int = 0, clean_fraction: float = 0.5) -> str:
+    """``clean`` or ``noisy`` for one video of a ``mixed`` dataset.
+
+    The draw is seeded by ``seed`` and the video's name (CRC-32), so a video gets the same model
+    whatever the order or subset of videos built; ``clean_fraction`` is the probability of
+    ``clean``.
+    """
+    if not 0 <= clean_fraction <= 1:
+        raise ValueError(f"clean_fraction must be in [0, 1], got {clean_fraction}")
+    rng = np.random.default_rng([seed, zlib.crc32(video.encode())])
+    return "clean" if rng.random() < clean_fraction else "noisy"
+
+
+def emulate_video(source: FrameSource, writer: VideoWriter, *, params: DVSParams, upsample: int = 1,
+                  fps: float = fmt.DEFAULT_FPS, seed: int = 0, progress: Callable[[int], None] | None = None) -> int:
+    """Emulate events over ``source`` and write frames and events to ``writer``; returns the event count.
+
+    Each frame interval ``[t_k, t_{k+1})`` is cut into ``upsample`` emulator steps: ``upsample - 1``
+    in-between frames and then frame ``k + 1`` (``upsample = 1``: the frames alone). Frame
+    times are those of the data contract, ``round(1e6 * k / fps)``; events are time-sorted.
+    """
+    if upsample < 1 or int(upsample) != upsample:
+        raise ValueError(f"upsample must be a positive integer, got {upsample}")
+    emulator = DVSEmulator(source.height, source.width, params, seed=seed)
+    frame = source.frame(0)
+    emulator.reset(frame, 0.0)
+    writer.add_frame(to_uint8(frame))
+    count = 0
+    for k in range(source.num_frames - 1):
+        t_a, t_b = fmt.frame_time_us(k, fps), fmt.frame_time_us(k + 1, fps)
+        for j in range(1, upsample + 1):
+            alpha = j / upsample
+            step_frame = source.frame(k + 1) if j == upsample else source.between(k, alpha)
+            events = emulator.step(step_frame, t_a + alpha * (t_b - t_a))
+            writer.add_events(events["x"], events["y"], events["t"], events["p"])
+            count += len(events["t"])
+        writer.add_frame(to_uint8(source.frame(k + 1)))
+        if progress is not None:
+            progress(1)
+    return count
