@@ -18,7 +18,8 @@ The model follows the published description of v2e (Hu, Liu, Delbruck, CVPR Work
    emitted, and ``M`` does not move for them), leak events (``M`` drifts down by
    ``leak_rate_hz * theta_on`` per second, with a per-pixel rate spread, giving ON events at about
    ``leak_rate_hz`` per pixel in a static scene) and shot noise (Poisson ON and OFF events at
-   ``shot_noise_rate_hz`` per pixel in the dark, falling to a quarter of it at full intensity).
+   ``shot_noise_rate_hz`` per pixel in the dark, falling to a quarter of it at full intensity;
+   they do not move ``M``).
 
 Everything random is drawn from one seeded generator: the same seed and input give the same
 events. All parameters are overridable; :data:`PRESETS` holds ``clean`` and ``noisy`` as in the
@@ -222,7 +223,6 @@ class DVSEmulator:
         pixel = np.repeat(np.arange(len(n)), n)
         on = self.rng.random(len(pixel)) < 0.5
         t = t0 + self.rng.random(len(pixel)) * dt_us
-        # A noise event resets the pixel like a real one: the memorised level follows it.
-        np.add.at(self.memory, (ys[pixel], xs[pixel]),
-                  np.where(on, self.pos_threshold[ys[pixel], xs[pixel]], -self.neg_threshold[ys[pixel], xs[pixel]]))
+        # Noise events leave the memorised level alone: moving it would make the pixel answer
+        # each noise event with a real one of the other sign and double the noise rate.
         return (xs[pixel], ys[pixel], np.floor(t).astype(np.int64), on.astype(np.uint8))

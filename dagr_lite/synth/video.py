@@ -124,16 +124,6 @@ class FolderSource:
         self._cache: dict[int, np.ndarray] = {}  # the two frames of the current interval
         self.height, self.width = self.frame(0).shape[:2]
 
-    @property
-    def first_number(self) -> int:
-        """The number in the name of the first file (1 for EgoHands' ``frame_0001.jpg``)."""
-        return _frame_number(self.files[0])
-
-    def source_size(self) -> tuple[int, int]:
-        """``(H, W)`` of the frames before downscaling."""
-        with Image.open(self.files[0]) as image:
-            return image.size[1], image.size[0]
-
     def _load(self, k: int) -> np.ndarray:
         path = self.files[k]
         try:
@@ -153,84 +143,6 @@ class FolderSource:
             while len(self._cache) > 2:
                 self._cache.pop(next(iter(self._cache)))
         return self._cache[k]
-
-    def between(self, k: int, alpha: float) -> np.ndarray:
-        """The scene at ``alpha`` (0 < alpha < 1) of the way from frame ``k`` to frame ``k + 1``."""
-
-
-def _frame_number(path: Path) -> int | None:
-    numbers = re.findall(r"\d+", path.stem)
-    return int(numbers[-1]) if numbers else None
-
-
-def list_frame_files(folder: Path | str) -> list[Path]:
-    """Image files of a frame folder in frame order (by the last number in each name).
-
-    Accepts ``frame_<k>.jpg`` (the release), ``frame_0001.jpg`` (EgoHands) and similar names.
-    """
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise DatasetFormatError.at(folder, "frame folder is missing")
-    numbered = []
-    for path in folder.iterdir():
-        if path.suffix.lower() in FRAME_SUFFIXES:
-            number = _frame_number(path)
-            if number is None:
-                raise DatasetFormatError.at(path, "frame file name holds no frame number")
-            numbered.append((number, path))
-    if not numbered:
-        raise DatasetFormatError.at(folder, f"no frames ({', '.join(FRAME_SUFFIXES)}) found")
-    numbered.sort()
-    numbers = [n for n, _ in numbered]
-    if len(set(numbers)) != len(numbers):
-        raise DatasetFormatError.at(folder, "two frame files carry the same frame number")
-    if numbers != list(range(numbers[0], numbers[0] + len(numbers))):
-        gap = next(a + 1 for a, b in zip(numbers, numbers[1:]) if b != a + 1)
-        raise DatasetFormatError.at(folder, f"frame numbers are not contiguous: frame {gap} is missing")
-    return [p for _, p in numbered]
-
-
-class FolderSource:
-    """Frames of a folder of images, downscaled by ``scale``, in-between frames by ``interpolator``."""
-
-    def __init__(self, folder: Path | str, *, scale: int = 1, interpolator: Interpolator = linear_interpolate):
-        self.folder, self.scale, self.interpolator = Path(folder), int(scale), interpolator
-        self.files = list_frame_files(self.folder)
-        self.num_frames = len(self.files)
-        first = self.frame(0)
-        self.height, self.width = first.shape[:2]
-        self._cache: dict[int, np.ndarray] = {}
-
-    @property
-    def first_number(self) -> int:
-        """The number in the name of the first file (1 for EgoHands' ``frame_0001.jpg``)."""
-        return _frame_number(self.files[0])
-
-    def source_size(self) -> tuple[int, int]:
-        """``(H, W)`` of the frames before downscaling."""
-        with Image.open(self.files[0]) as image:
-            return image.size[1], image.size[0]
-
-    def frame(self, k: int) -> np.ndarray:
-        cache = getattr(self, "_cache", {})
-        if k not in cache:
-            path = self.files[k]
-            try:
-                with Image.open(path) as image:
-                    rgb = np.asarray(image.convert("RGB"))
-            except (OSError, SyntaxError, ValueError) as err:
-                raise DatasetFormatError.at(path, f"cannot decode image ({err})") from err
-            frame = downscale_area(rgb, self.scale)
-            if hasattr(self, "height") and frame.shape[:2] != (self.height, self.width):
-                raise DatasetFormatError.at(path, f"frame is {rgb.shape[1]}x{rgb.shape[0]} (WxH), unlike the "
-                                                  f"first frame of {self.folder}")
-            cache.clear()  # keep only the two frames of the current interval
-            cache.update({key: value for key, value in getattr(self, "_last", {}).items() if key == k - 1})
-            cache[k] = frame
-            self._last = {k: frame}
-            if hasattr(self, "_cache"):
-                self._cache = cache
-        return cache[k]
 
     def between(self, k: int, alpha: float) -> np.ndarray:
         return self.interpolator(self.frame(k), self.frame(k + 1), alpha)

@@ -1,0 +1,292 @@
+"""Build a dataset in the EventEgoHands layout from video frames: ``python -m dagr_lite.synth.build``.
+
+From EgoHands (frame folders of the 48 videos plus ``metadata.mat``)::
+
+    python -m dagr_lite.synth.build --egohands metadata.mat --frames FRAMES --out ROOT --version v6
+
+From any folder of videos laid out as ``<video>/frame_<k>.jpg`` (optionally with labels in the
+release format, boxes in pixels of those frames)::
+
+    python -m dagr_lite.synth.build --frames DIR --out ROOT --preset clean --upsample 41 --scale 2 \\
+        [--labels bounding_boxes.json] [--splits splits.json] [--seed 0]
+
+Each video is emulated and written in turn (progress per video); a finished video (its events
+file exists) is not redone, so an interrupted build resumes where it stopped. The parameters
+of a build are kept in ``build_info.json``; resuming with different ones is refused.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from dagr_lite.data import format as fmt
+from dagr_lite.data.reader import DatasetFormatError, parse_boxes
+from dagr_lite.data.writer import VideoWriter, write_labels
+from dagr_lite.synth.dvs import PRESETS, DVSParams, preset
+from dagr_lite.synth.egohands import Labeller, default_split, interpolate_labels, load_metadata
+from dagr_lite.synth.video import FolderSource, choose_dvs_model, emulate_video, list_frame_files, scale_boxes
+
+# The EventEgoHands versions (paper, Table I): upsampling factor, scale, DVS model.
+VERSIONS = {
+    "v1": {"upsample": 1, "scale": 1, "dvs_model": "clean"},
+    "v2": {"upsample": 1, "scale": 4, "dvs_model": "clean"},
+    "v3": {"upsample": 1, "scale": 2, "dvs_model": "clean"},
+    "v4": {"upsample": 41, "scale": 2, "dvs_model": "clean"},
+    "v5": {"upsample": 41, "scale": 2, "dvs_model": "noisy"},
+    "v6": {"upsample": 41, "scale": 2, "dvs_model": "mixed"},
+}
+DVS_MODELS = (*PRESETS, "mixed")
+BUILD_INFO = "build_info.json"
+LABEL_SOURCES = "label_sources.json"
+
+
+@dataclass
+class VideoJob:
+    """One video to build: its frames, split, and labels (frame -> xywh boxes at source resolution, sources)."""
+
+    name: str
+    split: str
+    frames: Path
+    labels: dict[int, tuple[np.ndarray, list[str]]]
+
+
+@dataclass(frozen=True)
+class BuildSettings:
+    dvs_model: str  # clean, noisy or mixed
+    upsample: int
+    scale: int
+    fps: float = fmt.DEFAULT_FPS
+    seed: int = 0
+    clean_fraction: float = 0.5
+    compression: str | None = "blosc"
+    dvs_overrides: tuple[tuple[str, float], ...] = ()
+
+    def __post_init__(self):
+        if self.dvs_model not in DVS_MODELS:
+            raise ValueError(f"DVS model must be one of {DVS_MODELS}, got {self.dvs_model!r}")
+        if self.upsample < 1 or self.scale < 1:
+            raise ValueError(f"upsample and scale must be >= 1, got {self.upsample} and {self.scale}")
+        self.params("clean")  # unknown or bad overrides fail now, not after the first video
+
+    def params(self, model: str) -> DVSParams:
+        return preset(model, **dict(self.dvs_overrides))
+
+    def model_for(self, video: str) -> str:
+        if self.dvs_model != "mixed":
+            return self.dvs_model
+        return choose_dvs_model(video, seed=self.seed, clean_fraction=self.clean_fraction)
+
+    def video_seed(self, video: str) -> int:
+        return (self.seed * 1_000_003 + zlib.crc32(video.encode())) % 2**32
+
+    def as_dict(self) -> dict:
+        return {"dvs_model": self.dvs_model, "upsample": self.upsample, "scale": self.scale, "fps": self.fps,
+                "seed": self.seed, "clean_fraction": self.clean_fraction, "compression": self.compression,
+                "dvs_overrides": dict(self.dvs_overrides)}
+
+
+def _check_build_info(out: Path, settings: BuildSettings) -> None:
+    path = out / BUILD_INFO
+    if path.exists():
+        previous = json.loads(path.read_text()).get("settings")
+        if previous != settings.as_dict():
+            raise ValueError(f"{path}: {out} was built with settings {previous}, not {settings.as_dict()}; "
+                             "resume with the same settings or choose a new --out")
+
+
+def _write_json(path: Path, content: dict) -> None:
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    tmp.write_text(json.dumps(content, indent=1, sort_keys=True))
+    os.replace(tmp, path)
+
+
+def build(jobs: list[VideoJob], out: Path | str, settings: BuildSettings, *, progress: bool = True) -> dict:
+    """Build every job's video into ``out``; returns the build summary also written to ``build_info.json``."""
+    out = Path(out)
+    names = [job.name for job in jobs]
+    if len(set(names)) != len(names):
+        raise ValueError(f"video names must be unique, got {sorted(n for n in set(names) if names.count(n) > 1)}")
+    out.mkdir(parents=True, exist_ok=True)
+    _check_build_info(out, settings)
+    info_path = out / BUILD_INFO
+    info = json.loads(info_path.read_text()) if info_path.exists() else {"settings": settings.as_dict(), "videos": {}}
+    sources_path = out / LABEL_SOURCES
+    sources = json.loads(sources_path.read_text()) if sources_path.exists() else {}
+    if not fmt.labels_path(out).exists():
+        write_labels(out, {})
+    for job in tqdm(jobs, desc="videos", unit="video", disable=not progress):
+        if fmt.events_path(out, job.split, job.name).exists():
+            continue  # finished in an earlier run
+        source = FolderSource(job.frames, scale=settings.scale)
+        model = settings.model_for(job.name)
+        # Labels go first: a video counts as finished only once its events file exists.
+        boxes, frame_sources = {}, {}
+        for k in range(source.num_frames):
+            if k in job.labels:
+                xywh, origin = job.labels[k]
+                boxes[k] = scale_boxes(xywh, settings.scale, source.height, source.width)
+                frame_sources[fmt.label_key(job.name, k)] = origin[: len(boxes[k])]
+        write_labels(out, {job.name: boxes}, merge=True)
+        sources.update(frame_sources)
+        _write_json(sources_path, sources)
+        with tqdm(total=source.num_frames - 1, desc=job.name, unit="frame", leave=False,
+                  disable=not progress) as bar, \
+                VideoWriter(out, job.split, job.name, num_frames=source.num_frames, height=source.height,
+                            width=source.width, fps=settings.fps, compression=settings.compression,
+                            overwrite=False) as writer:
+            count = emulate_video(source, writer, params=settings.params(model), upsample=settings.upsample,
+                                  fps=settings.fps, seed=settings.video_seed(job.name), progress=bar.update)
+        info["videos"][job.name] = {"split": job.split, "dvs_model": model, "frames": source.num_frames,
+                                    "events": count, "labelled_frames": len(boxes)}
+        _write_json(info_path, info)
+    return info
+
+
+# Jobs from the two kinds of input.
+
+def _read_splits(path: Path | None, videos: list[str], default: dict[str, list[str]]) -> dict[str, str]:
+    """video -> split, from a JSON file ``{"train": [...], "valid": [...], "test": [...]}`` or the default."""
+    if path is None:
+        mapping = default
+    else:
+        try:
+            mapping = json.loads(Path(path).read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            raise DatasetFormatError.at(path, f"cannot read the split file ({err})") from err
+        if not isinstance(mapping, dict) or set(mapping) - set(fmt.SPLITS):
+            raise DatasetFormatError.at(path, f"expected an object with keys among {fmt.SPLITS}")
+    assignment = {}
+    for split, names in mapping.items():
+        for name in names:
+            if name in assignment:
+                raise DatasetFormatError.at(path or "splits", f"video {name!r} is in two splits")
+            assignment[name] = split
+    unknown = sorted(set(assignment) - set(videos))
+    if unknown:
+        raise DatasetFormatError.at(path or "splits", f"videos {unknown} have no frame folder")
+    return assignment
+
+
+def folder_jobs(frames: Path, *, labels: Path | None = None, splits: Path | None = None) -> list[VideoJob]:
+    """Jobs for a folder of ``<video>/`` frame folders; labels in the release format, keyed by frame order."""
+    frames = Path(frames)
+    if not frames.is_dir():
+        raise DatasetFormatError.at(frames, "frames folder is missing")
+    videos = sorted(p.name for p in frames.iterdir() if p.is_dir())
+    if not videos:
+        raise DatasetFormatError.at(frames, "holds no video folders (expected <video>/frame_<k>.jpg)")
+    per_video: dict[str, dict[int, tuple[np.ndarray, list[str]]]] = {v: {} for v in videos}
+    if labels is not None:
+        for key, value in _load_label_file(labels).items():
+            parsed = fmt.parse_label_key(key)
+            if parsed is None or parsed[0] not in per_video:
+                raise DatasetFormatError.at(labels, "key names no video of the frames folder", key=key)
+            try:
+                boxes = parse_boxes(value)
+            except ValueError as err:
+                raise DatasetFormatError.at(labels, str(err), key=key) from err
+            per_video[parsed[0]][parsed[1]] = (boxes, ["given"] * len(boxes))
+    assignment = _read_splits(splits, videos, {"train": videos})
+    return [VideoJob(v, assignment[v], frames / v, per_video[v]) for v in videos if v in assignment]
+
+
+def _load_label_file(path: Path) -> dict:
+    try:
+        content = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise DatasetFormatError.at(path, f"cannot read the label file ({err})") from err
+    if not isinstance(content, dict):
+        raise DatasetFormatError.at(path, "expected a JSON object keyed <video>_frame_<k>")
+    return content
+
+
+def egohands_jobs(metadata: Path, frames: Path, *, splits: Path | None = None, labeller: Labeller = interpolate_labels,
+                  split_seed: int = 0) -> list[VideoJob]:
+    """Jobs for EgoHands: ``frames/<video_id>/`` holds every frame of a video (frame_0001.jpg, ...)."""
+    annotations = load_metadata(metadata)
+    frames = Path(frames)
+    missing = [v for v in annotations if not (frames / v).is_dir()]
+    if missing:
+        raise DatasetFormatError.at(frames, f"no frame folder for videos {missing}")
+    videos = sorted(annotations)
+    default = default_split(videos, seed=split_seed) if len(videos) == 48 else {"train": videos}
+    assignment = _read_splits(splits, videos, default)
+    jobs = []
+    for video in videos:
+        if video not in assignment:
+            continue
+        folder = frames / video
+        num_frames = len(list_frame_files(folder))
+        jobs.append(VideoJob(video, assignment[video], folder, labeller(annotations[video], num_frames)))
+    return jobs
+
+
+def _parse_overrides(items: list[str]) -> tuple[tuple[str, float], ...]:
+    overrides = []
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--dvs takes name=value, got {item!r}")
+        try:
+            overrides.append((name, float(value)))
+        except ValueError as err:
+            raise ValueError(f"--dvs {name}: {value!r} is not a number") from err
+    return tuple(overrides)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m dagr_lite.synth.build", description=__doc__.splitlines()[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    parser.add_argument("--frames", type=Path, required=True, help="folder holding one frame folder per video")
+    parser.add_argument("--out", type=Path, required=True, help="dataset folder to write (resumed if it exists)")
+    parser.add_argument("--egohands", type=Path, help="EgoHands metadata.mat: labels from its polygons")
+    parser.add_argument("--labels", type=Path, help="labels in the release format (bounding_boxes.json)")
+    parser.add_argument("--version", choices=sorted(VERSIONS), help="an EventEgoHands version (sets the next three)")
+    parser.add_argument("--preset", choices=DVS_MODELS, help="DVS model: clean, noisy or mixed (per video)")
+    parser.add_argument("--upsample", type=int, help="emulator steps per frame interval (U - 1 in-between frames)")
+    parser.add_argument("--scale", type=int, help="downscaling factor of frames and boxes (1, 2, 4, ...)")
+    parser.add_argument("--splits", type=Path, help='JSON {"train": [...], "valid": [...], "test": [...]}')
+    parser.add_argument("--fps", type=float, default=fmt.DEFAULT_FPS)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--clean-fraction", type=float, default=0.5, help="share of clean videos with --preset mixed")
+    parser.add_argument("--compression", choices=["blosc", "gzip", "none"], default="blosc")
+    parser.add_argument("--dvs", action="append", default=[], metavar="NAME=VALUE",
+                        help="override a DVS parameter, e.g. --dvs sigma_threshold=0.05 (repeatable)")
+    args = parser.parse_args(argv)
+    chosen = dict(VERSIONS[args.version]) if args.version else {}
+    for key, value in (("dvs_model", args.preset), ("upsample", args.upsample), ("scale", args.scale)):
+        if value is not None:
+            chosen[key] = value
+    missing = [name for name in ("dvs_model", "upsample", "scale") if name not in chosen]
+    if missing:
+        parser.error(f"give --version or all of --preset, --upsample, --scale (missing: {', '.join(missing)})")
+    if args.egohands and args.labels:
+        parser.error("--egohands and --labels are two sources of labels; give one")
+    try:
+        settings = BuildSettings(dvs_model=chosen["dvs_model"], upsample=chosen["upsample"], scale=chosen["scale"],
+                                 fps=args.fps, seed=args.seed, clean_fraction=args.clean_fraction,
+                                 compression=None if args.compression == "none" else args.compression,
+                                 dvs_overrides=_parse_overrides(args.dvs))
+        if args.egohands:
+            jobs = egohands_jobs(args.egohands, args.frames, splits=args.splits)
+        else:
+            jobs = folder_jobs(args.frames, labels=args.labels, splits=args.splits)
+        info = build(jobs, args.out, settings)
+    except (ValueError, DatasetFormatError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    total = sum(v["events"] for v in info["videos"].values())
+    print(f"{args.out}: {len(info['videos'])} videos, {total:,} events")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,144 @@
+import math
+
+import numpy as np
+import pytest
+
+from dagr_lite.synth.dvs import DVSEmulator, DVSParams, lin_log, preset, rgb_to_luma
+
+
+def run(emulator, frames, dt_us=1000.0):
+    """Step through frames (the first resets); all events concatenated."""
+    emulator.reset(frames[0], 0.0)
+    parts = [emulator.step(f, dt_us * (i + 1)) for i, f in enumerate(frames[1:])]
+    return {k: np.concatenate([p[k] for p in parts]) for k in "xytp"}
+
+
+def test_lin_log_is_linear_below_20_log_above_and_continuous():
+    x = np.array([0.0, 10.0, 20.0, 100.0])
+    np.testing.assert_allclose(lin_log(x), [0.0, 10 * math.log(20) / 20, math.log(20), math.log(100)])
+    eps = 1e-9
+    assert abs(lin_log(np.array([20 - eps]))[0] - lin_log(np.array([20 + eps]))[0]) < 1e-8
+
+
+def test_luma_uses_bt601_weights():
+    rgb = np.array([[[255, 0, 0], [0, 255, 0], [0, 0, 255]]], np.uint8)
+    np.testing.assert_allclose(rgb_to_luma(rgb), [[0.299 * 255, 0.587 * 255, 0.114 * 255]])
+
+
+def test_constant_image_gives_no_events_with_the_clean_preset():
+    frames = [np.full((16, 20, 3), 120.0)] * 30
+    events = run(DVSEmulator(16, 20, preset("clean"), seed=0), frames)
+    assert len(events["t"]) == 0
+
+
+def test_log_rise_of_one_gives_exactly_five_on_events_inside_the_interval():
+    emulator = DVSEmulator(1, 1, preset("clean", sigma_threshold=0.0), seed=0)
+    emulator.reset(np.full((1, 1), 100.0), 0.0)
+    events = emulator.step(np.full((1, 1), 100.0 * math.e), 1000.0)  # log intensity +1.0
+    assert events["p"].tolist() == [1] * 5
+    assert np.all(events["t"] >= 0) and np.all(events["t"] < 1000) and np.all(np.diff(events["t"]) > 0)
+    # The remainder carries over: +0.1 more gives nothing, +0.1 again gives one more event.
+    assert len(emulator.step(np.full((1, 1), 100.0 * math.exp(1.1)), 2000.0)["t"]) == 0
+    assert emulator.step(np.full((1, 1), 100.0 * math.exp(1.2)), 3000.0)["p"].tolist() == [1]
+
+
+def test_falling_ramp_gives_off_events():
+    emulator = DVSEmulator(2, 2, preset("clean", sigma_threshold=0.0), seed=0)
+    frames = [np.full((2, 2), 200.0 * math.exp(-0.1 * i)) for i in range(21)]  # log falls by 2.0
+    events = run(emulator, frames)
+    assert set(events["p"].tolist()) == {0}
+    assert len(events["t"]) == 4 * 10  # 2.0 / 0.2 per pixel
+    assert np.all(np.diff(events["t"]) >= 0)
+
+
+def test_threshold_spread_matches_sigma_and_is_clamped():
+    emulator = DVSEmulator(200, 200, preset("clean", sigma_threshold=0.03), seed=1)
+    assert emulator.pos_threshold.mean() == pytest.approx(0.2, abs=0.002)
+    assert emulator.pos_threshold.std() == pytest.approx(0.03, rel=0.03)
+    assert emulator.neg_threshold.std() == pytest.approx(0.03, rel=0.03)
+    wide = DVSEmulator(100, 100, preset("clean", sigma_threshold=0.2), seed=1)
+    assert wide.pos_threshold.min() == pytest.approx(0.01)
+
+
+def test_leak_rate_matches_its_parameter_in_a_static_scene():
+    params = preset("clean", leak_rate_hz=2.0, leak_jitter=0.1, sigma_threshold=0.0)
+    emulator = DVSEmulator(40, 40, params, seed=2)
+    seconds = 10.0
+    frames = [np.full((40, 40), 150.0)] * 101
+    events = run(emulator, frames, dt_us=seconds * 1e6 / 100)
+    rate = len(events["t"]) / (40 * 40 * seconds)
+    assert rate == pytest.approx(2.0, rel=0.05)
+    assert set(events["p"].tolist()) == {1}  # leak events are ON events
+
+
+def test_shot_noise_rate_matches_its_parameter_and_is_higher_in_the_dark():
+    params = preset("clean", shot_noise_rate_hz=5.0)
+    frame = np.zeros((40, 80))
+    frame[:, 40:] = 255.0  # left half dark, right half bright
+    emulator = DVSEmulator(40, 80, params, seed=3)
+    seconds = 20.0
+    events = run(emulator, [frame] * 201, dt_us=seconds * 1e6 / 200)
+    dark = events["x"] < 40
+    dark_rate = dark.sum() / (40 * 40 * seconds)
+    bright_rate = (~dark).sum() / (40 * 40 * seconds)
+    assert dark_rate == pytest.approx(5.0, rel=0.05)
+    assert bright_rate == pytest.approx(5.0 * 0.25, rel=0.1)
+    assert 0.4 < events["p"][dark].mean() < 0.6  # ON and OFF alike
+
+
+def test_low_pass_slows_the_response_in_the_dark_more_than_in_the_bright():
+    params = preset("clean", cutoff_hz=30.0, sigma_threshold=0.0)
+    before, after = np.zeros((1, 2)), np.zeros((1, 2))
+    before[0] = [10.0, 100.0]
+    after[0] = [10.0 * math.e, 100.0 * math.e]
+    emulator = DVSEmulator(1, 2, params, seed=0)
+    emulator.reset(before, 0.0)
+    events = emulator.step(after, 1000.0)  # 1 ms: much shorter than 1 / (2 pi 30 Hz)
+    assert len(events["t"]) < 5  # unlimited bandwidth would give 5 + 5
+    late = run(DVSEmulator(1, 2, params, seed=0), [before] + [after] * 200)
+    bright_first = late["t"][late["x"] == 1].min()
+    dark_first = late["t"][late["x"] == 0].min()
+    assert bright_first < dark_first
+
+
+def test_refractory_period_spaces_a_pixels_events():
+    params = preset("clean", sigma_threshold=0.0, refractory_us=300.0)
+    emulator = DVSEmulator(1, 1, params, seed=0)
+    emulator.reset(np.full((1, 1), 100.0), 0.0)
+    events = emulator.step(np.full((1, 1), 100.0 * math.e), 1000.0)  # 5 events 200 us apart without it
+    assert len(events["t"]) == 3 and np.all(np.diff(events["t"]) >= 300)
+    # The level moved only by the emitted events: the missing change comes out later.
+    later = emulator.step(np.full((1, 1), 100.0 * math.e), 2000.0)
+    assert len(later["t"]) == 2 and later["t"][0] - events["t"][-1] >= 300
+
+
+def test_same_seed_same_events_and_noisy_preset_values():
+    frames = [np.random.default_rng(i).uniform(20, 200, (12, 12)) for i in range(6)]
+    a = run(DVSEmulator(12, 12, preset("noisy"), seed=5), frames)
+    b = run(DVSEmulator(12, 12, preset("noisy"), seed=5), frames)
+    c = run(DVSEmulator(12, 12, preset("noisy"), seed=6), frames)
+    for name in "xytp":
+        np.testing.assert_array_equal(a[name], b[name])
+    assert len(a["t"]) != len(c["t"]) or not np.array_equal(a["t"], c["t"])
+    noisy = preset("noisy")
+    assert (noisy.pos_threshold, noisy.neg_threshold, noisy.sigma_threshold) == (0.2, 0.2, 0.03)
+    assert (noisy.shot_noise_rate_hz, noisy.leak_rate_hz, noisy.cutoff_hz) == (5.0, 0.1, 30.0)
+    clean = preset("clean")
+    assert (clean.sigma_threshold, clean.shot_noise_rate_hz, clean.leak_rate_hz, clean.cutoff_hz) == (0.02, 0, 0, 0)
+
+
+def test_bad_parameters_and_calls():
+    with pytest.raises(ValueError, match="unknown DVS preset 'nope'"):
+        preset("nope")
+    with pytest.raises(ValueError, match="unknown DVS parameters"):
+        preset("clean", sigma=0.1)
+    with pytest.raises(ValueError, match="pos_threshold"):
+        DVSParams(pos_threshold=0.0)
+    emulator = DVSEmulator(2, 2)
+    with pytest.raises(RuntimeError, match="reset"):
+        emulator.step(np.zeros((2, 2)), 10.0)
+    emulator.reset(np.zeros((2, 2)), 10.0)
+    with pytest.raises(ValueError, match="not after"):
+        emulator.step(np.zeros((2, 2)), 10.0)
+    with pytest.raises(ValueError, match="expected 2x2"):
+        emulator.step(np.zeros((3, 2)), 20.0)
