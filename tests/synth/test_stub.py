@@ -52,3 +52,14 @@ def test_scene_moves_fast_enough_that_a_stale_image_is_wrong():
     assert np.median(shifts) >= 2 and shifts.max() >= 8  # a few to tens of pixels per frame
     counts = [len(HandScene(seed).boxes(k)) for seed in range(4) for k in range(0, 90, 5)]
     assert min(counts) <= 1 and max(counts) >= 3  # hands leave and enter the frame
+
+
+def test_stub_config_describes_the_generated_data():
+    from pathlib import Path
+
+    import yaml
+
+    from dagr_lite.synth import stub
+    conf = yaml.safe_load((Path(__file__).resolve().parents[2] / "conf" / "dataset" / "stub.yaml").read_text())
+    assert (conf["height"], conf["width"]) == (stub.STUB_HEIGHT, stub.STUB_WIDTH)
+    assert (conf["upsample"], conf["dvs_model"]) == (stub.STUB_UPSAMPLE, stub.STUB_DVS_MODEL)
