@@ -46,7 +46,26 @@ def _check_target(path: Path, overwrite: bool) -> None:
         raise FileExistsError(f"{path}: already exists (pass overwrite=True to replace it)")
 
 
-class EventFileWriter:
+class _Transaction:
+    """``with`` support: :meth:`close` on success, :meth:`abort` when the block raises."""
+
+    def close(self):
+        raise NotImplementedError
+
+    def abort(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+class EventFileWriter(_Transaction):
     """Writes one ``<video>.h5`` event file, in appended pieces of any size.
 
     ``timeidx`` is counted as the pieces arrive (for each frame, how many events lie before its
@@ -140,15 +159,6 @@ class EventFileWriter:
             self._h5 = None
         self._tmp_path.unlink(missing_ok=True)
 
-    def __enter__(self) -> "EventFileWriter":
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
-
 
 def write_events(path: Path | str, x, y, t, p, *, num_frames: int, **kwargs) -> Path:
     """Write a whole event stream to ``path`` in one go (see :class:`EventFileWriter` for options)."""
@@ -198,7 +208,7 @@ def write_labels(root: Path | str, labels: dict[str, dict[int, np.ndarray]], *, 
     return path
 
 
-class VideoWriter:
+class VideoWriter(_Transaction):
     """Writes one video of a split as it is produced: frames one by one, events in pieces.
 
     Frames go straight to their JPEG files; the events file is created under a temporary name
@@ -255,15 +265,6 @@ class VideoWriter:
 
     def abort(self) -> None:
         self._events.abort()
-
-    def __enter__(self) -> "VideoWriter":
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
 
 
 def write_video(root: Path | str, split: str, video: str, *, events: dict[str, np.ndarray],
