@@ -103,6 +103,12 @@ def parse_label_key(key: str) -> tuple[str, int] | None:
     return (match.group("video"), int(match.group("k"))) if match else None
 
 
+def label_video(key: str) -> str | None:
+    """The video a label key belongs to, or None if the key is malformed."""
+    parsed = parse_label_key(key)
+    return parsed[0] if parsed else None
+
+
 def xywh_to_xyxy(boxes: np.ndarray) -> np.ndarray:
     """``(M, 4)`` top-left x, y, width, height -> ``(M, 4)`` x1, y1, x2, y2 (same units)."""
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)

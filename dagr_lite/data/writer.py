@@ -185,15 +185,16 @@ def write_labels(root: Path | str, labels: dict[str, dict[int, np.ndarray]], *, 
                  overwrite: bool = False) -> Path:
     """Write ``bounding_boxes.json`` from ``{video: {k: (M, 4) x_tl, y_tl, w, h}}``.
 
-    Every frame given gets a key, an empty list when it has no boxes. ``merge`` adds to (and
-    replaces the given frames of) an existing file; otherwise an existing file is an error
-    unless ``overwrite``.
+    Every frame given gets a key, an empty list when it has no boxes. ``merge`` keeps the other
+    videos of an existing file and replaces all labels of the videos given; otherwise an
+    existing file is an error unless ``overwrite``.
     """
     path = fmt.labels_path(root)
     content: dict[str, list] = {}
     if path.exists():
         if merge:
-                content = load_labels_json(root)
+            content = {key: value for key, value in load_labels_json(root).items()
+                       if fmt.label_video(key) not in labels}
         elif not overwrite:
             raise FileExistsError(f"{path}: already exists (pass merge=True or overwrite=True)")
     for video, frames in labels.items():

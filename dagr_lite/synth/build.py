@@ -19,7 +19,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
+import warnings
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,11 +30,13 @@ import numpy as np
 from tqdm import tqdm
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.reader import DatasetFormatError, parse_boxes
+from dagr_lite.data.reader import DatasetFormatError, frame_size, parse_boxes
 from dagr_lite.data.writer import VideoWriter, write_labels
 from dagr_lite.synth.dvs import PRESETS, DVSParams, preset
-from dagr_lite.synth.egohands import Labeller, default_split, interpolate_labels, load_metadata
-from dagr_lite.synth.video import FolderSource, choose_dvs_model, emulate_video, list_frame_files, scale_boxes
+from dagr_lite.synth.egohands import (EGOHANDS_HEIGHT, EGOHANDS_WIDTH, Labeller, default_split, interpolate_labels,
+                                      load_metadata)
+from dagr_lite.synth.video import (FolderSource, choose_dvs_model, emulate_video, frame_number, list_frame_files,
+                                   scale_boxes)
 
 # The EventEgoHands versions (paper, Table I): upsampling factor, scale, DVS model.
 VERSIONS = {
@@ -93,57 +97,103 @@ class BuildSettings:
                 "dvs_overrides": dict(self.dvs_overrides)}
 
 
-def _check_build_info(out: Path, settings: BuildSettings) -> None:
-    path = out / BUILD_INFO
-    if path.exists():
-        previous = json.loads(path.read_text()).get("settings")
-        if previous != settings.as_dict():
-            raise ValueError(f"{path}: {out} was built with settings {previous}, not {settings.as_dict()}; "
-                             "resume with the same settings or choose a new --out")
-
-
 def _write_json(path: Path, content: dict) -> None:
     tmp = path.with_name(path.name + f".tmp{os.getpid()}")
     tmp.write_text(json.dumps(content, indent=1, sort_keys=True))
     os.replace(tmp, path)
 
 
+def _read_json(path: Path, default: dict) -> dict:
+    return json.loads(path.read_text()) if path.exists() else default
+
+
+def _drop_video_keys(mapping: dict, video: str) -> dict:
+    return {key: value for key, value in mapping.items() if fmt.label_video(key) != video}
+
+
+def _set_video_labels(out: Path, video: str, boxes: dict[int, np.ndarray], sources: dict[str, list[str]]) -> None:
+    """Replace every label and label source of ``video`` (none left over from an earlier attempt)."""
+    write_labels(out, {video: boxes}, merge=True)
+    all_sources = _drop_video_keys(_read_json(out / LABEL_SOURCES, {}), video)
+    all_sources.update(sources)
+    _write_json(out / LABEL_SOURCES, all_sources)
+
+
+def _finished_split(out: Path, video: str) -> str | None:
+    return next((split for split in fmt.SPLITS if fmt.events_path(out, split, video).exists()), None)
+
+
+def _labels_at_scale(job: VideoJob, source: FolderSource, scale: int):
+    """The job's labels in pixels of the scaled frames, and the source of each box kept."""
+    boxes, sources = {}, {}
+    for k, (xywh, origin) in job.labels.items():
+        if k >= source.num_frames:
+            raise ValueError(f"{job.frames}: labels for frame {k}, but the video has {source.num_frames} frames")
+        boxes[k], kept = scale_boxes(xywh, scale, source.height, source.width)
+        sources[fmt.label_key(job.name, k)] = [o for o, keep in zip(origin, kept) if keep]
+    return boxes, sources
+
+
 def build(jobs: list[VideoJob], out: Path | str, settings: BuildSettings, *, progress: bool = True) -> dict:
-    """Build every job's video into ``out``; returns the build summary also written to ``build_info.json``."""
+    """Build every job's video into ``out``; returns the build summary also written to ``build_info.json``.
+
+    Settings are recorded before the first video; a later run with other settings, or with a
+    finished video assigned to another split, is refused. A video that gives no events (a
+    static scene, a single frame) cannot be a dataset video: it is left out with a warning.
+    """
     out = Path(out)
     names = [job.name for job in jobs]
     if len(set(names)) != len(names):
         raise ValueError(f"video names must be unique, got {sorted(n for n in set(names) if names.count(n) > 1)}")
-    out.mkdir(parents=True, exist_ok=True)
-    _check_build_info(out, settings)
+    for job in jobs:
+        done = _finished_split(out, job.name)
+        if done is not None and done != job.split:
+            raise ValueError(f"{fmt.events_path(out, done, job.name)}: video {job.name} was built into {done}, "
+                             f"but is now assigned to {job.split}; keep the split or choose a new --out")
     info_path = out / BUILD_INFO
-    info = json.loads(info_path.read_text()) if info_path.exists() else {"settings": settings.as_dict(), "videos": {}}
-    sources_path = out / LABEL_SOURCES
-    sources = json.loads(sources_path.read_text()) if sources_path.exists() else {}
+    info = _read_json(info_path, {"settings": settings.as_dict(), "videos": {}, "skipped": {}})
+    if info["settings"] != settings.as_dict():
+        raise ValueError(f"{info_path}: {out} was built with settings {info['settings']}, not "
+                         f"{settings.as_dict()}; resume with the same settings or choose a new --out")
+    out.mkdir(parents=True, exist_ok=True)
+    _write_json(info_path, info)
     if not fmt.labels_path(out).exists():
         write_labels(out, {})
     for job in tqdm(jobs, desc="videos", unit="video", disable=not progress):
-        if fmt.events_path(out, job.split, job.name).exists():
-            continue  # finished in an earlier run
+        if _finished_split(out, job.name) is not None:
+            if job.name not in info["videos"]:  # finished, but the run stopped before recording it
+                info["videos"][job.name] = {"split": job.split, "dvs_model": settings.model_for(job.name)}
+                _write_json(info_path, info)
+            continue
         source = FolderSource(job.frames, scale=settings.scale)
+        if source.num_frames < 2:
+            warnings.warn(f"{job.frames}: {source.num_frames} frame(s); a video needs two to give events, skipped")
+            info["skipped"][job.name] = "fewer than two frames"
+            _write_json(info_path, info)
+            continue
         model = settings.model_for(job.name)
+        boxes, sources = _labels_at_scale(job, source, settings.scale)
         # Labels go first: a video counts as finished only once its events file exists.
-        boxes, frame_sources = {}, {}
-        for k in range(source.num_frames):
-            if k in job.labels:
-                xywh, origin = job.labels[k]
-                boxes[k] = scale_boxes(xywh, settings.scale, source.height, source.width)
-                frame_sources[fmt.label_key(job.name, k)] = origin[: len(boxes[k])]
-        write_labels(out, {job.name: boxes}, merge=True)
-        sources.update(frame_sources)
-        _write_json(sources_path, sources)
-        with tqdm(total=source.num_frames - 1, desc=job.name, unit="frame", leave=False,
-                  disable=not progress) as bar, \
-                VideoWriter(out, job.split, job.name, num_frames=source.num_frames, height=source.height,
-                            width=source.width, fps=settings.fps, compression=settings.compression,
-                            overwrite=False) as writer:
-            count = emulate_video(source, writer, params=settings.params(model), upsample=settings.upsample,
-                                  fps=settings.fps, seed=settings.video_seed(job.name), progress=bar.update)
+        _set_video_labels(out, job.name, boxes, sources)
+        writer = VideoWriter(out, job.split, job.name, num_frames=source.num_frames, height=source.height,
+                             width=source.width, fps=settings.fps, compression=settings.compression)
+        try:
+            with tqdm(total=source.num_frames - 1, desc=job.name, unit="frame", leave=False,
+                      disable=not progress) as bar:
+                count = emulate_video(source, writer, params=settings.params(model), upsample=settings.upsample,
+                                      fps=settings.fps, seed=settings.video_seed(job.name), progress=bar.update)
+            if count == 0:
+                writer.abort()
+                shutil.rmtree(writer.folder, ignore_errors=True)
+                _set_video_labels(out, job.name, {}, {})
+                warnings.warn(f"{job.frames}: the emulator gave no events (a static video?); skipped")
+                info["skipped"][job.name] = "no events"
+                _write_json(info_path, info)
+                continue
+            writer.close()
+        except BaseException:
+            writer.abort()
+            raise
         info["videos"][job.name] = {"split": job.split, "dvs_model": model, "frames": source.num_frames,
                                     "events": count, "labelled_frames": len(boxes)}
         _write_json(info_path, info)
@@ -224,7 +274,16 @@ def egohands_jobs(metadata: Path, frames: Path, *, splits: Path | None = None, l
         if video not in assignment:
             continue
         folder = frames / video
-        num_frames = len(list_frame_files(folder))
+        files = list_frame_files(folder)
+        # metadata frame_num N is the file numbered N: folders must count from 1, as EgoHands' do.
+        if frame_number(files[0]) != 1:
+            raise DatasetFormatError.at(folder, f"frames are numbered from {frame_number(files[0])}; EgoHands "
+                                                "frame folders count from 1 (frame_0001.jpg), as frame_num does")
+        size = frame_size(files[0])
+        if size != (EGOHANDS_HEIGHT, EGOHANDS_WIDTH):
+            raise DatasetFormatError.at(files[0], f"frame is {size[1]}x{size[0]} (WxH); EgoHands polygons are in "
+                                                  f"{EGOHANDS_WIDTH}x{EGOHANDS_HEIGHT} frames (use --scale to shrink)")
+        num_frames = len(files)
         jobs.append(VideoJob(video, assignment[video], folder, labeller(annotations[video], num_frames)))
     return jobs
 

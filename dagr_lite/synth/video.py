@@ -52,15 +52,15 @@ def downscale_area(frame: np.ndarray, scale: int) -> np.ndarray:
     return cropped.reshape(h, scale, w, scale, *frame.shape[2:]).mean(axis=(1, 3))
 
 
-def scale_boxes(boxes_xywh: np.ndarray, scale: int, height: int, width: int) -> np.ndarray:
+def scale_boxes(boxes_xywh: np.ndarray, scale: int, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
     """Boxes of a ``scale``-times larger frame, in pixels of the scaled frame, clipped to it.
 
-    Boxes left with no area are dropped.
+    Returns the boxes left with an area and the ``(M,)`` bool mask of which input boxes they are.
     """
     xyxy = fmt.xywh_to_xyxy(boxes_xywh) / scale
     xyxy = np.clip(xyxy, 0, [width, height, width, height])
-    xyxy = xyxy[(xyxy[:, 2] > xyxy[:, 0]) & (xyxy[:, 3] > xyxy[:, 1])]
-    return fmt.xyxy_to_xywh(xyxy)
+    kept = (xyxy[:, 2] > xyxy[:, 0]) & (xyxy[:, 3] > xyxy[:, 1])
+    return fmt.xyxy_to_xywh(xyxy[kept]), kept
 
 
 def to_uint8(frame: np.ndarray) -> np.ndarray:
@@ -81,7 +81,8 @@ class FrameSource(Protocol):
         """The scene at ``alpha`` (0 < alpha < 1) of the way from frame ``k`` to frame ``k + 1``."""
 
 
-def _frame_number(path: Path) -> int | None:
+def frame_number(path: Path) -> int | None:
+    """The last number in a frame file's name (``frame_0012.jpg`` -> 12), or None."""
     numbers = re.findall(r"\d+", path.stem)
     return int(numbers[-1]) if numbers else None
 
@@ -97,7 +98,7 @@ def list_frame_files(folder: Path | str) -> list[Path]:
     numbered = []
     for path in folder.iterdir():
         if path.suffix.lower() in FRAME_SUFFIXES:
-            number = _frame_number(path)
+            number = frame_number(path)
             if number is None:
                 raise DatasetFormatError.at(path, "frame file name holds no frame number")
             numbered.append((number, path))

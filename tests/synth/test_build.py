@@ -16,13 +16,14 @@ from tests.synth.test_egohands import write_metadata
 CONF = Path(__file__).resolve().parents[2] / "conf" / "dataset"
 
 
-def write_moving_square_videos(folder, names, *, num_frames=6, height=24, width=32, first_number=0, pad=0):
+def write_moving_square_videos(folder, names, *, num_frames=6, height=24, width=32, first_number=0, pad=0,
+                               size=8, step=3):
     """Frame folders of a bright square moving right over a dark background."""
     for v, name in enumerate(names):
         for k in range(num_frames):
             image = np.full((height, width, 3), 30, np.uint8)
-            x = 2 + 3 * k + v
-            image[6:14, x:x + 8] = 220
+            x = 2 + step * k + v
+            image[6:6 + size, x:x + size] = 220
             write_frame(folder / name / f"frame_{k + first_number:0{pad}d}.jpg", image)
 
 
@@ -78,18 +79,19 @@ def test_build_resumes_and_refuses_other_settings(tmp_path):
 
 def test_egohands_input(tmp_path):
     names = ["CARDS_COURTYARD_B_T", "JENGA_OFFICE_S_T"]
-    write_moving_square_videos(tmp_path / "frames", names, num_frames=8, height=36, width=64, first_number=1, pad=4)
+    write_moving_square_videos(tmp_path / "frames", names, num_frames=8, height=720, width=1280, first_number=1,
+                               pad=4, size=80, step=40)
     write_metadata(tmp_path / "metadata.mat", {
         names[0]: [(2, {"myleft": [[6, 7], [14, 14]]}), (6, {"myleft": [[18, 7], [26, 14]], "myright": [[1, 1], [3, 3]]})],
         names[1]: [(1, {"yourleft": [[2, 2], [10, 10]]})],
     })
     out = tmp_path / "out"
     assert main(["--egohands", str(tmp_path / "metadata.mat"), "--frames", str(tmp_path / "frames"),
-                 "--out", str(out), "--version", "v3"]) == 0
+                 "--out", str(out), "--version", "v2"]) == 0
     assert check_dataset(out) == []
     labels = read_labels(out)
-    # v3 halves the resolution: frame_num 2 -> frame index 1, MATLAB (6, 7)..(14, 14) -> (5.5, 6.5)..(13.5, 13.5).
-    np.testing.assert_allclose(labels[names[0]][1], [[2.75, 3.25, 4, 3.5]])
+    # v2 divides by 4: frame_num 2 -> frame index 1, MATLAB (6, 7)..(14, 14) -> (5.5, 6.5)..(13.5, 13.5) -> / 4.
+    np.testing.assert_allclose(labels[names[0]][1], [[1.375, 1.625, 2, 1.75]])
     assert sorted(labels[names[0]]) == [1, 2, 3, 4, 5]
     assert len(labels[names[0]][3]) == 1  # myright is only in one labelled frame: not interpolated
     sources = json.loads((out / LABEL_SOURCES).read_text())
@@ -107,3 +109,72 @@ def test_bad_arguments_are_named(tmp_path, capsys):
     assert main(["--frames", str(tmp_path / "frames"), "--out", str(tmp_path / "o"), "--version", "v1",
                  "--dvs", "sigma=1"]) == 2
     assert "unknown DVS parameters ['sigma']" in capsys.readouterr().err
+
+
+def test_videos_without_events_are_left_out_with_a_warning(tmp_path):
+    write_moving_square_videos(tmp_path / "frames", ["moving"])
+    for k in range(4):  # a static video: the clean preset gives no events
+        write_frame(tmp_path / "frames" / "static" / f"frame_{k}.jpg", np.full((24, 32, 3), 90, np.uint8))
+    write_frame(tmp_path / "frames" / "single" / "frame_0.jpg", np.full((24, 32, 3), 90, np.uint8))
+    labels = {fmt.label_key("static", 1): [[1, 1, 5, 5]], fmt.label_key("moving", 1): [[5, 6, 8, 8]]}
+    (tmp_path / "labels.json").write_text(json.dumps(labels))
+    out = tmp_path / "out"
+    args = ["--frames", str(tmp_path / "frames"), "--out", str(out), "--version", "v1",
+            "--labels", str(tmp_path / "labels.json")]
+    with pytest.warns(UserWarning) as caught:
+        assert main(args) == 0
+    assert {"no events", "frame(s)"} <= {w for m in caught for w in ("no events", "frame(s)") if w in str(m.message)}
+    assert check_dataset(out) == []  # no leftover frames or labels of the skipped videos
+    assert EventEgoHands(out, "train").videos == ["moving"]
+    info = json.loads((out / BUILD_INFO).read_text())
+    assert set(info["skipped"]) == {"static", "single"}
+
+
+def test_resume_refuses_a_new_split_and_replaces_stale_labels(tmp_path):
+    write_moving_square_videos(tmp_path / "frames", ["a", "b"])
+    out = tmp_path / "out"
+    base = ["--frames", str(tmp_path / "frames"), "--out", str(out), "--version", "v1"]
+    first = {fmt.label_key("a", 2): [[5, 6, 8, 8]], fmt.label_key("b", 2): [[6, 6, 8, 8]]}
+    (tmp_path / "l1.json").write_text(json.dumps(first))
+    assert main(base + ["--labels", str(tmp_path / "l1.json")]) == 0
+    fmt.events_path(out, "train", "b").unlink()  # b stopped half-way
+    second = {fmt.label_key("a", 2): [[5, 6, 8, 8]], fmt.label_key("b", 4): [[12, 6, 8, 8]]}
+    (tmp_path / "l2.json").write_text(json.dumps(second))
+    assert main(base + ["--labels", str(tmp_path / "l2.json")]) == 0
+    labels = read_labels(out)
+    assert sorted(labels["b"]) == [4]  # b's old frame-2 label is gone
+    sources = json.loads((out / LABEL_SOURCES).read_text())
+    assert fmt.label_key("b", 2) not in sources and fmt.label_key("b", 4) in sources
+    (tmp_path / "splits.json").write_text(json.dumps({"train": ["b"], "test": ["a"]}))
+    assert main(base + ["--splits", str(tmp_path / "splits.json")]) == 2
+    assert not fmt.frames_dir(out, "test", "a").exists()
+
+
+def test_settings_are_recorded_before_the_first_video(tmp_path):
+    write_moving_square_videos(tmp_path / "frames", ["a"])
+    (tmp_path / "frames" / "a" / "frame_3.jpg").write_bytes(b"not a jpeg")
+    out = tmp_path / "out"
+    args = ["--frames", str(tmp_path / "frames"), "--out", str(out), "--version", "v1"]
+    assert main(args) == 2  # the corrupt frame stops the build, naming the file
+    assert json.loads((out / BUILD_INFO).read_text())["settings"]["upsample"] == 1
+    assert main(args[:-1] + ["v4"]) == 2  # nothing finished, yet other settings are refused
+
+
+def test_label_sources_follow_the_boxes_that_survive_scaling(tmp_path):
+    from dagr_lite.synth.build import VideoJob, _labels_at_scale
+    from dagr_lite.synth.video import FolderSource
+    write_moving_square_videos(tmp_path / "frames", ["a"])
+    labels = {1: (np.array([[100.0, 0, 5, 5], [2, 2, 6, 6]]), ["annotated", "interpolated"])}
+    job = VideoJob("a", "train", tmp_path / "frames" / "a", labels)
+    boxes, sources = _labels_at_scale(job, FolderSource(job.frames, scale=2), 2)
+    np.testing.assert_allclose(boxes[1], [[1, 1, 3, 3]])
+    assert sources == {"a_frame_1": ["interpolated"]}
+
+
+def test_egohands_frame_folders_must_count_from_one_at_full_size(tmp_path):
+    write_metadata(tmp_path / "metadata.mat", {"V": [(1, {"myleft": [[6, 7], [14, 14]]})]})
+    write_moving_square_videos(tmp_path / "f0", ["V"], num_frames=3, height=720, width=1280, first_number=0, pad=4)
+    args = ["--egohands", str(tmp_path / "metadata.mat"), "--out", str(tmp_path / "o"), "--version", "v2"]
+    assert main(args + ["--frames", str(tmp_path / "f0")]) == 2
+    write_moving_square_videos(tmp_path / "small", ["V"], num_frames=3, height=36, width=64, first_number=1, pad=4)
+    assert main(args + ["--frames", str(tmp_path / "small")]) == 2

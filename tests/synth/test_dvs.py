@@ -86,19 +86,22 @@ def test_shot_noise_rate_matches_its_parameter_and_is_higher_in_the_dark():
     assert 0.4 < events["p"][dark].mean() < 0.6  # ON and OFF alike
 
 
-def test_low_pass_slows_the_response_in_the_dark_more_than_in_the_bright():
+def test_low_pass_follows_the_intensity_dependent_first_order_filter():
     params = preset("clean", cutoff_hz=30.0, sigma_threshold=0.0)
-    before, after = np.zeros((1, 2)), np.zeros((1, 2))
-    before[0] = [10.0, 100.0]
-    after[0] = [10.0 * math.e, 100.0 * math.e]
+    before = np.array([[25.0, 100.0]])  # both above the 20 DN joint: log region
+    after = before * math.e  # log intensity +1 in both pixels
     emulator = DVSEmulator(1, 2, params, seed=0)
     emulator.reset(before, 0.0)
-    events = emulator.step(after, 1000.0)  # 1 ms: much shorter than 1 / (2 pi 30 Hz)
-    assert len(events["t"]) < 5  # unlimited bandwidth would give 5 + 5
-    late = run(DVSEmulator(1, 2, params, seed=0), [before] + [after] * 200)
-    bright_first = late["t"][late["x"] == 1].min()
-    dark_first = late["t"][late["x"] == 0].min()
-    assert bright_first < dark_first
+    start = emulator.filtered.copy()
+    events = emulator.step(after, 1000.0)
+    # eps = dt * 2 pi f_c * (I + 20) / 275 with the new intensity I.
+    eps = 1e-3 * 2 * math.pi * 30.0 * (after[0] + 20) / 275
+    np.testing.assert_allclose(emulator.filtered[0], start[0] + eps * (lin_log(after[0]) - start[0]))
+    # Bright: eps ~ 0.2, one event; dark: eps ~ 0.06, none (unlimited bandwidth: 5 each).
+    assert events["x"].tolist() == [1]
+    late = run(DVSEmulator(1, 2, params, seed=0), [before] + [after] * 600)
+    assert (late["x"] == 1).sum() == 5 and (late["x"] == 0).sum() == 5  # both settle on the full change
+    assert late["t"][late["x"] == 1].min() < late["t"][late["x"] == 0].min()
 
 
 def test_refractory_period_spaces_a_pixels_events():

@@ -68,7 +68,8 @@ def test_area_downscaling_and_box_scaling():
     assert small.shape == (2, 3, 3)
     assert small[0, 0, 0] == np.mean([0, 1, 6, 7]) and small[1, 2, 1] == np.mean([16, 17, 22, 23])
     assert downscale_area(frame[:, :5], 2).shape == (2, 2, 3)  # the odd column is dropped
-    boxes = scale_boxes(np.array([[10, 20, 40, 8], [330, 10, 40, 40], [300, 10, 40, 40]]), 4, 30, 80)
+    boxes, kept = scale_boxes(np.array([[10, 20, 40, 8], [330, 10, 40, 40], [300, 10, 40, 40]]), 4, 30, 80)
+    assert kept.tolist() == [True, False, True]
     np.testing.assert_allclose(boxes, [[2.5, 5, 10, 2], [75, 2.5, 5, 10]])  # the second falls outside: dropped; the third is clipped
     with pytest.raises(ValueError, match="scale"):
         downscale_area(frame, 0)
