@@ -1,0 +1,4 @@
+"""Network layers: the causal sparse GCN, and the branches built from it."""
+from dagr_lite.nn.gcn import GCNConv, GraphOperator, gcn_norm
+
+__all__ = ["GCNConv", "GraphOperator", "gcn_norm"]

@@ -1,0 +1,144 @@
+"""The causal GCN layer as one sparse matrix product per layer (DESIGN.md section 5).
+
+``h_i' = W * sum_{j in N(i) + {i}} h_j / sqrt(d_i * d_j)`` with ``d = 1 + in-degree``. A node's
+in-degree is fixed when it arrives (its edges come from earlier nodes only), so a node's output
+never changes afterwards, and computing the new nodes alone gives exactly what the whole
+window gives.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+
+import torch
+from torch import nn
+
+
+def gcn_norm(edge_index: torch.Tensor, num_nodes: int, *, in_degree: torch.Tensor | None = None,
+             rows: torch.Tensor | None = None):
+    """Triplets ``(row, col, value)`` of ``D^-1/2 (A + I) D^-1/2`` (rows = destinations).
+
+    Self-loops in ``edge_index`` are dropped: the identity adds the one self-loop of each node.
+
+    Args:
+        edge_index: ``(2, E)`` int64, sources in row 0, destinations in row 1.
+        num_nodes: number of nodes ``N``.
+        in_degree: ``(N,)`` in-degree of every node; counted from ``edge_index`` when omitted.
+            Give it when ``edge_index`` holds only the edges into some nodes (streaming).
+        rows: destination nodes to keep (default: all); output rows are numbered by their
+            position in ``rows``.
+
+    Returns:
+        ``row (E',)``, ``col (E',)``, ``value (E',)`` float32, sorted by (row, col).
+    """
+    src, dst = edge_index[0], edge_index[1]
+    keep = src != dst
+    src, dst = src[keep], dst[keep]
+    if in_degree is None:
+        in_degree = torch.bincount(dst, minlength=num_nodes)
+    deg_inv_sqrt = (1.0 + in_degree.to(torch.float64)).rsqrt()  # (N,)
+    if rows is None:
+        rows = torch.arange(num_nodes, device=edge_index.device)
+    position = torch.full((num_nodes,), -1, dtype=torch.int64, device=edge_index.device)
+    position[rows] = torch.arange(len(rows), device=edge_index.device)
+    in_rows = position[dst] >= 0
+    src, dst = src[in_rows], dst[in_rows]
+    row = torch.cat([position[dst], torch.arange(len(rows), device=edge_index.device)])
+    col = torch.cat([src, rows])
+    value = (deg_inv_sqrt[torch.cat([dst, rows])] * deg_inv_sqrt[col]).to(torch.float32)
+    order = torch.argsort(row * num_nodes + col)
+    return row[order], col[order], value[order]
+
+
+def _csr(row: torch.Tensor, col: torch.Tensor, value: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+    """CSR matrix from triplets sorted by (row, col)."""
+    crow = torch.zeros(shape[0] + 1, dtype=torch.int64, device=row.device)
+    crow[1:] = torch.cumsum(torch.bincount(row, minlength=shape[0]), 0)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+        return torch.sparse_csr_tensor(crow, col, value, shape, check_invariants=False)
+
+
+class GraphOperator:
+    """The normalised propagation matrix of one graph, prepared once and shared by all layers.
+
+    Holds ``adj`` = ``D^-1/2 (A + I) D^-1/2`` restricted to the output rows, as CSR, and its
+    transpose (also CSR) for the backward pass, so both directions are one sparse product.
+
+    Shapes:
+        adj ``(N_out, N)``, adj_t ``(N, N_out)``; ``N_out = N`` unless ``rows`` was given.
+    """
+
+    def __init__(self, edge_index: torch.Tensor, num_nodes: int, *, in_degree: torch.Tensor | None = None,
+                 rows: torch.Tensor | None = None):
+        row, col, value = gcn_norm(edge_index, num_nodes, in_degree=in_degree, rows=rows)
+        n_out = num_nodes if rows is None else len(rows)
+        self.num_nodes, self.num_out, self.rows = num_nodes, n_out, rows
+        self.adj = _csr(row, col, value, (n_out, num_nodes))
+        order = torch.argsort(col * max(n_out, 1) + row)
+        self.adj_t = _csr(col[order], row[order], value[order], (num_nodes, n_out))
+
+    def to(self, device) -> "GraphOperator":
+        other = object.__new__(GraphOperator)
+        other.num_nodes, other.num_out = self.num_nodes, self.num_out
+        other.rows = None if self.rows is None else self.rows.to(device)
+        other.adj, other.adj_t = self.adj.to(device), self.adj_t.to(device)
+        return other
+
+    def propagate(self, x: torch.Tensor) -> torch.Tensor:
+        """``adj @ x`` with a sparse backward (``adj_t @ grad``).  ``(N, F) -> (N_out, F)``."""
+        return _Propagate.apply(x, self)
+
+
+class _Propagate(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, op: GraphOperator) -> torch.Tensor:
+        ctx.op = op
+        return op.adj @ x  # (N_out, F)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        return ctx.op.adj_t @ grad.contiguous(), None  # (N, F)
+
+
+class GCNConv(nn.Module):
+    """Causal graph convolution ``h' = D^-1/2 (A + I) D^-1/2 h W + b`` (+ ``h`` with ``residual``).
+
+    Propagation runs on the narrower side of ``W`` (before the weight when ``in <= out``, after
+    it otherwise): the same result with fewer sparse multiply-adds.
+
+    Args:
+        in_channels, out_channels: feature sizes.
+        bias: add a learned bias.
+        residual: add the input (projected by a bias-free linear map if the sizes differ).
+
+    Shapes:
+        x ``(|V|, F_in)``, edge_index ``(2, |E|)`` or a :class:`GraphOperator` -> ``(|V_out|, F_out)``.
+    """
+
+    def __init__(self, in_channels: int, out_channels: int, bias: bool = True, residual: bool = False):
+        super().__init__()
+        self.in_channels, self.out_channels = in_channels, out_channels
+        self.weight = nn.Parameter(torch.empty(in_channels, out_channels))
+        self.bias = nn.Parameter(torch.zeros(out_channels)) if bias else None
+        self.residual = None
+        if residual:
+            self.residual = nn.Identity() if in_channels == out_channels else nn.Linear(in_channels, out_channels,
+                                                                                         bias=False)
+        nn.init.kaiming_uniform_(self.weight.T, a=math.sqrt(5))
+
+    def forward(self, x: torch.Tensor, graph: torch.Tensor | GraphOperator) -> torch.Tensor:
+        op = graph if isinstance(graph, GraphOperator) else GraphOperator(graph, x.shape[0])
+        if self.in_channels <= self.out_channels:
+            out = op.propagate(x) @ self.weight  # (N_out, F_out)
+        else:
+            out = op.propagate(x @ self.weight)  # (N_out, F_out)
+        if self.bias is not None:
+            out = out + self.bias
+        if self.residual is not None:
+            out = out + self.residual(x if op.rows is None else x[op.rows])
+        return out
+
+    def extra_repr(self) -> str:
+        return (f"{self.in_channels}, {self.out_channels}, bias={self.bias is not None}, "
+                f"residual={self.residual is not None}")
