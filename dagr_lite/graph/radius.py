@@ -89,9 +89,10 @@ def knn_within(tree: cKDTree, query: np.ndarray, query_id: np.ndarray | None, k:
         rows = np.arange(start, min(len(query), start + ROW_CHUNK))
         ask = min(n_tree, 2 * k + 2 if causal else k)
         while len(rows):
-            dist, nbr = tree.query(query[rows], k=ask, distance_upper_bound=r, workers=workers)
+            # scipy keeps distances strictly below the bound: search a hair beyond r, keep d <= r.
+            dist, nbr = tree.query(query[rows], k=ask, distance_upper_bound=r * (1 + 1e-9), workers=workers)
             dist, nbr = dist.reshape(len(rows), ask), nbr.reshape(len(rows), ask)  # (M, ask)
-            found = nbr < n_tree
+            found = (nbr < n_tree) & (dist <= r)
             ids = nbr if tree_id is None else tree_id[np.where(found, nbr, 0)]
             ok = found & (ids < query_id[rows][:, None]) if causal else found
             # Complete: the search ran out of points within r, or the farthest point returned is
@@ -101,7 +102,7 @@ def knn_within(tree: cKDTree, query: np.ndarray, query_id: np.ndarray | None, k:
             enough = count >= k
             if enough.any():
                 kth[enough] = np.partition(np.where(ok[enough], dist[enough], np.inf), k - 1, axis=1)[:, k - 1]
-            complete = ~found[:, -1] | (ask == n_tree) | (enough & (dist[:, -1] > kth))
+            complete = (nbr[:, -1] == n_tree) | (ask == n_tree) | (enough & (dist[:, -1] > kth))
             done = rows[complete]
             out_idx[done], out_dist[done] = _first_k(dist[complete], ids[complete], ok[complete], k)
             rows = rows[~complete]

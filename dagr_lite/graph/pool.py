@@ -1,0 +1,80 @@
+"""Voxel-grid max pooling over (x, y) and dense maps for the detection head.
+
+Nodes are grouped into cells of ``size x size`` pixels per sample; a cell's features are the
+maximum over its nodes and its position the mean of theirs. Edges map to edges between cells,
+deduplicated; an edge inside one cell becomes that cell's self-loop and is kept (the GCN adds
+the identity itself and ignores self-loops in ``edge_index``). Cells are ordered by (sample,
+row, column), so pooling the same nodes always gives the same cells.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class PooledGraph:
+    """The coarser graph of :func:`voxel_max_pool`.
+
+    Attributes:
+        x: ``(C, F)`` cell features; pos: ``(C, 3)`` mean member positions; batch: ``(C,)``.
+        cell: ``(C, 2)`` int64 cell row and column (``floor(y / size)``, ``floor(x / size)``).
+        edge_index: ``(2, E_c)`` cell edges, deduplicated, sorted by (destination, source).
+        cluster: ``(N,)`` the cell of each input node.
+    """
+
+    x: torch.Tensor
+    pos: torch.Tensor
+    batch: torch.Tensor
+    cell: torch.Tensor
+    edge_index: torch.Tensor
+    cluster: torch.Tensor
+
+
+def voxel_max_pool(x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge_index: torch.Tensor,
+                   size: float) -> PooledGraph:
+    """Max-pool nodes into ``size``-pixel cells over (x, y).
+
+    Shapes:
+        x ``(N, F)``, pos ``(N, 3)`` with columns x, y, z, batch ``(N,)``, edge_index ``(2, E)``
+        -> :class:`PooledGraph` with ``C`` cells.
+    """
+    if size <= 0:
+        raise ValueError(f"size must be positive, got {size}")
+    device = x.device
+    col = torch.div(pos[:, 0], size, rounding_mode="floor").to(torch.int64)  # (N,)
+    row = torch.div(pos[:, 1], size, rounding_mode="floor").to(torch.int64)  # (N,)
+    if len(x) and (col.min() < 0 or row.min() < 0):
+        raise ValueError("pooling needs non-negative x and y positions")
+    width = int(col.max()) + 1 if len(x) else 1
+    height = int(row.max()) + 1 if len(x) else 1
+    key = (batch.to(torch.int64) * height + row) * width + col  # (N,)
+    unique, cluster = torch.unique(key, sorted=True, return_inverse=True)  # (C,), (N,)
+    num_cells = len(unique)
+    index = cluster[:, None].expand(-1, x.shape[1])
+    pooled = torch.zeros((num_cells, x.shape[1]), dtype=x.dtype, device=device)
+    pooled = pooled.scatter_reduce(0, index, x, reduce="amax", include_self=False)  # (C, F)
+    counts = torch.bincount(cluster, minlength=num_cells).clamp(min=1).to(pos.dtype)
+    pos_c = torch.zeros((num_cells, pos.shape[1]), dtype=pos.dtype, device=device)
+    pos_c = pos_c.index_add(0, cluster, pos) / counts[:, None]  # (C, 3)
+    batch_c = torch.div(unique, height * width, rounding_mode="floor")
+    cell = torch.stack([torch.div(unique, width, rounding_mode="floor") % height, unique % width], dim=1)
+    edges = cluster[edge_index]  # (2, E)
+    edge_key = torch.unique(edges[1] * max(num_cells, 1) + edges[0], sorted=True)  # by (dst, src)
+    edge_index_c = torch.stack([edge_key % max(num_cells, 1), torch.div(edge_key, max(num_cells, 1),
+                                                                         rounding_mode="floor")])
+    return PooledGraph(x=pooled, pos=pos_c, batch=batch_c, cell=cell, edge_index=edge_index_c, cluster=cluster)
+
+
+def to_dense(x: torch.Tensor, batch: torch.Tensor, cell: torch.Tensor, *, batch_size: int, height: int,
+             width: int) -> torch.Tensor:
+    """Write cell features into dense maps; empty cells are zero, cells outside are dropped.
+
+    Shapes:
+        x ``(C, F)``, batch ``(C,)``, cell ``(C, 2)`` rows and columns -> ``(B, F, H, W)``.
+    """
+    dense = x.new_zeros((batch_size, height, width, x.shape[1]))  # (B, H, W, F)
+    inside = (cell[:, 0] < height) & (cell[:, 1] < width) & (batch < batch_size)
+    dense[batch[inside], cell[inside, 0], cell[inside, 1]] = x[inside]
+    return dense.permute(0, 3, 1, 2)  # (B, F, H, W)

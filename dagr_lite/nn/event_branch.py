@@ -1,0 +1,116 @@
+"""The event branch: causal GCN stages on the event graph, voxel pooling, dense maps per stride.
+
+Events become graph nodes at ``(x, y, beta * t)`` with features polarity (+-1) and position
+normalised to [0, 1] (x / W, y / H, t / window). A stage of GCN blocks runs on the full event
+graph, then the graph is max-pooled into ``stride``-pixel cells for each output stride in turn,
+with more GCN blocks after each pooling; each pooled level is written out as a dense map
+``(B, C, H / stride, W / stride)`` for the detection head.
+
+A hook lets image features join the nodes: ``image_sampler(pos_xy, batch, level)`` returns
+``(N, C_level)`` features sampled at the nodes' pixels (level 0 is the input, level ``s`` the
+``s``-th pooled graph); they are concatenated to the node features before that level's blocks.
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable, Sequence
+
+import torch
+from torch import nn
+
+from dagr_lite.graph.pool import to_dense, voxel_max_pool
+from dagr_lite.graph.radius import radius_graph
+from dagr_lite.nn.gcn import GCNConv, GraphOperator
+
+ImageSampler = Callable[[torch.Tensor, torch.Tensor, int], torch.Tensor]
+
+
+class GCNBlock(nn.Module):
+    """GCN, per-node LayerNorm (no statistics shared across nodes or time), ReLU, residual.
+
+    Shapes:
+        x ``(N, F_in)`` and a :class:`GraphOperator` over the N nodes -> ``(N, F_out)``.
+    """
+
+    def __init__(self, in_channels: int, out_channels: int):
+        super().__init__()
+        self.conv = GCNConv(in_channels, out_channels)
+        self.norm = nn.LayerNorm(out_channels)
+        self.skip = nn.Identity() if in_channels == out_channels else nn.Linear(in_channels, out_channels, bias=False)
+
+    def forward(self, x: torch.Tensor, op: GraphOperator) -> torch.Tensor:
+        return torch.relu(self.norm(self.conv(x, op))) + self.skip(x)
+
+
+class EventBranch(nn.Module):
+    """Causal GCN stack over events with pooling to dense maps at ``strides``.
+
+    Args:
+        height, width: sensor size in pixels.
+        channels: feature size of the input stage and of each pooled stage (``len(strides) + 1``).
+        strides: pooling cell sizes in pixels, increasing; one dense map each.
+        radius: graph radius in pixels; beta: pixels per microsecond (``t`` scale);
+        max_neighbors: K, the incoming edges per node.
+        window_us: the length of a sample's event window (normalises t).
+        blocks: GCN blocks per stage.
+        image_channels: image feature channels joined at each level (input, then each stride).
+
+    Shapes:
+        events ``(N, 4)`` x, y, t (us from the window start), p; batch ``(N,)`` sorted ->
+        list of ``(B, channels[s + 1], ceil(H / strides[s]), ceil(W / strides[s]))``.
+    """
+
+    def __init__(self, *, height: int, width: int, channels: Sequence[int] = (16, 32, 64, 96),
+                 strides: Sequence[int] = (8, 16, 32), radius: float = 5.0, beta: float = 5e-4,
+                 max_neighbors: int = 16, window_us: float = 33333.0, blocks: int = 1,
+                 image_channels: Sequence[int] | None = None):
+        super().__init__()
+        if len(channels) != len(strides) + 1:
+            raise ValueError(f"channels needs one entry for the input stage and one per stride: "
+                             f"{len(strides) + 1}, got {len(channels)}")
+        if list(strides) != sorted(strides) or len(set(strides)) != len(strides):
+            raise ValueError(f"strides must increase, got {list(strides)}")
+        self.height, self.width, self.strides = height, width, tuple(strides)
+        self.radius, self.beta, self.max_neighbors, self.window_us = radius, beta, max_neighbors, window_us
+        self.image_channels = tuple(image_channels) if image_channels is not None else (0,) * len(channels)
+        if len(self.image_channels) != len(channels):
+            raise ValueError(f"image_channels needs {len(channels)} entries, got {len(self.image_channels)}")
+        self.out_channels = tuple(channels[1:])
+        in_features = 4
+        self.stages = nn.ModuleList()
+        for level, out in enumerate(channels):
+            width_in = (in_features if level == 0 else channels[level - 1]) + self.image_channels[level]
+            self.stages.append(nn.ModuleList(GCNBlock(width_in if b == 0 else out, out) for b in range(blocks)))
+
+    def node_features(self, events: torch.Tensor) -> torch.Tensor:
+        """``(N, 4)`` polarity in {-1, 1}, x / W, y / H, t / window."""
+        x, y, t, p = events.unbind(dim=1)
+        return torch.stack([2 * p - 1, x / self.width, y / self.height, t / self.window_us], dim=1)
+
+    def graph(self, events: torch.Tensor, batch: torch.Tensor) -> torch.Tensor:
+        pos = torch.stack([events[:, 0], events[:, 1], self.beta * events[:, 2]], dim=1)
+        return radius_graph(pos.detach(), self.radius, self.max_neighbors, batch)
+
+    def forward(self, events: torch.Tensor, batch: torch.Tensor, batch_size: int,
+                image_sampler: ImageSampler | None = None) -> list[torch.Tensor]:
+        pos = torch.stack([events[:, 0], events[:, 1], self.beta * events[:, 2]], dim=1)  # (N, 3)
+        edge_index = self.graph(events, batch).to(events.device)  # (2, E)
+        x = self.node_features(events)  # (N, 4)
+        maps = []
+        for level, blocks in enumerate(self.stages):
+            if level > 0:
+                stride = self.strides[level - 1]
+                pooled = voxel_max_pool(x, pos, batch, edge_index, stride)
+                x, pos, batch, edge_index = pooled.x, pooled.pos, pooled.batch, pooled.edge_index
+            if self.image_channels[level]:
+                if image_sampler is None:
+                    raise ValueError(f"the branch expects {self.image_channels[level]} image channels at level "
+                                     f"{level}, but no image_sampler was given")
+                x = torch.cat([x, image_sampler(pos[:, :2], batch, level)], dim=1)
+            op = GraphOperator(edge_index, len(x))
+            for block in blocks:
+                x = block(x, op)
+            if level > 0:
+                maps.append(to_dense(x, batch, pooled.cell, batch_size=batch_size,
+                                     height=math.ceil(self.height / stride), width=math.ceil(self.width / stride)))
+        return maps

@@ -1,0 +1,56 @@
+import math
+
+import torch
+
+from dagr_lite.graph import to_dense, voxel_max_pool
+
+
+def loop_pool(x, pos, batch, edge_index, size):
+    """Reference: a plain loop over nodes and edges."""
+    cells = {}
+    for i in range(len(x)):
+        key = (int(batch[i]), math.floor(pos[i, 1] / size), math.floor(pos[i, 0] / size))
+        cells.setdefault(key, []).append(i)
+    keys = sorted(cells)
+    index = {key: c for c, key in enumerate(keys)}
+    cluster = [None] * len(x)
+    for key, members in cells.items():
+        for i in members:
+            cluster[i] = index[key]
+    feats = torch.stack([torch.stack([x[i] for i in cells[key]]).max(0).values for key in keys])
+    mean_pos = torch.stack([torch.stack([pos[i] for i in cells[key]]).mean(0) for key in keys])
+    edges = sorted({(cluster[s], cluster[d]) for s, d in edge_index.T.tolist()}, key=lambda e: (e[1], e[0]))
+    return keys, feats, mean_pos, cluster, edges
+
+
+def test_pooling_and_dense_maps_equal_a_loop():
+    g = torch.Generator().manual_seed(0)
+    n = 120
+    pos = torch.rand(n, 3, generator=g) * torch.tensor([40.0, 30.0, 1.0])
+    batch = torch.sort(torch.randint(0, 3, (n,), generator=g)).values
+    x = torch.randn(n, 5, generator=g)
+    src = torch.randint(0, n, (300,), generator=g)
+    dst = torch.randint(0, n, (300,), generator=g)
+    same = batch[src] == batch[dst]
+    edge_index = torch.stack([src[same], dst[same]])
+    pooled = voxel_max_pool(x, pos, batch, edge_index, 8)
+    keys, feats, mean_pos, cluster, edges = loop_pool(x, pos, batch, edge_index, 8)
+    assert pooled.cluster.tolist() == cluster
+    assert [tuple(k) for k in torch.cat([pooled.batch[:, None], pooled.cell], 1).tolist()] == keys
+    assert torch.equal(pooled.x, feats)
+    assert torch.allclose(pooled.pos, mean_pos)
+    assert [tuple(e) for e in pooled.edge_index.T.tolist()] == edges
+    assert any(s == d for s, d in edges)  # edges inside a cell become kept self-loops
+    dense = to_dense(pooled.x, pooled.batch, pooled.cell, batch_size=3, height=4, width=5)
+    expected = torch.zeros(3, 5, 4, 5)
+    for c, (b, row, col) in enumerate(keys):
+        expected[b, :, row, col] = feats[c]
+    assert torch.equal(dense, expected)
+
+
+def test_max_pool_gradient_reaches_the_maximum_only():
+    x = torch.tensor([[1.0], [3.0], [2.0]], requires_grad=True)
+    pos = torch.tensor([[0.0, 0, 0], [1, 1, 0], [9, 0, 0]])
+    pooled = voxel_max_pool(x, pos, torch.zeros(3, dtype=torch.int64), torch.zeros((2, 0), dtype=torch.int64), 8)
+    pooled.x.sum().backward()
+    assert x.grad.flatten().tolist() == [0.0, 1.0, 1.0]

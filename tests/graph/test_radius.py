@@ -1,0 +1,89 @@
+import numpy as np
+import pytest
+import torch
+
+from dagr_lite.graph import radius_graph
+
+
+def brute_force(pos, r, k, batch=None):
+    """Reference: all pairs by torch.cdist, then per node the k nearest earlier ones (ties by index)."""
+    pos = torch.as_tensor(pos, dtype=torch.float64)
+    n = len(pos)
+    if n == 0:
+        return torch.zeros((2, 0), dtype=torch.int64)
+    d = torch.cdist(pos, pos)
+    same = torch.ones(n, n, dtype=torch.bool) if batch is None else batch[:, None] == batch[None, :]
+    edges = []
+    for i in range(n):
+        js = [j for j in range(i) if d[i, j] <= r and same[i, j]]
+        js.sort(key=lambda j: (d[i, j].item(), j))
+        edges += [(j, i) for j in sorted(js[:k])]
+    return torch.tensor(edges, dtype=torch.int64).reshape(-1, 2).T
+
+
+def time_sorted_cloud(rng, n, extent=10.0, grid=None):
+    pos = rng.uniform(0, extent, (n, 3))
+    if grid:  # on a grid: many equal distances
+        pos = np.round(pos * grid) / grid
+    return pos[np.argsort(pos[:, 2], kind="stable")]
+
+
+@pytest.mark.parametrize("grid", [None, 2])
+def test_equals_brute_force_on_random_clouds(grid):
+    rng = np.random.default_rng(0)
+    for _ in range(25):
+        pos = time_sorted_cloud(rng, int(rng.integers(2, 250)), grid=grid)
+        r, k = float(rng.uniform(0.5, 4.0)), int(rng.integers(1, 10))
+        assert torch.equal(radius_graph(torch.from_numpy(pos), r, k), brute_force(pos, r, k))
+
+
+def test_without_a_binding_cap_every_earlier_neighbour_within_r_is_kept():
+    rng = np.random.default_rng(1)
+    pos = time_sorted_cloud(rng, 200)
+    got = radius_graph(torch.from_numpy(pos), 2.0, 10_000)
+    d = np.linalg.norm(pos[:, None] - pos[None], axis=2)
+    want = {(j, i) for i in range(200) for j in range(i) if d[i, j] <= 2.0}
+    assert set(map(tuple, got.T.tolist())) == want
+
+
+def test_ties_are_broken_by_index():
+    # Node 4 sees nodes 0..3 all at distance 1; with k = 2 it keeps the two smallest indices.
+    pos = torch.tensor([[1.0, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 0]])
+    edges = radius_graph(pos, 1.0, 2)
+    assert edges[:, edges[1] == 4].tolist() == [[0, 1], [4, 4]]
+
+
+def test_edges_never_cross_samples():
+    rng = np.random.default_rng(2)
+    parts = [time_sorted_cloud(rng, n, extent=5.0) for n in (30, 0, 45, 1, 20)]
+    pos = torch.from_numpy(np.concatenate(parts))
+    batch = torch.repeat_interleave(torch.arange(5), torch.tensor([len(p) for p in parts]))
+    got = radius_graph(pos, 1.5, 6, batch)
+    assert torch.all(batch[got[0]] == batch[got[1]])
+    assert torch.equal(got, brute_force(pos, 1.5, 6, batch))
+    with pytest.raises(ValueError, match="batch must be sorted"):
+        radius_graph(pos, 1.5, 6, batch.flip(0))
+
+
+def test_small_inputs_and_output_format():
+    assert radius_graph(torch.zeros((0, 3)), 1.0, 4).shape == (2, 0)
+    assert radius_graph(torch.zeros((1, 3)), 1.0, 4).shape == (2, 0)
+    two = radius_graph(torch.tensor([[0.0, 0, 0], [0.5, 0, 0]]), 1.0, 4)
+    assert two.tolist() == [[0], [1]] and two.dtype == torch.int64  # earlier -> later only
+    far = radius_graph(torch.tensor([[0.0, 0, 0], [5.0, 0, 0]]), 1.0, 4)
+    assert far.shape == (2, 0)
+    rng = np.random.default_rng(3)
+    edges = radius_graph(torch.from_numpy(time_sorted_cloud(rng, 300)), 2.0, 5)
+    assert torch.all(edges[0] < edges[1])  # causal, no self-loops
+    key = edges[1] * 1000 + edges[0]
+    assert torch.all(key[1:] > key[:-1])  # sorted by destination, then source
+    assert torch.bincount(edges[1]).max() <= 5
+
+
+def test_bad_input_is_named():
+    with pytest.raises(ValueError, match=r"pos must have shape \(N, 3\)"):
+        radius_graph(torch.zeros(5), 1.0, 2)
+    with pytest.raises(ValueError, match="non-finite"):
+        radius_graph(torch.tensor([[0.0, 0, float("nan")]]), 1.0, 2)
+    with pytest.raises(ValueError, match="r and k must be positive"):
+        radius_graph(torch.zeros((3, 3)), 0.0, 2)

@@ -1,0 +1,43 @@
+import numpy as np
+import pytest
+import torch
+
+from dagr_lite.graph import StreamingGraph, radius_graph
+from tests.graph.test_radius import time_sorted_cloud
+
+
+@pytest.mark.parametrize("grid", [None, 2])
+def test_any_sequence_of_insertions_gives_the_batch_graph(grid):
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        pos = time_sorted_cloud(rng, int(rng.integers(0, 400)), extent=12.0, grid=grid)
+        r, k = float(rng.uniform(0.5, 3.0)), int(rng.integers(1, 9))
+        graph = StreamingGraph(r, k, window=r * float(rng.uniform(1.0, 3.0)))
+        parts, i = [], 0
+        while i < len(pos):
+            size = int(rng.choice([0, 1, 1, 2, 3, 8, 30, 120]))  # empty batches and single events too
+            edges = graph.insert(pos[i:i + size])
+            assert edges.shape[0] == 2 and (edges.numel() == 0 or edges[1].min() >= i)
+            parts.append(edges)
+            i += size
+        got = torch.cat(parts, dim=1) if parts else torch.zeros((2, 0), dtype=torch.int64)
+        assert torch.equal(got, radius_graph(torch.from_numpy(pos), r, k))
+
+
+def test_old_events_expire_and_ids_keep_counting():
+    graph = StreamingGraph(1.0, 4, window=2.0)
+    for step in range(200):
+        graph.insert(np.array([[0.0, 0.0, 0.1 * step]]))
+    assert graph.num_inserted == 200
+    assert graph.num_nodes < 60  # only about the last 2.0 / 0.1 events, plus one partly expired chunk
+    edges = graph.insert(np.array([[0.0, 0.0, 20.0]]))
+    assert edges[1].tolist() == [200] * 4 and edges[0].tolist() == [196, 197, 198, 199]
+
+
+def test_bad_use_is_refused():
+    with pytest.raises(ValueError, match="window"):
+        StreamingGraph(2.0, 4, window=1.0)
+    graph = StreamingGraph(1.0, 4, window=2.0)
+    graph.insert(np.array([[0.0, 0.0, 5.0]]))
+    with pytest.raises(ValueError, match="time order"):
+        graph.insert(np.array([[0.0, 0.0, 4.0]]))
