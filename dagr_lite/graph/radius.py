@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-ROW_CHUNK = 1 << 16  # query rows per pass: bounds the (rows, ask) candidate matrices
+ROW_CHUNK = 1 << 14  # query rows per pass: bounds the (rows, ask) candidate matrices
 
 
 def as_numpy_pos(pos) -> np.ndarray:
