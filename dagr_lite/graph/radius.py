@@ -18,6 +18,7 @@ import torch
 from scipy.spatial import cKDTree
 
 ROW_CHUNK = 1 << 14  # query rows per pass: bounds the (rows, ask) candidate matrices
+CANDIDATE_BUDGET = 1 << 22  # most (row, candidate) pairs per query pass, when ties force large asks
 
 
 def as_numpy_pos(pos) -> np.ndarray:
@@ -31,16 +32,16 @@ def as_numpy_pos(pos) -> np.ndarray:
     return pos
 
 
-def separate_samples(pos: np.ndarray, batch: np.ndarray | None, r: float) -> np.ndarray:
-    """Shift each sample along x so that no two samples come within ``r`` of each other."""
-    if batch is None or len(pos) == 0:
-        return pos
+def sample_slices(batch: np.ndarray | None, n: int) -> list[slice]:
+    """The contiguous index range of each sample (one range without ``batch``)."""
+    if batch is None:
+        return [slice(0, n)]
+    if batch.shape != (n,):
+        raise ValueError(f"batch must have shape ({n},), got {batch.shape}")
     if np.any(batch[1:] < batch[:-1]):
         raise ValueError("batch must be sorted (the events of each sample contiguous, in sample order)")
-    span = pos[:, 0].max() - pos[:, 0].min() + 2 * r + 1
-    shifted = pos.copy()
-    shifted[:, 0] += batch * span
-    return shifted
+    bounds = np.flatnonzero(np.r_[True, batch[1:] != batch[:-1], True])
+    return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
 def _first_k(dist: np.ndarray, idx: np.ndarray, ok: np.ndarray, k: int):
@@ -85,10 +86,15 @@ def knn_within(tree: cKDTree, query: np.ndarray, query_id: np.ndarray | None, k:
     if n_tree == 0 or len(query) == 0:
         return out_idx, out_dist
     causal = query_id is not None
-    for start in range(0, len(query), ROW_CHUNK):
-        rows = np.arange(start, min(len(query), start + ROW_CHUNK))
-        ask = min(n_tree, 2 * k + 2 if causal else k)
-        while len(rows):
+    pending = [(np.arange(start, min(len(query), start + ROW_CHUNK)), min(n_tree, 2 * k + 2 if causal else k))
+               for start in range(0, len(query), ROW_CHUNK)]
+    while pending:
+        rows, ask = pending.pop()
+        if len(rows) * ask > CANDIDATE_BUDGET and len(rows) > 1:  # many exact ties: keep memory bounded
+            per_pass = max(1, CANDIDATE_BUDGET // ask)
+            pending += [(rows[i:i + per_pass], ask) for i in range(0, len(rows), per_pass)]
+            continue
+        if len(rows):
             # scipy keeps distances strictly below the bound: search a hair beyond r, keep d <= r.
             dist, nbr = tree.query(query[rows], k=ask, distance_upper_bound=r * (1 + 1e-9), workers=workers)
             dist, nbr = dist.reshape(len(rows), ask), nbr.reshape(len(rows), ask)  # (M, ask)
@@ -105,8 +111,8 @@ def knn_within(tree: cKDTree, query: np.ndarray, query_id: np.ndarray | None, k:
             complete = (nbr[:, -1] == n_tree) | (ask == n_tree) | (enough & (dist[:, -1] > kth))
             done = rows[complete]
             out_idx[done], out_dist[done] = _first_k(dist[complete], ids[complete], ok[complete], k)
-            rows = rows[~complete]
-            ask = min(n_tree, 2 * ask)
+            if not complete.all():
+                pending.append((rows[~complete], min(n_tree, 2 * ask)))
     return out_idx, out_dist
 
 
@@ -141,13 +147,14 @@ def radius_graph(pos, r: float, k: int, batch=None, *, workers: int = -1) -> tor
     batch_np = None
     if batch is not None:
         batch_np = batch.detach().cpu().numpy() if isinstance(batch, torch.Tensor) else np.asarray(batch)
-        if batch_np.shape != (len(points),):
-            raise ValueError(f"batch must have shape ({len(points)},), got {batch_np.shape}")
-    points = separate_samples(points, batch_np, r)
-    n = len(points)
-    if n < 2:
-        return torch.zeros((2, 0), dtype=torch.int64, device=device)
-    tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
-    ids = np.arange(n)
-    idx, _ = knn_within(tree, points, ids, k, r, workers=workers)
-    return torch.from_numpy(neighbours_to_edges(idx, ids)).to(device)
+    parts = []
+    for part in sample_slices(batch_np, len(points)):  # one tree per sample: no edge can cross samples
+        sample = points[part]
+        if len(sample) < 2:
+            continue
+        ids = np.arange(len(sample))
+        tree = cKDTree(sample, balanced_tree=False, compact_nodes=False)
+        idx, _ = knn_within(tree, sample, ids, k, r, workers=workers)
+        parts.append(neighbours_to_edges(idx, ids) + part.start)
+    edges = np.concatenate(parts, axis=1) if parts else np.zeros((2, 0), dtype=np.int64)
+    return torch.from_numpy(edges).to(device)

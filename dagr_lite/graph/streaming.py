@@ -71,7 +71,9 @@ class StreamingGraph:
     def insert(self, pos) -> torch.Tensor:
         """Add events ``(M, 3)`` (sorted by ``z``, not earlier than any before) and return their
         incoming edges ``(2, E)`` in global ids, sorted by destination and then source."""
-        points = as_numpy_pos(pos).reshape(-1, 3) if len(pos) else np.zeros((0, 3))
+        points = as_numpy_pos(pos) if len(pos) else np.zeros((0, 3))
+        if points.shape[1] != 3:
+            raise ValueError(f"pos must have shape (M, 3), got {tuple(points.shape)}")
         m = len(points)
         if m == 0:
             return torch.zeros((2, 0), dtype=torch.int64)
@@ -84,8 +86,8 @@ class StreamingGraph:
         idx = np.where(idx >= 0, idx + self.num_inserted, -1)
         candidates_idx, candidates_dist = [idx], [dist]
         for chunk in self._chunks:
-            if chunk.z_max < points[0, 2] - self.r:
-                continue  # wholly more than r in the past
+            if points[0, 2] - chunk.z_max > self.r:
+                continue  # wholly more than r in the past (differences, as distances are computed)
             c_idx, c_dist = knn_within(chunk.tree, points, None, self.k, self.r, tree_id=chunk.ids,
                                        workers=self.workers)
             candidates_idx.append(c_idx)
@@ -99,7 +101,7 @@ class StreamingGraph:
         self._add_chunk(_Chunk(points, ids, own))
         self.num_inserted += m
         self._last_z = float(points[-1, 2])
-        self._chunks = [c for c in self._chunks if c.z_max >= self._last_z - self.window]
+        self._chunks = [c for c in self._chunks if self._last_z - c.z_max <= self.window]
         return torch.from_numpy(edges)
 
     def _add_chunk(self, chunk: _Chunk) -> None:

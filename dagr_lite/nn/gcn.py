@@ -18,7 +18,8 @@ def gcn_norm(edge_index: torch.Tensor, num_nodes: int, *, in_degree: torch.Tenso
              rows: torch.Tensor | None = None):
     """Triplets ``(row, col, value)`` of ``D^-1/2 (A + I) D^-1/2`` (rows = destinations).
 
-    Self-loops in ``edge_index`` are dropped: the identity adds the one self-loop of each node.
+    Self-loops in ``edge_index`` are dropped (the identity adds the one self-loop of each node)
+    and a repeated edge counts once.
 
     Args:
         edge_index: ``(2, E)`` int64, sources in row 0, destinations in row 1.
@@ -29,13 +30,14 @@ def gcn_norm(edge_index: torch.Tensor, num_nodes: int, *, in_degree: torch.Tenso
             position in ``rows``.
 
     Returns:
-        ``row (E',)``, ``col (E',)``, ``value (E',)`` float32, sorted by (row, col).
+        ``row (E',)``, ``col (E',)``, ``value (E',)`` float64, sorted by (row, col).
     """
     src, dst = edge_index[0], edge_index[1]
     keep = src != dst
     src, dst = src[keep], dst[keep]
     if in_degree is None:
-        in_degree = torch.bincount(dst, minlength=num_nodes)
+        unique = torch.unique(dst * num_nodes + src)
+        in_degree = torch.bincount(torch.div(unique, num_nodes, rounding_mode="floor"), minlength=num_nodes)
     deg_inv_sqrt = (1.0 + in_degree.to(torch.float64)).rsqrt()  # (N,)
     if rows is None:
         rows = torch.arange(num_nodes, device=edge_index.device)
@@ -45,8 +47,12 @@ def gcn_norm(edge_index: torch.Tensor, num_nodes: int, *, in_degree: torch.Tenso
     src, dst = src[in_rows], dst[in_rows]
     row = torch.cat([position[dst], torch.arange(len(rows), device=edge_index.device)])
     col = torch.cat([src, rows])
-    value = (deg_inv_sqrt[torch.cat([dst, rows])] * deg_inv_sqrt[col]).to(torch.float32)
-    order = torch.argsort(row * num_nodes + col)
+    value = deg_inv_sqrt[torch.cat([dst, rows])] * deg_inv_sqrt[col]  # float64
+    key = row * num_nodes + col
+    order = torch.argsort(key)
+    first = torch.ones(len(order), dtype=torch.bool, device=key.device)
+    first[1:] = key[order][1:] != key[order][:-1]  # a repeated edge counts once: N(i) is a set
+    order = order[first]
     return row[order], col[order], value[order]
 
 
@@ -74,31 +80,60 @@ class GraphOperator:
         row, col, value = gcn_norm(edge_index, num_nodes, in_degree=in_degree, rows=rows)
         n_out = num_nodes if rows is None else len(rows)
         self.num_nodes, self.num_out, self.rows = num_nodes, n_out, rows
-        self.adj = _csr(row, col, value, (n_out, num_nodes))
         order = torch.argsort(col * max(n_out, 1) + row)
-        self.adj_t = _csr(col[order], row[order], value[order], (num_nodes, n_out))
+        self._triplets = (row, col, value, order)
+        self._matrices: dict[torch.dtype, tuple[torch.Tensor, torch.Tensor]] = {}
+        self.matrices(torch.float32)
+
+    @property
+    def adj(self) -> torch.Tensor:
+        return self.matrices(torch.float32)[0]
+
+    @property
+    def adj_t(self) -> torch.Tensor:
+        return self.matrices(torch.float32)[1]
+
+    def matrices(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(adj, adj_t)`` as CSR of ``dtype`` (made once per dtype)."""
+        if dtype not in self._matrices:
+            row, col, value, order = self._triplets
+            value = value.to(dtype)
+            self._matrices[dtype] = (_csr(row, col, value, (self.num_out, self.num_nodes)),
+                                     _csr(col[order], row[order], value[order], (self.num_nodes, self.num_out)))
+        return self._matrices[dtype]
 
     def to(self, device) -> "GraphOperator":
         other = object.__new__(GraphOperator)
         other.num_nodes, other.num_out = self.num_nodes, self.num_out
         other.rows = None if self.rows is None else self.rows.to(device)
-        other.adj, other.adj_t = self.adj.to(device), self.adj_t.to(device)
+        other._triplets = tuple(t.to(device) for t in self._triplets)
+        other._matrices = {}
         return other
 
     def propagate(self, x: torch.Tensor) -> torch.Tensor:
-        """``adj @ x`` with a sparse backward (``adj_t @ grad``).  ``(N, F) -> (N_out, F)``."""
+        """``adj @ x`` with a sparse backward (``adj_t @ grad``).  ``(N, F) -> (N_out, F)``.
+
+        float64 inputs propagate in float64; all others (float16, bfloat16 under autocast) in
+        float32, and the result comes back in the input's dtype.
+        """
         return _Propagate.apply(x, self)
+
+
+def _compute_dtype(dtype: torch.dtype) -> torch.dtype:
+    return torch.float64 if dtype == torch.float64 else torch.float32
 
 
 class _Propagate(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: torch.Tensor, op: GraphOperator) -> torch.Tensor:
         ctx.op = op
-        return op.adj @ x  # (N_out, F)
+        adj, _ = op.matrices(_compute_dtype(x.dtype))
+        return (adj @ x.to(adj.dtype)).to(x.dtype)  # (N_out, F)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
-        return ctx.op.adj_t @ grad.contiguous(), None  # (N, F)
+        _, adj_t = ctx.op.matrices(_compute_dtype(grad.dtype))
+        return (adj_t @ grad.to(adj_t.dtype).contiguous()).to(grad.dtype), None  # (N, F)
 
 
 class GCNConv(nn.Module):

@@ -87,3 +87,25 @@ def test_bad_input_is_named():
         radius_graph(torch.tensor([[0.0, 0, float("nan")]]), 1.0, 2)
     with pytest.raises(ValueError, match="r and k must be positive"):
         radius_graph(torch.zeros((3, 3)), 0.0, 2)
+
+
+def test_a_sample_gets_the_same_edges_alone_and_in_a_batch():
+    # Values where shifting x would change float rounding: exactly at r, and ties on pixels.
+    pair = torch.tensor([[0.1, 0.0, 0.0], [0.3, 0.0, 0.0]], dtype=torch.float64)
+    r = 0.3 - 0.1
+    alone = radius_graph(pair, r, 4)
+    batched = radius_graph(torch.cat([pair, pair]), r, 4, torch.tensor([0, 0, 1, 1]))
+    assert alone.tolist() == [[0], [1]] and batched.tolist() == [[0, 2], [1, 3]]
+    rng = np.random.default_rng(5)
+    pixels = np.concatenate([rng.integers(0, 512, (80, 2)), np.sort(rng.integers(0, 40, (80, 1)), 0)], 1) * 1.0
+    sample = torch.from_numpy(pixels)
+    single = radius_graph(sample, 2.7, 3)
+    both = radius_graph(torch.cat([sample, sample]), 2.7, 3, torch.repeat_interleave(torch.arange(2), 80))
+    assert torch.equal(both[:, both[1] >= 80] - 80, single)
+
+
+def test_many_identical_points_keep_the_smallest_indices():
+    pos = torch.zeros((3000, 3), dtype=torch.float64)
+    edges = radius_graph(pos, 1.0, 4)
+    assert edges.shape[1] == 4 * 2999 - 6  # node i keeps min(i, 4) earlier nodes
+    assert torch.all(edges[0, edges[1] >= 4].reshape(-1, 4) == torch.arange(4))

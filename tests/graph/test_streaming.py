@@ -41,3 +41,16 @@ def test_bad_use_is_refused():
     graph.insert(np.array([[0.0, 0.0, 5.0]]))
     with pytest.raises(ValueError, match="time order"):
         graph.insert(np.array([[0.0, 0.0, 4.0]]))
+
+
+def test_events_exactly_r_apart_with_window_equal_to_r():
+    pos = np.array([[0.0, 0.0, 0.62], [0.0, 0.0, 4.04], [0.0, 0.0, 4.04]])
+    graph = StreamingGraph(3.42, 4, window=3.42)
+    got = torch.cat([graph.insert(pos[i:i + 1]) for i in range(3)], dim=1)
+    assert torch.equal(got, radius_graph(torch.from_numpy(pos), 3.42, 4))
+    assert got.shape[1] == 3  # 0 -> 1, 0 -> 2, 1 -> 2
+
+
+def test_positions_must_have_three_columns():
+    with pytest.raises(ValueError, match=r"\(M, 3\)"):
+        StreamingGraph(1.0, 2, window=1.0).insert(np.zeros((3, 2)))

@@ -33,14 +33,12 @@ def test_output_and_gradients_equal_the_dense_reference():
     g = torch.Generator().manual_seed(0)
     for in_c, out_c in ((3, 5), (6, 2)):  # propagation before and after the weight
         n = 40
-        edge_index = torch.unique(torch.randint(0, n, (2, 150), generator=g), dim=1)  # self-loops included
+        edge_index = torch.randint(0, n, (2, 150), generator=g)  # repeated edges and self-loops included
         x = torch.randn(n, in_c, generator=g, dtype=torch.float64, requires_grad=True)
         conv = GCNConv(in_c, out_c).double()
         with torch.no_grad():
             conv.bias.normal_(generator=g)
-        op = GraphOperator(edge_index, n)
-        op.adj, op.adj_t = op.adj.double(), op.adj_t.double()
-        out = conv(x, op)
+        out = conv(x, GraphOperator(edge_index, n))  # float64 input: propagates in float64
         x_ref = x.detach().clone().requires_grad_(True)
         w_ref = conv.weight.detach().clone().requires_grad_(True)
         b_ref = conv.bias.detach().clone().requires_grad_(True)
@@ -86,3 +84,14 @@ def test_new_nodes_from_cached_features_equal_the_whole_window():
     h2_new = conv2(h1_stream, op_new)
     assert torch.allclose(h1_new, h1[n - new:], atol=1e-6)
     assert torch.allclose(h2_new, h2[n - new:], atol=1e-6)
+
+
+def test_any_float_dtype_propagates():
+    edge_index = torch.tensor([[0, 1, 2], [2, 2, 3]])
+    op = GraphOperator(edge_index, 4)
+    x = torch.randn(4, 3, dtype=torch.float64)
+    reference = op.propagate(x)
+    assert reference.dtype == torch.float64
+    for dtype in (torch.float32, torch.bfloat16):
+        out = op.propagate(x.to(dtype))
+        assert out.dtype == dtype and torch.allclose(out.double(), reference, atol=0.05)
