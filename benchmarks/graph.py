@@ -6,7 +6,8 @@ Clouds: N events in a 33 ms window at 640x360, moving blobs (events on their out
 10 % uniform noise; R = 5 px, beta = 5 px / 10 ms, K = 16. Prints:
   * batch graph build (causal, capped) vs a plain ``cKDTree`` build + ``query(k=K+1,
     distance_upper_bound=R)`` over all events (non-causal, no cap handling);
-  * streaming insertion in 1 ms batches, cost per event vs the batch build;
+  * streaming insertion in 1 ms batches, cost per event vs the batch build, and over three
+    windows of events: the cost per event while the window fills and once it slides;
   * GCN layer forward + backward, 32 -> 64 channels, vs ``torch_geometric.nn.GCNConv`` if it is
     installed, else an ``index_add_`` message-passing layer written here;
   * peak memory of the batch build (numpy allocations traced in a fresh process).
@@ -15,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import multiprocessing as mp
-import statistics
 import time
 import tracemalloc
 
@@ -66,13 +66,34 @@ def baseline_knn(pos: np.ndarray) -> None:
     tree.query(pos, k=K + 1, distance_upper_bound=RADIUS)
 
 
-def stream(pos: np.ndarray, batch_us: float = 1000.0) -> int:
+def stream(pos: np.ndarray, batch_us: float = 1000.0, times: list | None = None) -> int:
+    """Insert ``pos`` in batches of ``batch_us``; returns the edge count, appends (t, seconds, events)."""
     graph = StreamingGraph(RADIUS, K, window=BETA * WINDOW_US)
-    bounds = np.searchsorted(pos[:, 2], BETA * np.arange(0, WINDOW_US + batch_us, batch_us))
+    duration = pos[-1, 2] / BETA
+    bounds = np.searchsorted(pos[:, 2], BETA * np.arange(0, duration + 2 * batch_us, batch_us))
     edges = 0
-    for a, b in zip(bounds[:-1], bounds[1:]):
+    for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
+        start = time.perf_counter()
         edges += graph.insert(pos[a:b]).shape[1]
+        if times is not None:
+            times.append((i * batch_us, time.perf_counter() - start, b - a))
     return edges
+
+
+def stream_cost_as_the_window_fills(n: int) -> None:
+    """Three windows of events at the same rate: cost per event while the window fills and after."""
+    clouds = [event_cloud(n, seed=s) for s in range(3)]
+    for i, cloud in enumerate(clouds):
+        cloud[:, 2] += i * BETA * WINDOW_US
+    times: list = []
+    stream(np.concatenate(clouds), times=times)
+    spans = [(0, 5_000), (5_000, 15_000), (15_000, 33_333), (33_333, 66_666), (66_666, 100_000)]
+    parts = []
+    for lo, hi in spans:
+        sel = [(s, e) for t, s, e in times if lo <= t < hi]
+        seconds, events = sum(s for s, _ in sel), sum(e for _, e in sel)
+        parts.append(f"{lo / 1000:.0f}-{hi / 1000:.0f} ms: {seconds / max(events, 1) * 1e6:.2f}")
+    print(f"  streaming cost per event (us) as the window fills, then slides: {'; '.join(parts)}")
 
 
 class IndexAddGCN(torch.nn.Module):
@@ -131,6 +152,7 @@ def main() -> None:
         assert stream(pos) == edges.shape[1]
         print(f"  streaming, 1 ms   {streamed:6.3f} s  {streamed / n * 1e6:5.2f} us/event  "
               f"vs batch {ours / n * 1e6:5.2f} us/event -> {streamed / ours:.2f}x the batch cost")
+        stream_cost_as_the_window_fills(n)
         x = torch.randn(n, 32, requires_grad=True)
         conv, reference = GCNConv(32, 64), ReferenceGCN(32, 64)
         op = GraphOperator(edges, n)
