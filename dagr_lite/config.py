@@ -15,6 +15,13 @@ from omegaconf.errors import OmegaConfBaseException
 from dagr_lite.data import format as fmt
 from dagr_lite.data.augment import TrainAugment
 from dagr_lite.data.dataset import EventEgoHands
+from dagr_lite.nn.detector import Detector, DetectorConfig
+
+# Model sizes: image CNN width, event branch channels (input stage, then strides 8, 16, 32), head width.
+MODEL_SIZES = {
+    "s": {"image_width": 16, "event_channels": (16, 32, 48, 64), "head_hidden": 64},
+    "m": {"image_width": 24, "event_channels": (24, 48, 72, 96), "head_hidden": 96},
+}
 
 ROOT_ENV = "EVENTEGOHANDS_ROOT"
 
@@ -87,3 +94,13 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool) -> EventEgoHands:
     return EventEgoHands(dataset_root(dataset), split, image_lag=data.image_lag, window_us=data.window_us,
                          max_events=data.max_events, fps=dataset.fps, image_size=image_size,
                          transform=transform, clip_boxes=data.clip_boxes, seed=cfg.seed)
+
+
+def build_model(cfg: DictConfig, *, height: int, width: int) -> Detector:
+    """The detector of ``cfg.model`` for frames of ``height x width`` pixels."""
+    model = cfg.model
+    if model.size not in MODEL_SIZES:
+        raise ConfigError(f"model.size must be one of {sorted(MODEL_SIZES)}, got {model.size!r}")
+    return Detector(DetectorConfig(height=height, width=width, use_events=model.use_events, use_image=model.use_image,
+                                   radius=model.radius, beta=model.beta, max_neighbors=model.max_neighbors,
+                                   window_us=cfg.data.window_us, **MODEL_SIZES[model.size]))

@@ -22,6 +22,7 @@ class Batch:
         labels: ``B`` tensors ``(M_b,)`` int64.
         videos, frames, image_frames: names of the samples (video and label frame).
         t_start_us, t_end_us: ``(B,)`` int64 event windows.
+        edge_index: ``(2, E)`` causal event graph over ``events`` (see :class:`GraphCollate`), or None.
     """
 
     events: torch.Tensor
@@ -35,6 +36,7 @@ class Batch:
     image_frames: torch.Tensor
     t_start_us: torch.Tensor
     t_end_us: torch.Tensor
+    edge_index: torch.Tensor | None = None  # (2, E) event graph, when the loader builds it
 
     def __len__(self) -> int:
         return len(self.videos)
@@ -91,3 +93,22 @@ def collate(samples: Sequence[Sample]) -> Batch:
         t_start_us=torch.tensor([s.t_start_us for s in samples], dtype=torch.int64),
         t_end_us=torch.tensor([s.t_end_us for s in samples], dtype=torch.int64),
     )
+
+
+class GraphCollate:
+    """Collate and build the causal event graph in the loader's worker processes.
+
+    The graph is over positions ``(x, y, beta * t)`` of the batch's events (see
+    :func:`dagr_lite.graph.radius_graph`); building it in the workers keeps it off the training step.
+    """
+
+    def __init__(self, *, radius: float, beta: float, max_neighbors: int):
+        self.radius, self.beta, self.max_neighbors = radius, beta, max_neighbors
+
+    def __call__(self, samples: Sequence[Sample]) -> Batch:
+        from dagr_lite.graph.radius import radius_graph
+        batch = collate(samples)
+        events = batch.events.double()
+        pos = torch.stack([events[:, 0], events[:, 1], self.beta * events[:, 2]], dim=1)  # (N, 3)
+        batch.edge_index = radius_graph(pos, self.radius, self.max_neighbors, batch.batch_index, workers=1)
+        return batch

@@ -88,13 +88,19 @@ class EventBranch(nn.Module):
         return torch.stack([2 * p - 1, x / self.width, y / self.height, t / self.window_us], dim=1)
 
     def graph(self, events: torch.Tensor, batch: torch.Tensor) -> torch.Tensor:
+        """The causal event graph, as :class:`~dagr_lite.data.collate.GraphCollate` builds it."""
+        events = events.detach().double()
         pos = torch.stack([events[:, 0], events[:, 1], self.beta * events[:, 2]], dim=1)
-        return radius_graph(pos.detach(), self.radius, self.max_neighbors, batch)
+        return radius_graph(pos, self.radius, self.max_neighbors, batch)
 
     def forward(self, events: torch.Tensor, batch: torch.Tensor, batch_size: int,
-                image_sampler: ImageSampler | None = None) -> list[torch.Tensor]:
+                image_sampler: ImageSampler | None = None, edge_index: torch.Tensor | None = None
+                ) -> list[torch.Tensor]:
+        """``edge_index``: the event graph if already built (e.g. by the data loader's workers)."""
         pos = torch.stack([events[:, 0], events[:, 1], self.beta * events[:, 2]], dim=1)  # (N, 3)
-        edge_index = self.graph(events, batch).to(events.device)  # (2, E)
+        if edge_index is None:
+            edge_index = self.graph(events, batch)
+        edge_index = edge_index.to(events.device)  # (2, E)
         x = self.node_features(events)  # (N, 4)
         maps = []
         for level, blocks in enumerate(self.stages):

@@ -89,9 +89,9 @@ def test_loader_workers_reopen_files(dataset):
 
 
 def test_new_epochs_reach_loader_workers(dataset):
-    from dagr_lite.engine.train import build_loader
+    from dagr_lite.engine.common import make_loader
     ds = EventEgoHands(dataset.root, "train", max_events=20, seed=0)
-    loader = build_loader(ds, batch_size=8, num_workers=2, shuffle=False)
+    loader = make_loader(ds, batch_size=8, num_workers=2)
     first = next(iter(loader)).events
     assert torch.equal(next(iter(loader)).events, first)
     ds.set_epoch(1)

@@ -1,0 +1,158 @@
+"""Pieces shared by training and evaluation: devices, seeds, run folders, checkpoints, EMA, loaders."""
+from __future__ import annotations
+
+import copy
+import math
+import os
+import random
+import time
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+from torch import nn
+from torch.utils.data import DataLoader, Sampler
+
+from dagr_lite.data.collate import GraphCollate, collate
+from dagr_lite.data.dataset import EventEgoHands
+
+CHECKPOINT_FORMAT = 1
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> CUDA when present, else CPU; anything else as given (``cpu``, ``cuda:1``)."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device={name} was asked for, but CUDA is not available here")
+    return device
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def run_folder(cfg: DictConfig, kind: str) -> Path:
+    """The run's own folder: ``cfg.run_dir``, else Hydra's, else a new ``runs/<kind>/<time>``.
+
+    An existing folder holding checkpoints or metrics is never reused (no run overwrites another).
+    """
+    if cfg.get("run_dir"):
+        path = Path(cfg.run_dir)
+    else:
+        try:
+            from hydra.core.hydra_config import HydraConfig
+            path = Path(HydraConfig.get().runtime.output_dir)
+        except (ImportError, ValueError):
+            path = Path("runs") / kind / time.strftime("%Y-%m-%d/%H-%M-%S") / f"{os.getpid()}"
+    for name in ("checkpoints", "metrics.json"):
+        if (path / name).exists():
+            raise FileExistsError(f"{path}: holds an earlier run ({name}); choose a new run_dir")
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def save_checkpoint(path: Path, state: dict) -> None:
+    """``torch.save`` to a temporary name, then rename: a checkpoint on disk is always whole."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    torch.save({"format": CHECKPOINT_FORMAT, **state}, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: Path | str) -> dict:
+    """Load a checkpoint safely (``weights_only``); a missing or foreign file gives a clear error."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: checkpoint file is missing")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # unpickling errors come in many types
+        raise ValueError(f"{path}: cannot read as a dagr_lite checkpoint ({err})") from err
+    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT or "model" not in state:
+        raise ValueError(f"{path}: not a dagr_lite checkpoint of format {CHECKPOINT_FORMAT} "
+                         "(expected keys format, model, ema, config, ...)")
+    return state
+
+
+class ModelEMA:
+    """Exponential moving average of a model's weights (and buffers), used for validation.
+
+    ``decay`` ramps up as ``decay * (1 - exp(-updates / tau))`` so early averages follow the model.
+    """
+
+    def __init__(self, model: nn.Module, decay: float = 0.9998, tau: float = 2000.0):
+        self.module = copy.deepcopy(model).eval()
+        for p in self.module.parameters():
+            p.requires_grad_(False)
+        self.decay, self.tau, self.updates = decay, tau, 0
+
+    @torch.no_grad()
+    def update(self, model: nn.Module) -> None:
+        self.updates += 1
+        d = self.decay * (1 - math.exp(-self.updates / self.tau))
+        model_state = model.state_dict()
+        for name, value in self.module.state_dict().items():
+            if value.dtype.is_floating_point:
+                value.mul_(d).add_(model_state[name].detach(), alpha=1 - d)
+            else:
+                value.copy_(model_state[name])
+
+    def state_dict(self) -> dict:
+        return {"module": self.module.state_dict(), "updates": self.updates}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.module.load_state_dict(state["module"])
+        self.updates = int(state["updates"])
+
+
+def warmup_cosine(step: int, *, warmup: int, total: int, min_ratio: float) -> float:
+    """Learning-rate factor: linear warm-up over ``warmup`` steps, then cosine down to ``min_ratio``."""
+    if step < warmup:
+        return (step + 1) / warmup
+    progress = min(1.0, (step - warmup) / max(1, total - warmup))
+    return min_ratio + (1 - min_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
+
+
+class EpochSampler(Sampler[int]):
+    """Shuffled indices, a fixed permutation per (seed, epoch), optionally starting part-way.
+
+    Resuming at step ``s`` of an epoch skips its first ``s`` batches without loading them.
+    """
+
+    def __init__(self, size: int, *, seed: int, shuffle: bool = True):
+        self.size, self.seed, self.shuffle = size, seed, shuffle
+        self.epoch, self.start = 0, 0
+
+    def set_epoch(self, epoch: int, start: int = 0) -> None:
+        self.epoch, self.start = epoch, start
+
+    def order(self) -> list[int]:
+        if not self.shuffle:
+            return list(range(self.size))
+        return torch.randperm(self.size, generator=torch.Generator().manual_seed(self.seed * 100_003 + self.epoch)).tolist()
+
+    def __iter__(self):
+        return iter(self.order()[self.start:])
+
+    def __len__(self) -> int:
+        return self.size - self.start
+
+
+def make_loader(dataset: EventEgoHands, *, batch_size: int, num_workers: int, sampler: Sampler | None = None,
+                graph: dict | None = None, drop_last: bool = False) -> DataLoader:
+    """A loader with :func:`collate`; with ``graph`` (radius, beta, max_neighbors) its workers also
+    build the event graph. Workers start per epoch, so ``dataset.set_epoch`` reaches them."""
+    collate_fn = GraphCollate(**graph) if graph else collate
+    return DataLoader(dataset, batch_size=batch_size, sampler=sampler, shuffle=False, num_workers=num_workers,
+                      collate_fn=collate_fn, drop_last=drop_last, pin_memory=torch.cuda.is_available(),
+                      worker_init_fn=partial(_limit_threads) if num_workers else None)
+
+
+def _limit_threads(_worker_id: int) -> None:
+    torch.set_num_threads(1)  # workers share the machine with the training step

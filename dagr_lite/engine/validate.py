@@ -1,0 +1,58 @@
+"""Scoring a detector on a split, and pictures of events, frames and boxes."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from PIL import Image, ImageDraw
+from torch import nn
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from dagr_lite.data import format as fmt
+from dagr_lite.data.collate import Batch
+from dagr_lite.eval.coco import CocoEvaluator
+
+
+@torch.no_grad()
+def evaluate_model(model: nn.Module, loader: DataLoader, device: torch.device, *, backend: str = "pycocotools",
+                   conf_threshold: float = 0.001, nms_threshold: float = 0.65, progress: bool = True,
+                   desc: str = "evaluating") -> tuple[dict, CocoEvaluator]:
+    """COCO metrics of ``model`` over every sample of ``loader`` (no batch is dropped)."""
+    was_training = model.training
+    model.eval()
+    evaluator = CocoEvaluator(backend=backend)
+    for batch in tqdm(loader, desc=desc, leave=False, disable=not progress):
+        batch = batch.to(device)
+        detections = model(batch, conf_threshold=conf_threshold, nms_threshold=nms_threshold)
+        height, width = batch.images.shape[-2:]
+        for b, det in enumerate(detections):
+            evaluator.add(fmt.label_key(batch.videos[b], int(batch.frames[b])), height, width, batch.boxes[b],
+                          det["boxes"], det["scores"])
+    model.train(was_training)
+    return evaluator.compute(), evaluator
+
+
+def render_sample(batch: Batch, index: int, detections: dict | None = None, *, score_threshold: float = 0.3
+                  ) -> np.ndarray:
+    """``(H, 2W, 3)`` uint8: the frame with true (green) and predicted (red) boxes, beside the events
+    (ON red, OFF blue on white) with the same boxes."""
+    image = batch.images[index].permute(1, 2, 0).cpu().numpy()
+    height, width = image.shape[:2]
+    canvas = np.full((height, width, 3), 255, np.uint8)
+    events = batch.events[batch.ptr[index]:batch.ptr[index + 1]].cpu().numpy()
+    if len(events):
+        xs = np.clip(events[:, 0].astype(int), 0, width - 1)
+        ys = np.clip(events[:, 1].astype(int), 0, height - 1)
+        canvas[ys, xs] = np.where(events[:, 3:4] > 0.5, [220, 30, 30], [30, 60, 220])
+    panels = []
+    for array in (image, canvas):
+        panel = Image.fromarray(np.ascontiguousarray(array))
+        draw = ImageDraw.Draw(panel)
+        for box in batch.boxes[index].cpu().tolist():
+            draw.rectangle(box, outline=(0, 200, 0))
+        if detections is not None:
+            for box, score in zip(detections["boxes"].cpu().tolist(), detections["scores"].cpu().tolist()):
+                if score >= score_threshold:
+                    draw.rectangle(box, outline=(255, 0, 0))
+        panels.append(np.asarray(panel))
+    return np.concatenate(panels, axis=1)

@@ -1,0 +1,241 @@
+"""A YOLOX-style anchor-free decoupled head: SimOTA assignment, losses, decoding and NMS.
+
+Every cell of a stride-``s`` map is an anchor at the cell centre ``((gx + 0.5) s, (gy + 0.5) s)``
+in pixels (the same ``s`` in x and y: cells are ``s x s`` pixels). A prediction ``(tx, ty, tw,
+th)`` decodes to the box centre ``anchor + (tx, ty) s`` and size ``exp(tw, th) s``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+def box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Pairwise IoU of xyxy boxes.  ``(M, 4), (N, 4) -> (M, N)``."""
+    lt = torch.maximum(a[:, None, :2], b[None, :, :2])  # (M, N, 2)
+    rb = torch.minimum(a[:, None, 2:], b[None, :, 2:])  # (M, N, 2)
+    inter = (rb - lt).clamp(min=0).prod(-1)  # (M, N)
+    area_a = (a[:, 2:] - a[:, :2]).clamp(min=0).prod(-1)
+    area_b = (b[:, 2:] - b[:, :2]).clamp(min=0).prod(-1)
+    return inter / (area_a[:, None] + area_b[None, :] - inter).clamp(min=1e-9)
+
+
+def aligned_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """IoU of matching rows of xyxy boxes.  ``(N, 4), (N, 4) -> (N,)``."""
+    lt, rb = torch.maximum(a[:, :2], b[:, :2]), torch.minimum(a[:, 2:], b[:, 2:])
+    inter = (rb - lt).clamp(min=0).prod(-1)
+    union = (a[:, 2:] - a[:, :2]).clamp(min=0).prod(-1) + (b[:, 2:] - b[:, :2]).clamp(min=0).prod(-1) - inter
+    return inter / union.clamp(min=1e-9)
+
+
+def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float, labels: torch.Tensor | None = None
+        ) -> torch.Tensor:
+    """Greedy non-maximum suppression; class-aware when ``labels`` are given.
+
+    Returns the kept indices, by decreasing score.  ``boxes (D, 4) xyxy, scores (D,) -> (K,)``.
+    """
+    if len(boxes) == 0:
+        return torch.zeros(0, dtype=torch.int64, device=boxes.device)
+    order = torch.argsort(scores, descending=True, stable=True)
+    boxes = boxes[order]
+    iou = box_iou(boxes, boxes)  # (D, D)
+    if labels is not None:
+        labels = labels[order]
+        iou = iou * (labels[:, None] == labels[None, :])
+    overlap = (iou > iou_threshold).triu(diagonal=1)  # i suppresses later j
+    keep = torch.ones(len(boxes), dtype=torch.bool, device=boxes.device)
+    for i in range(len(boxes)):
+        if keep[i]:
+            keep &= ~overlap[i]
+    return order[keep]
+
+
+def anchors_of(shapes: list[tuple[int, int]], strides: list[int], device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Anchor centres ``(A, 2)`` in pixels and their strides ``(A,)``, maps flattened row-major."""
+    centres, stride_of = [], []
+    for (h, w), s in zip(shapes, strides):
+        gy, gx = torch.meshgrid(torch.arange(h, device=device), torch.arange(w, device=device), indexing="ij")
+        centres.append(torch.stack([gx.flatten(), gy.flatten()], 1).float().add(0.5).mul(s))  # (h w, 2)
+        stride_of.append(torch.full((h * w,), float(s), device=device))
+    return torch.cat(centres), torch.cat(stride_of)
+
+
+def decode_boxes(raw: torch.Tensor, centres: torch.Tensor, strides: torch.Tensor) -> torch.Tensor:
+    """``(..., A, 4)`` raw ``(tx, ty, tw, th)`` -> xyxy pixels."""
+    xy = centres + raw[..., :2] * strides[:, None]
+    wh = torch.exp(raw[..., 2:].clamp(max=10.0)) * strides[:, None]
+    return torch.cat([xy - wh / 2, xy + wh / 2], dim=-1)
+
+
+@dataclass
+class Assignment:
+    """SimOTA result for one image: foreground anchors, their GT and the IoU of their prediction."""
+
+    fg: torch.Tensor  # (A,) bool
+    gt_index: torch.Tensor  # (F,) matched GT of each foreground anchor, in anchor order
+    iou: torch.Tensor  # (F,)
+
+
+@torch.no_grad()
+def simota_assign(pred_boxes: torch.Tensor, obj_logits: torch.Tensor, cls_logits: torch.Tensor,
+                  gt_boxes: torch.Tensor, gt_labels: torch.Tensor, centres: torch.Tensor, strides: torch.Tensor,
+                  *, center_radius: float = 2.5, iou_weight: float = 3.0, top_candidates: int = 10) -> Assignment:
+    """SimOTA (YOLOX): centre prior, cost = class + ``iou_weight`` * (-log IoU), dynamic k per GT.
+
+    Shapes:
+        pred_boxes ``(A, 4)``, obj_logits ``(A,)``, cls_logits ``(A, C)``, gt_boxes ``(M, 4)``,
+        gt_labels ``(M,)``, centres ``(A, 2)``, strides ``(A,)``.
+    """
+    num_anchors, device = len(centres), centres.device
+    empty = Assignment(torch.zeros(num_anchors, dtype=torch.bool, device=device),
+                       torch.zeros(0, dtype=torch.int64, device=device), torch.zeros(0, device=device))
+    if len(gt_boxes) == 0:
+        return empty
+    # Centre prior: anchor centre inside the GT box, or within center_radius strides of its centre.
+    cx, cy = centres[:, 0], centres[:, 1]  # (A,)
+    in_box = ((cx[None] > gt_boxes[:, None, 0]) & (cx[None] < gt_boxes[:, None, 2])
+              & (cy[None] > gt_boxes[:, None, 1]) & (cy[None] < gt_boxes[:, None, 3]))  # (M, A)
+    gt_centre = (gt_boxes[:, :2] + gt_boxes[:, 2:]) / 2  # (M, 2)
+    radius = center_radius * strides[None]  # (1, A)
+    in_centre = ((cx[None] - gt_centre[:, None, 0]).abs() < radius) & ((cy[None] - gt_centre[:, None, 1]).abs() < radius)
+    candidate = (in_box | in_centre).any(0)  # (A,)
+    if not candidate.any():
+        return empty
+    both = (in_box & in_centre)[:, candidate]  # (M, A_c)
+    iou = box_iou(gt_boxes, pred_boxes[candidate].float())  # (M, A_c)
+    scores = (torch.sigmoid(cls_logits[candidate].float()) * torch.sigmoid(obj_logits[candidate].float())[:, None]).sqrt()
+    target = F.one_hot(gt_labels, cls_logits.shape[1]).float()  # (M, C)
+    cls_cost = F.binary_cross_entropy(scores[None].expand(len(gt_boxes), -1, -1).clamp(1e-6, 1 - 1e-6),
+                                      target[:, None].expand(-1, scores.shape[0], -1), reduction="none").sum(-1)
+    cost = cls_cost + iou_weight * -torch.log(iou + 1e-8) + 1e5 * (~both)  # (M, A_c)
+    # Dynamic k: each GT takes as many anchors as the sum of its top IoUs (at least one).
+    k = torch.clamp(torch.topk(iou, min(top_candidates, iou.shape[1]), dim=1).values.sum(1).int(), min=1)
+    matching = torch.zeros_like(cost, dtype=torch.bool)
+    for g in range(len(gt_boxes)):
+        matching[g, torch.topk(cost[g], int(k[g]), largest=False).indices] = True
+    shared = matching.sum(0) > 1  # an anchor claimed by several GTs keeps the cheapest
+    if shared.any():
+        cheapest = cost[:, shared].argmin(0)
+        matching[:, shared] = False
+        matching[cheapest, torch.nonzero(shared).flatten()] = True
+    fg_c = matching.any(0)  # (A_c,)
+    fg = torch.zeros(num_anchors, dtype=torch.bool, device=device)
+    fg[torch.nonzero(candidate).flatten()[fg_c]] = True
+    gt_index = matching[:, fg_c].int().argmax(0)
+    return Assignment(fg, gt_index, iou[gt_index, torch.nonzero(fg_c).flatten()])
+
+
+class YOLOXHead(nn.Module):
+    """Decoupled head, one set of branches per stride: stem, then class / box + objectness.
+
+    Args:
+        in_channels: channels of each input map; hidden: branch width; num_classes: classes.
+        strides: the stride of each input map, in pixels.
+
+    Shapes:
+        maps: list of ``(B, C_s, H_s, W_s)`` -> raw ``(B, A, 5 + num_classes)`` with
+        ``A = sum H_s W_s``: box ``(tx, ty, tw, th)``, objectness logit, class logits.
+    """
+
+    def __init__(self, in_channels: list[int], strides: list[int], *, hidden: int = 64, num_classes: int = 1):
+        super().__init__()
+        self.strides, self.num_classes = list(strides), num_classes
+
+        def conv(c_in, c_out, k=3):
+            return nn.Sequential(nn.Conv2d(c_in, c_out, k, padding=k // 2, bias=False), nn.BatchNorm2d(c_out),
+                                 nn.SiLU())
+
+        self.stems = nn.ModuleList(conv(c, hidden, 1) for c in in_channels)
+        self.cls_branches = nn.ModuleList(nn.Sequential(conv(hidden, hidden), conv(hidden, hidden)) for _ in strides)
+        self.reg_branches = nn.ModuleList(nn.Sequential(conv(hidden, hidden), conv(hidden, hidden)) for _ in strides)
+        self.cls_preds = nn.ModuleList(nn.Conv2d(hidden, num_classes, 1) for _ in strides)
+        self.reg_preds = nn.ModuleList(nn.Conv2d(hidden, 4, 1) for _ in strides)
+        self.obj_preds = nn.ModuleList(nn.Conv2d(hidden, 1, 1) for _ in strides)
+        prior = -4.6  # sigmoid(-4.6) ~ 0.01: rare objects at the start
+        for layer in (*self.cls_preds, *self.obj_preds):
+            nn.init.constant_(layer.bias, prior)
+
+    def forward(self, maps: list[torch.Tensor]) -> tuple[torch.Tensor, list[tuple[int, int]]]:
+        outputs, shapes = [], []
+        for i, x in enumerate(maps):
+            x = self.stems[i](x)
+            cls_feat, reg_feat = self.cls_branches[i](x), self.reg_branches[i](x)
+            out = torch.cat([self.reg_preds[i](reg_feat), self.obj_preds[i](reg_feat), self.cls_preds[i](cls_feat)], 1)
+            shapes.append(tuple(out.shape[-2:]))
+            outputs.append(out.flatten(2).transpose(1, 2))  # (B, H_s W_s, 5 + C)
+        return torch.cat(outputs, 1), shapes  # (B, A, 5 + C)
+
+
+def yolox_losses(raw: torch.Tensor, shapes: list[tuple[int, int]], strides: list[int], gt_boxes: list[torch.Tensor],
+                 gt_labels: list[torch.Tensor], *, iou_weight: float = 5.0, use_l1: bool = False) -> dict:
+    """Training losses: IoU (1 - IoU^2) on foreground boxes, BCE objectness on all anchors, BCE class
+    (target = IoU) on foreground anchors, optional L1 on raw box offsets; normalised by foreground count.
+    """
+    batch, device = raw.shape[0], raw.device
+    centres, stride_of = anchors_of(shapes, strides, device)
+    raw = raw.float()
+    boxes = decode_boxes(raw[..., :4], centres, stride_of)  # (B, A, 4)
+    obj_logits, cls_logits = raw[..., 4], raw[..., 5:]
+    obj_targets = torch.zeros_like(obj_logits)
+    fg_boxes, fg_targets, cls_fg, cls_targets, l1_pred, l1_target = [], [], [], [], [], []
+    for b in range(batch):
+        a = simota_assign(boxes[b].detach(), obj_logits[b].detach(), cls_logits[b].detach(), gt_boxes[b].float(),
+                          gt_labels[b], centres, stride_of)
+        obj_targets[b, a.fg] = 1.0
+        if a.fg.any():
+            matched = gt_boxes[b].float()[a.gt_index]
+            fg_boxes.append(boxes[b, a.fg])
+            fg_targets.append(matched)
+            cls_fg.append(cls_logits[b, a.fg])
+            cls_targets.append(F.one_hot(gt_labels[b][a.gt_index], cls_logits.shape[-1]).float() * a.iou[:, None])
+            if use_l1:
+                s, c = stride_of[a.fg][:, None], centres[a.fg]
+                wh = (matched[:, 2:] - matched[:, :2]).clamp(min=1e-3)
+                l1_target.append(torch.cat([((matched[:, :2] + matched[:, 2:]) / 2 - c) / s, torch.log(wh / s)], 1))
+                l1_pred.append(raw[b, a.fg, :4])
+    num_fg = sum(len(t) for t in fg_targets)
+    norm = max(num_fg, 1)
+    obj_loss = F.binary_cross_entropy_with_logits(obj_logits, obj_targets, reduction="sum") / norm
+    if num_fg:
+        iou = aligned_iou(torch.cat(fg_boxes), torch.cat(fg_targets))
+        iou_loss = (1 - iou ** 2).sum() / norm
+        cls_loss = F.binary_cross_entropy_with_logits(torch.cat(cls_fg), torch.cat(cls_targets), reduction="sum") / norm
+        l1_loss = F.l1_loss(torch.cat(l1_pred), torch.cat(l1_target), reduction="sum") / norm if use_l1 else None
+    else:
+        iou_loss = cls_loss = raw.sum() * 0.0
+        l1_loss = raw.sum() * 0.0 if use_l1 else None
+    loss = iou_weight * iou_loss + obj_loss + cls_loss + (l1_loss if l1_loss is not None else 0.0)
+    out = {"loss": loss, "iou_loss": iou_loss.detach(), "obj_loss": obj_loss.detach(), "cls_loss": cls_loss.detach(),
+           "num_fg": torch.tensor(float(num_fg), device=device)}
+    if l1_loss is not None:
+        out["l1_loss"] = l1_loss.detach()
+    return out
+
+
+def postprocess(raw: torch.Tensor, shapes: list[tuple[int, int]], strides: list[int], *, conf_threshold: float = 0.001,
+                nms_threshold: float = 0.65, max_detections: int = 100, pre_nms: int = 1000,
+                image_size: tuple[int, int] | None = None) -> list[dict]:
+    """Decoded, class-aware NMS-filtered detections per image: ``boxes (D, 4)``, ``scores (D,)``, ``labels (D,)``."""
+    centres, stride_of = anchors_of(shapes, strides, raw.device)
+    raw = raw.float()
+    boxes = decode_boxes(raw[..., :4], centres, stride_of)  # (B, A, 4)
+    if image_size is not None:
+        height, width = image_size
+        boxes = torch.stack([boxes[..., 0].clamp(0, width), boxes[..., 1].clamp(0, height),
+                             boxes[..., 2].clamp(0, width), boxes[..., 3].clamp(0, height)], -1)
+    obj = torch.sigmoid(raw[..., 4])
+    cls_prob = torch.sigmoid(raw[..., 5:])
+    results = []
+    for b in range(raw.shape[0]):
+        scores, labels = (cls_prob[b] * obj[b, :, None]).max(-1)  # (A,)
+        keep = scores >= conf_threshold
+        bx, sc, lb = boxes[b, keep], scores[keep], labels[keep]
+        if len(sc) > pre_nms:
+            top = torch.topk(sc, pre_nms).indices
+            bx, sc, lb = bx[top], sc[top], lb[top]
+        kept = nms(bx, sc, nms_threshold, lb)[:max_detections]
+        results.append({"boxes": bx[kept], "scores": sc[kept], "labels": lb[kept]})
+    return results
