@@ -24,23 +24,27 @@ def compose_cfg(name, overrides=()):
 def test_groups_hold_the_expected_options():
     assert options("dataset") == ["custom", "stub", "v1", "v2", "v3", "v4", "v5", "v6"]
     assert {"hybrid", "events_only", "image_only"} <= set(options("model"))
-    assert options("optim") == ["adamw"]
+    assert options("optim") == ["adamw"] and options("recipe") == ["stub"]
 
 
 @pytest.mark.parametrize("config,group", [("train", "dataset"), ("train", "model"), ("train", "optim"),
-                                          ("evaluate", "dataset"), ("evaluate", "model")])
+                                          ("evaluate", "dataset")])
 def test_every_option_composes_and_resolves(config, group, tmp_path):
+    extra = [f"ckpt={tmp_path / 'last.pt'}"] if config == "evaluate" else []
     for option in options(group):
-        cfg = resolve_config(compose_cfg(config, [f"{group}={option}", f"dataset.root={tmp_path}"]))
+        cfg = resolve_config(compose_cfg(config, [f"{group}={option}", f"dataset.root={tmp_path}", *extra]))
         assert cfg[group].name == option
         assert cfg.dataset.root == str(tmp_path)
 
 
-def test_default_dataset_is_the_stub():
+def test_default_dataset_is_the_stub_with_its_short_recipe():
     cfg = resolve_config(compose_cfg("train"))
     assert cfg.dataset.name == "stub" and cfg.dataset.root is None
     assert (cfg.dataset.height, cfg.dataset.width) == (180, 320)
-    assert cfg.optim.lr == pytest.approx(2e-4) and cfg.loader.batch_size == 16
+    assert cfg.optim.lr == pytest.approx(1e-3) and cfg.trainer.max_epochs == 12 and cfg.loader.batch_size == 16
+    paper = resolve_config(compose_cfg("train", ["dataset=v6", "dataset.root=/data/v6"]))
+    assert paper.optim.lr == pytest.approx(2e-4) and paper.trainer.max_steps == 100_000  # the paper's recipe
+    assert resolve_config(compose_cfg("train", ["optim.lr=5e-4"])).optim.lr == pytest.approx(5e-4)
 
 
 @pytest.mark.parametrize("version", sorted(VERSIONS))

@@ -25,10 +25,10 @@ from dagr_lite.synth.dvs import preset
 from dagr_lite.synth.video import emulate_video
 
 # Bump when the generated data changes, so caches made by an older recipe are not reused.
-STUB_VERSION = 2
+STUB_VERSION = 3
 STUB_HEIGHT, STUB_WIDTH = 180, 320
-STUB_SPLITS = {"train": 4, "valid": 1, "test": 1}
-STUB_SECONDS = 3.0
+STUB_SPLITS = {"train": 12, "valid": 2, "test": 2}
+STUB_SECONDS = 2.0
 STUB_UPSAMPLE = 6
 STUB_DVS_MODEL = "clean"
 MIN_BOX_SIZE = 4.0

@@ -1,0 +1,120 @@
+"""Training-step speed and memory of each model variant, split into its parts.
+
+    python benchmarks/train_step.py [--steps 6] [--events 50000] [--batch 16] [--workers 2]
+
+For each variant (hybrid, events_only, image_only) at 320x180 and 640x360, trains ``--steps``
+steps on synthetic samples (a rendered hand scene as the image, ``--events`` events per sample
+from moving blob outlines plus noise) through the same loader the trainer uses (``--workers``
+worker processes that also build the event graph). Prints per step: time waiting for data
+(loading + graph building, as the training loop sees it), forward, backward + optimiser step,
+samples per second, and the peak resident memory of the training process; and, for reference,
+the graph building time of one batch in a single process. The check: waiting for data must
+stay below a third of a step.
+"""
+from __future__ import annotations
+
+import argparse
+import resource
+import time
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from dagr_lite.data.collate import GraphCollate
+from dagr_lite.data.dataset import Sample
+from dagr_lite.engine.common import make_loader
+from dagr_lite.nn.detector import Detector, DetectorConfig
+from dagr_lite.synth.stub import HandScene
+
+WINDOW_US = 33_333
+
+
+class SyntheticSamples(Dataset):
+    """Samples with a rendered frame, ``events`` events and the scene's boxes (cheap to make)."""
+
+    def __init__(self, height: int, width: int, events: int, size: int = 64):
+        self.height, self.width, self.events, self.size = height, width, events, size
+        scene = HandScene(0, height=height, width=width)
+        self.frames = [np.clip(scene.frame(k), 0, 255).astype(np.uint8) for k in range(8)]
+        self.boxes = [torch.from_numpy(np.concatenate([b[:, :2], b[:, :2] + b[:, 2:]], 1)).float()
+                      for b in (scene.boxes(k) for k in range(8))]
+
+    def __len__(self) -> int:
+        return self.size
+
+    def __getitem__(self, index: int) -> Sample:
+        rng = np.random.default_rng(index)
+        n = self.events
+        blobs = rng.uniform([40, 40], [self.width - 40, self.height - 40], (8, 2))
+        which = rng.integers(0, 8, n)
+        t = np.sort(rng.uniform(0, WINDOW_US, n))
+        angle = rng.uniform(0, 2 * np.pi, n)
+        xy = blobs[which] + np.stack([np.cos(angle), np.sin(angle)], 1) * rng.uniform(10, 30, (n, 1))
+        xy[: n // 10] = rng.uniform([0, 0], [self.width, self.height], (n // 10, 2))
+        xy = np.clip(np.round(xy), 0, [self.width - 1, self.height - 1])
+        events = np.concatenate([xy, t[:, None], rng.integers(0, 2, (n, 1))], 1).astype(np.float32)
+        k = index % 8
+        return Sample(events=torch.from_numpy(events), image=torch.from_numpy(self.frames[k]).permute(2, 0, 1).contiguous(),
+                      boxes=self.boxes[k], labels=torch.zeros(len(self.boxes[k]), dtype=torch.int64),
+                      video="bench", frame=index, image_frame=index, t_start_us=0, t_end_us=WINDOW_US)
+
+
+def run(variant: str, height: int, width: int, args) -> None:
+    use_events, use_image = {"hybrid": (True, True), "events_only": (True, False), "image_only": (False, True)}[variant]
+    torch.manual_seed(0)
+    model = Detector(DetectorConfig(height=height, width=width, use_events=use_events, use_image=use_image))
+    optimizer = torch.optim.AdamW(model.parameters(), lr=2e-4)
+    dataset = SyntheticSamples(height, width, args.events, size=args.batch * (args.steps + 1))
+    graph = {"radius": 5.0, "beta": 5e-4, "max_neighbors": 16} if use_events else None
+    loader = make_loader(dataset, batch_size=args.batch, num_workers=args.workers, graph=graph)
+    waits, forwards, backwards = [], [], []
+    iterator = iter(loader)
+    next(iterator)  # warm-up step: workers start, first batch
+    for _ in range(args.steps):
+        start = time.perf_counter()
+        batch = next(iterator)
+        loaded = time.perf_counter()
+        out = model(batch)
+        forwarded = time.perf_counter()
+        optimizer.zero_grad()
+        out["loss"].backward()
+        optimizer.step()
+        done = time.perf_counter()
+        waits.append(loaded - start)
+        forwards.append(forwarded - loaded)
+        backwards.append(done - forwarded)
+    wait, fwd, bwd = (float(np.mean(x)) for x in (waits, forwards, backwards))
+    step = wait + fwd + bwd
+    graph_note = ""
+    if use_events:
+        samples = [dataset[i] for i in range(args.batch)]
+        start = time.perf_counter()
+        GraphCollate(**graph)(samples)
+        graph_note = f", one batch's graph alone {time.perf_counter() - start:.2f} s"
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    verdict = "ok" if wait < step / 3 else "DATA-BOUND"
+    print(f"{variant:11s} {width}x{height}: step {step:6.2f} s = wait for data {wait:5.2f} + forward {fwd:5.2f} "
+          f"+ backward {bwd:5.2f}; {args.batch / step:5.1f} samples/s; data {wait / step:4.0%} of a step [{verdict}]"
+          f"{graph_note}; peak RSS {peak:.0f} MiB", flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=6)
+    parser.add_argument("--events", type=int, default=50_000, help="events per sample")
+    parser.add_argument("--batch", type=int, default=16)
+    parser.add_argument("--workers", type=int, default=2, help="loader workers (the trainer's default is 2)")
+    parser.add_argument("--variants", nargs="+", default=["hybrid", "events_only", "image_only"])
+    parser.add_argument("--sizes", nargs="+", default=["320x180", "640x360"])
+    args = parser.parse_args()
+    print(f"batch {args.batch}, {args.events:,} events per sample, {args.workers} workers, "
+          f"{torch.get_num_threads()} torch threads", flush=True)
+    for size in args.sizes:
+        width, height = (int(v) for v in size.split("x"))
+        for variant in args.variants:
+            run(variant, height, width, args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,44 @@
+import torch
+
+from dagr_lite.data.collate import collate
+from dagr_lite.data.dataset import EventEgoHands
+from dagr_lite.nn.detector import Detector, DetectorConfig
+from dagr_lite.nn.head import box_iou
+from dagr_lite.synth.stub import stub_root
+
+
+def test_the_hybrid_model_overfits_one_batch():
+    torch.manual_seed(0)
+    dataset = EventEgoHands(stub_root(), "train", max_events=4000)
+    batch = collate([dataset[i] for i in (5, 60, 150, 260)])
+    model = Detector(DetectorConfig(height=180, width=320, image_width=8, event_channels=(8, 16, 16, 16), head_hidden=32))
+    optimizer = torch.optim.AdamW(model.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(100):
+        out = model(batch)
+        optimizer.zero_grad()
+        out["loss"].backward()
+        optimizer.step()
+        losses.append(float(out["loss"].detach()))
+    assert losses[-1] < losses[0] / 4
+    model.eval()
+    with torch.no_grad():
+        detections = model(batch)
+    found = []
+    for det, boxes in zip(detections, batch.boxes):
+        confident = det["boxes"][det["scores"] > 0.3]
+        assert len(boxes) and len(confident)
+        found += (box_iou(boxes, confident).max(dim=1).values > 0.5).tolist()
+    assert sum(found) / len(found) >= 0.75  # most true boxes come out right
+
+
+def test_training_output_names_and_variants():
+    dataset = EventEgoHands(stub_root(), "valid", max_events=2000)
+    batch = collate([dataset[i] for i in (0, 40)])
+    for use_events, use_image in ((True, True), (True, False), (False, True)):
+        model = Detector(DetectorConfig(height=180, width=320, use_events=use_events, use_image=use_image,
+                                        image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16))
+        out = model(batch)
+        assert set(out) == {"loss", "iou_loss", "obj_loss", "cls_loss", "num_fg"} and torch.isfinite(out["loss"])
+        model.eval()
+        assert len(model(batch)) == 2
