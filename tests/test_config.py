@@ -92,3 +92,14 @@ def test_custom_dataset_takes_its_resolution_from_the_frames(dataset):
     v6 = resolve_config(compose_cfg("train", ["dataset=v6", f"dataset.root={dataset.root}"]))
     with pytest.raises(ValueError, match=r"configured as 640x360"):
         build_dataset(v6, "train", train=True)
+
+
+def test_model_sizes_build_and_differ():
+    from dagr_lite.config import build_model
+    sizes = {}
+    for size in ("s", "m"):
+        cfg = resolve_config(compose_cfg("train", [f"model.size={size}"]))
+        sizes[size] = sum(p.numel() for p in build_model(cfg, height=180, width=320).parameters())
+    assert sizes["m"] > 1.5 * sizes["s"]
+    with pytest.raises(ConfigError, match="model.size"):
+        build_model(resolve_config(compose_cfg("train", ["model.size=xl"])), height=180, width=320)

@@ -61,7 +61,10 @@ def voxel_max_pool(x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge
     batch_c = torch.div(unique, height * width, rounding_mode="floor")
     cell = torch.stack([torch.div(unique, width, rounding_mode="floor") % height, unique % width], dim=1)
     edges = cluster[edge_index]  # (2, E)
-    edge_key = torch.unique(edges[1] * max(num_cells, 1) + edges[0], sorted=True)  # by (dst, src)
+    edge_key = edges[1] * max(num_cells, 1) + edges[0]  # (E,)
+    if len(edge_key) > 1:  # neighbouring edges often map to the same cell pair: drop those repeats first
+        edge_key = edge_key[torch.cat([edge_key.new_ones(1, dtype=torch.bool), edge_key[1:] != edge_key[:-1]])]
+    edge_key = torch.unique(edge_key, sorted=True)  # deduplicated, by (dst, src)
     edge_index_c = torch.stack([edge_key % max(num_cells, 1), torch.div(edge_key, max(num_cells, 1),
                                                                          rounding_mode="floor")])
     return PooledGraph(x=pooled, pos=pos_c, batch=batch_c, cell=cell, edge_index=edge_index_c, cluster=cluster)

@@ -138,16 +138,9 @@ class Detector(nn.Module):
         image_maps = self.image(batch.images) if self.image is not None else None
         if self.events is None:
             return image_maps[1:]
-        sampler = None
-        if image_maps is not None:
-            node_maps = [proj(m) for proj, m in zip(self.to_nodes, image_maps)]
-            strides = (4, *STRIDES)
-
-            def sampler(xy, node_batch, level):
-                return sample_at(node_maps[level], xy, node_batch, strides[level])
-
+        sampler = self._node_sampler(image_maps) if image_maps is not None else None
         event_maps = self.events(batch.events, batch.batch_index, len(batch), image_sampler=sampler,
-                                 edge_index=getattr(batch, "edge_index", None))
+                                 edge_index=batch.edge_index)
         if image_maps is None:
             return event_maps
         fused = []
@@ -156,6 +149,16 @@ class Detector(nn.Module):
                 event_map = F.interpolate(event_map, size=image_map.shape[-2:], mode="nearest")
             fused.append(fuse(torch.cat([image_map, event_map], dim=1)))
         return fused
+
+    def _node_sampler(self, image_maps: list[torch.Tensor]):
+        """Image features at event nodes: level 0 from the stride-4 map, pooled levels from theirs."""
+        node_maps = [proj(m) for proj, m in zip(self.to_nodes, image_maps)]
+        strides = (4, *STRIDES)
+
+        def sampler(xy: torch.Tensor, node_batch: torch.Tensor, level: int) -> torch.Tensor:
+            return sample_at(node_maps[level], xy, node_batch, strides[level])
+
+        return sampler
 
     def forward(self, batch: Batch, *, conf_threshold: float = 0.001, nms_threshold: float = 0.65):
         raw, shapes = self.head(self.features(batch))

@@ -33,6 +33,8 @@ def gcn_norm(edge_index: torch.Tensor, num_nodes: int, *, in_degree: torch.Tenso
         ``row (E',)``, ``col (E',)``, ``value (E',)`` float64, sorted by (row, col).
     """
     src, dst = edge_index[0], edge_index[1]
+    if rows is None and _sorted_causal(src, dst, num_nodes):
+        return _norm_sorted_causal(src, dst, num_nodes, in_degree)
     keep = src != dst
     src, dst = src[keep], dst[keep]
     if in_degree is None:
@@ -54,6 +56,31 @@ def gcn_norm(edge_index: torch.Tensor, num_nodes: int, *, in_degree: torch.Tenso
     first[1:] = key[order][1:] != key[order][:-1]  # a repeated edge counts once: N(i) is a set
     order = order[first]
     return row[order], col[order], value[order]
+
+
+def _sorted_causal(src: torch.Tensor, dst: torch.Tensor, num_nodes: int) -> bool:
+    """Whether edges are unique, sorted by (dst, src) and all from earlier nodes (as radius_graph gives)."""
+    if len(src) == 0:
+        return True
+    key = dst * num_nodes + src
+    return bool((key[1:] > key[:-1]).all()) and bool((src < dst).all())
+
+
+def _norm_sorted_causal(src: torch.Tensor, dst: torch.Tensor, num_nodes: int, in_degree: torch.Tensor | None):
+    """:func:`gcn_norm` without sorting: each node's self-loop follows its incoming edges, which
+    all come from smaller indices. Edge ``e`` moves to ``e + dst[e]`` (one self-loop per earlier row)."""
+    device = src.device
+    counts = torch.bincount(dst, minlength=num_nodes)  # (N,)
+    deg_inv_sqrt = (1.0 + (counts if in_degree is None else in_degree).to(torch.float64)).rsqrt()
+    total = len(src) + num_nodes
+    row = torch.empty(total, dtype=torch.int64, device=device)
+    col = torch.empty(total, dtype=torch.int64, device=device)
+    nodes = torch.arange(num_nodes, device=device)
+    edge_pos = torch.arange(len(src), device=device) + dst
+    self_pos = torch.cumsum(counts, 0) + nodes
+    row[edge_pos], col[edge_pos] = dst, src
+    row[self_pos], col[self_pos] = nodes, nodes
+    return row, col, deg_inv_sqrt[row] * deg_inv_sqrt[col]
 
 
 def _csr(row: torch.Tensor, col: torch.Tensor, value: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
@@ -80,34 +107,43 @@ class GraphOperator:
         row, col, value = gcn_norm(edge_index, num_nodes, in_degree=in_degree, rows=rows)
         n_out = num_nodes if rows is None else len(rows)
         self.num_nodes, self.num_out, self.rows = num_nodes, n_out, rows
-        order = torch.argsort(col * max(n_out, 1) + row)
-        self._triplets = (row, col, value, order)
-        self._matrices: dict[torch.dtype, tuple[torch.Tensor, torch.Tensor]] = {}
-        self.matrices(torch.float32)
+        self._triplets = (row, col, value)
+        self._order: torch.Tensor | None = None  # (col, row) order of the triplets, for the transpose
+        self._adj: dict[torch.dtype, torch.Tensor] = {}
+        self._adj_t: dict[torch.dtype, torch.Tensor] = {}
 
     @property
     def adj(self) -> torch.Tensor:
-        return self.matrices(torch.float32)[0]
+        return self.matrix(torch.float32)
 
     @property
     def adj_t(self) -> torch.Tensor:
-        return self.matrices(torch.float32)[1]
+        return self.transposed(torch.float32)
 
-    def matrices(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(adj, adj_t)`` as CSR of ``dtype`` (made once per dtype)."""
-        if dtype not in self._matrices:
-            row, col, value, order = self._triplets
-            value = value.to(dtype)
-            self._matrices[dtype] = (_csr(row, col, value, (self.num_out, self.num_nodes)),
-                                     _csr(col[order], row[order], value[order], (self.num_nodes, self.num_out)))
-        return self._matrices[dtype]
+    def matrix(self, dtype: torch.dtype) -> torch.Tensor:
+        """``adj`` as CSR of ``dtype``, made once per dtype."""
+        if dtype not in self._adj:
+            row, col, value = self._triplets
+            self._adj[dtype] = _csr(row, col, value.to(dtype), (self.num_out, self.num_nodes))
+        return self._adj[dtype]
+
+    def transposed(self, dtype: torch.dtype) -> torch.Tensor:
+        """``adj_t`` as CSR of ``dtype``, made on first use (only the backward pass needs it)."""
+        if dtype not in self._adj_t:
+            row, col, value = self._triplets
+            if self._order is None:
+                self._order = torch.argsort(col, stable=True)  # rows ascend within each column
+            order = self._order
+            self._adj_t[dtype] = _csr(col[order], row[order], value[order].to(dtype), (self.num_nodes, self.num_out))
+        return self._adj_t[dtype]
 
     def to(self, device) -> "GraphOperator":
         other = object.__new__(GraphOperator)
         other.num_nodes, other.num_out = self.num_nodes, self.num_out
         other.rows = None if self.rows is None else self.rows.to(device)
         other._triplets = tuple(t.to(device) for t in self._triplets)
-        other._matrices = {}
+        other._order = None if self._order is None else self._order.to(device)
+        other._adj, other._adj_t = {}, {}
         return other
 
     def propagate(self, x: torch.Tensor) -> torch.Tensor:
@@ -127,12 +163,12 @@ class _Propagate(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: torch.Tensor, op: GraphOperator) -> torch.Tensor:
         ctx.op = op
-        adj, _ = op.matrices(_compute_dtype(x.dtype))
+        adj = op.matrix(_compute_dtype(x.dtype))
         return (adj @ x.to(adj.dtype)).to(x.dtype)  # (N_out, F)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
-        _, adj_t = ctx.op.matrices(_compute_dtype(grad.dtype))
+        adj_t = ctx.op.transposed(_compute_dtype(grad.dtype))
         return (adj_t @ grad.to(adj_t.dtype).contiguous()).to(grad.dtype), None  # (N, F)
 
 
