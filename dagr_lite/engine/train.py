@@ -128,8 +128,8 @@ def train(cfg: DictConfig) -> dict:
                 out = model(batch)
             loss = out["loss"]
             if not torch.isfinite(loss):
-                raise FloatingPointError(f"non-finite loss {loss.item()} at step {step} "
-                                         f"({', '.join(f'{k}={float(v):.4g}' for k, v in out.items())})")
+                parts = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in out.items())
+                raise FloatingPointError(f"non-finite loss {float(loss.detach())} at step {step} ({parts})")
             optimizer.zero_grad(set_to_none=True)
             scaler.scale(loss).backward()
             scaler.unscale_(optimizer)
