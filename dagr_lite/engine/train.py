@@ -81,7 +81,8 @@ def train(cfg: DictConfig) -> dict:
         ema.load_state_dict(state["ema"])
         optimizer.load_state_dict(state["optimizer"])
         schedule.load_state_dict(state["scheduler"])
-        scaler.load_state_dict(state["scaler"])
+        if state["scaler"]:  # empty when the saved run did not use mixed precision
+            scaler.load_state_dict(state["scaler"])
         step, best = int(state["step"]), float(state["best_metric"])
         print(f"resumed from {cfg.resume} at step {step}", flush=True)
 
@@ -112,58 +113,60 @@ def train(cfg: DictConfig) -> dict:
               flush=True)
         return metrics
 
-    losses: list[float] = []
-    metrics: dict | None = None
-    started = time.monotonic()
-    out_of_time = False
-    bar = tqdm(total=total_steps, initial=step, desc="training", unit="step")
-    model.train()
-    while step < total_steps and not out_of_time:
-        epoch, start = divmod(step, steps_per_epoch)
-        sampler.set_epoch(epoch, start * batch_size)
-        train_set.set_epoch(epoch)
-        for batch in train_loader:
-            batch = batch.to(device, non_blocking=True)
-            with torch.autocast(device.type, enabled=use_amp):
-                out = model(batch)
-            loss = out["loss"]
-            if not torch.isfinite(loss):
-                parts = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in out.items())
-                raise FloatingPointError(f"non-finite loss {float(loss.detach())} at step {step} ({parts})")
-            optimizer.zero_grad(set_to_none=True)
-            scaler.scale(loss).backward()
-            scaler.unscale_(optimizer)
-            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.trainer.grad_clip)
-            scaler.step(optimizer)
-            scaler.update()
-            schedule.step()
-            ema.update(model)
-            step += 1
-            losses.append(float(loss.detach()))
-            lr = optimizer.param_groups[0]["lr"]
-            bar.update(1)
-            bar.set_postfix(loss=f"{losses[-1]:.3f}", lr=f"{lr:.2e}")
-            if step % cfg.trainer.log_every == 0 or step == total_steps:
-                for key, value in out.items():
-                    writer.add_scalar(f"train/{key}", float(value.detach()), step)
-                writer.add_scalar("train/lr", lr, step)
-            if cfg.trainer.image_every and step % cfg.trainer.image_every == 0:
-                ema.module.eval()
-                with torch.no_grad():
-                    detections = ema.module(batch)
-                writer.add_image("train/sample", render_sample(batch, 0, detections[0]), step, dataformats="HWC")
-            if cfg.trainer.max_minutes is not None and time.monotonic() - started > 60 * cfg.trainer.max_minutes:
-                print(f"trainer.max_minutes={cfg.trainer.max_minutes} reached at step {step}", flush=True)
-                out_of_time = True
-            if step % val_every == 0 or step == total_steps or out_of_time:
-                metrics = validate()
-                model.train()
-            if step >= total_steps or out_of_time:
-                break
-    bar.close()
-    if metrics is None:  # resumed at the end, or nothing left to train
-        metrics = validate()
-    writer.close()
+    try:
+        losses: list[float] = []
+        metrics: dict | None = None
+        started = time.monotonic()
+        out_of_time = False
+        bar = tqdm(total=total_steps, initial=step, desc="training", unit="step")
+        model.train()
+        while step < total_steps and not out_of_time:
+            epoch, start = divmod(step, steps_per_epoch)
+            sampler.set_epoch(epoch, start * batch_size)
+            train_set.set_epoch(epoch)
+            for batch in train_loader:
+                batch = batch.to(device, non_blocking=True)
+                with torch.autocast(device.type, enabled=use_amp):
+                    out = model(batch)
+                loss = out["loss"]
+                if not torch.isfinite(loss):
+                    parts = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in out.items())
+                    raise FloatingPointError(f"non-finite loss {float(loss.detach())} at step {step} ({parts})")
+                optimizer.zero_grad(set_to_none=True)
+                scaler.scale(loss).backward()
+                scaler.unscale_(optimizer)
+                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.trainer.grad_clip)
+                scaler.step(optimizer)
+                scaler.update()
+                schedule.step()
+                ema.update(model)
+                step += 1
+                losses.append(float(loss.detach()))
+                lr = optimizer.param_groups[0]["lr"]
+                bar.update(1)
+                bar.set_postfix(loss=f"{losses[-1]:.3f}", lr=f"{lr:.2e}")
+                if step % cfg.trainer.log_every == 0 or step == total_steps:
+                    for key, value in out.items():
+                        writer.add_scalar(f"train/{key}", float(value.detach()), step)
+                    writer.add_scalar("train/lr", lr, step)
+                if cfg.trainer.image_every and step % cfg.trainer.image_every == 0:
+                    ema.module.eval()
+                    with torch.no_grad():
+                        detections = ema.module(batch)
+                    writer.add_image("train/sample", render_sample(batch, 0, detections[0]), step, dataformats="HWC")
+                if cfg.trainer.max_minutes is not None and time.monotonic() - started > 60 * cfg.trainer.max_minutes:
+                    print(f"trainer.max_minutes={cfg.trainer.max_minutes} reached at step {step}", flush=True)
+                    out_of_time = True
+                if step % val_every == 0 or step == total_steps or out_of_time:
+                    metrics = validate()
+                    model.train()
+                if step >= total_steps or out_of_time:
+                    break
+        bar.close()
+        if metrics is None:  # resumed at the end, or nothing left to train
+            metrics = validate()
+    finally:
+        writer.close()
     result = {**{key: metrics[key] for key in METRIC_KEYS}, "split": "valid", "num_images": len(valid_set),
               "step": step}
     (run_dir / "metrics.json").write_text(json.dumps(result, indent=1))

@@ -164,12 +164,14 @@ class _Propagate(torch.autograd.Function):
     def forward(ctx, x: torch.Tensor, op: GraphOperator) -> torch.Tensor:
         ctx.op = op
         adj = op.matrix(_compute_dtype(x.dtype))
-        return (adj @ x.to(adj.dtype)).to(x.dtype)  # (N_out, F)
+        with torch.autocast(x.device.type, enabled=False):  # sparse products stay in float32/64
+            return (adj @ x.to(adj.dtype)).to(x.dtype)  # (N_out, F)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
         adj_t = ctx.op.transposed(_compute_dtype(grad.dtype))
-        return (adj_t @ grad.to(adj_t.dtype).contiguous()).to(grad.dtype), None  # (N, F)
+        with torch.autocast(grad.device.type, enabled=False):
+            return (adj_t @ grad.to(adj_t.dtype).contiguous()).to(grad.dtype), None  # (N, F)
 
 
 class GCNConv(nn.Module):

@@ -45,12 +45,12 @@ def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float, labels:
     if labels is not None:
         labels = labels[order]
         iou = iou * (labels[:, None] == labels[None, :])
-    overlap = (iou > iou_threshold).triu(diagonal=1)  # i suppresses later j
-    keep = torch.ones(len(boxes), dtype=torch.bool, device=boxes.device)
+    overlap = (iou > iou_threshold).triu(diagonal=1).cpu()  # i suppresses later j; the loop runs on CPU
+    keep = torch.ones(len(boxes), dtype=torch.bool)
     for i in range(len(boxes)):
         if keep[i]:
             keep &= ~overlap[i]
-    return order[keep]
+    return order[keep.to(order.device)]
 
 
 def anchors_of(shapes: list[tuple[int, int]], strides: list[int], device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -174,9 +174,14 @@ def yolox_losses(raw: torch.Tensor, shapes: list[tuple[int, int]], strides: list
     """Training losses: IoU (1 - IoU^2) on foreground boxes, BCE objectness on all anchors, BCE class
     (target = IoU) on foreground anchors, optional L1 on raw box offsets; normalised by foreground count.
     """
+    # Assignment and losses in float32 even inside a mixed-precision step (BCE is not autocast-safe).
+    with torch.autocast(raw.device.type, enabled=False):
+        return _yolox_losses(raw.float(), shapes, strides, gt_boxes, gt_labels, iou_weight=iou_weight, use_l1=use_l1)
+
+
+def _yolox_losses(raw, shapes, strides, gt_boxes, gt_labels, *, iou_weight, use_l1) -> dict:
     batch, device = raw.shape[0], raw.device
     centres, stride_of = anchors_of(shapes, strides, device)
-    raw = raw.float()
     boxes = decode_boxes(raw[..., :4], centres, stride_of)  # (B, A, 4)
     obj_logits, cls_logits = raw[..., 4], raw[..., 5:]
     obj_targets = torch.zeros_like(obj_logits)

@@ -42,3 +42,22 @@ def test_training_output_names_and_variants():
         assert set(out) == {"loss", "iou_loss", "obj_loss", "cls_loss", "num_fg"} and torch.isfinite(out["loss"])
         model.eval()
         assert len(model(batch)) == 2
+
+
+def test_mixed_precision_keeps_losses_and_graph_products_in_float32(monkeypatch):
+    import dagr_lite.nn.head as head_module
+    real_bce = head_module.F.binary_cross_entropy
+
+    def guarded_bce(*args, **kwargs):  # CUDA autocast refuses BCE: it must run with autocast off
+        assert not torch.is_autocast_enabled("cpu")
+        return real_bce(*args, **kwargs)
+
+    monkeypatch.setattr(head_module.F, "binary_cross_entropy", guarded_bce)
+    dataset = EventEgoHands(stub_root(), "valid", max_events=2000)
+    batch = collate([dataset[i] for i in (3, 50)])
+    model = Detector(DetectorConfig(height=180, width=320, image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = model(batch)
+    assert out["loss"].dtype == torch.float32 and torch.isfinite(out["loss"])
+    out["loss"].backward()
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
