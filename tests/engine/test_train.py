@@ -47,6 +47,15 @@ def test_smoke_training_lowers_the_loss_then_evaluate_scores_the_checkpoint(tmp_
     detections = json.loads((tmp_path / "eval" / "detections.json").read_text())
     assert detections and {"image_id", "category_id", "bbox", "score", "file_name"} <= set(detections[0])
     assert len(list((tmp_path / "eval" / "images").glob("*.png"))) == 2
+    # The command line itself, as a user runs it.
+    import subprocess
+    import sys
+    repo = Path(__file__).resolve().parents[2]
+    run = subprocess.run([sys.executable, str(repo / "evaluate.py"), f"ckpt={run / 'checkpoints' / 'best.pt'}",
+                          f"run_dir={tmp_path / 'cli'}", "loader.num_workers=0", "split=valid"],
+                         capture_output=True, text=True, cwd=tmp_path)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert json.loads((tmp_path / "cli" / "metrics.json").read_text())["split"] == "valid"
 
 
 def test_resume_continues_exactly(tmp_path, monkeypatch):
