@@ -106,9 +106,8 @@ class GraphCollate:
         self.radius, self.beta, self.max_neighbors = radius, beta, max_neighbors
 
     def __call__(self, samples: Sequence[Sample]) -> Batch:
-        from dagr_lite.graph.radius import radius_graph
+        from dagr_lite.graph.radius import event_graph
         batch = collate(samples)
-        events = batch.events.double()
-        pos = torch.stack([events[:, 0], events[:, 1], self.beta * events[:, 2]], dim=1)  # (N, 3)
-        batch.edge_index = radius_graph(pos, self.radius, self.max_neighbors, batch.batch_index, workers=1)
+        batch.edge_index = event_graph(batch.events, batch.batch_index, radius=self.radius, beta=self.beta,
+                                       max_neighbors=self.max_neighbors, workers=1)
         return batch

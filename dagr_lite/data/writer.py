@@ -41,6 +41,20 @@ def _compression_kwargs(compression: str | None) -> dict:
     raise ValueError(f"compression must be one of {COMPRESSIONS}, got {compression!r}")
 
 
+def temporary_name(path: Path) -> Path:
+    """The name a file is written under before :func:`os.replace` moves it to ``path``."""
+    return path.with_name(path.name + f".tmp{os.getpid()}")
+
+
+def write_text_atomically(path: Path, text: str) -> Path:
+    """Write ``text`` to ``path`` under a temporary name, then rename: never half-written."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_name(path)
+    tmp.write_text(text)
+    os.replace(tmp, path)
+    return path
+
+
 def _check_target(path: Path, overwrite: bool) -> None:
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path}: already exists (pass overwrite=True to replace it)")
@@ -97,7 +111,7 @@ class EventFileWriter(_Transaction):
         self._count = 0
         self._last_t: int | None = None
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp_path = self.path.with_name(self.path.name + f".tmp{os.getpid()}")
+        self._tmp_path = temporary_name(self.path)
         self._h5 = h5py.File(self._tmp_path, "w")
         self._datasets = {
             key: self._h5.create_dataset(key, shape=(0,), maxshape=(None,), dtype=dtype,
@@ -175,7 +189,7 @@ def write_frame(path: Path | str, image: np.ndarray, *, quality: int = 95, overw
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise ValueError(f"{path}: expected an (H, W, 3) uint8 image, got {image.shape} {image.dtype}")
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    tmp = temporary_name(path)
     Image.fromarray(image).save(tmp, format="JPEG", quality=quality)
     os.replace(tmp, path)
     return path
@@ -201,12 +215,7 @@ def write_labels(root: Path | str, labels: dict[str, dict[int, np.ndarray]], *, 
         for k, boxes in sorted(frames.items()):
             boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
             content[fmt.label_key(video, k)] = [[round(float(v), 3) for v in box] for box in boxes]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    with open(tmp, "w") as f:
-        json.dump(content, f)
-    os.replace(tmp, path)
-    return path
+    return write_text_atomically(path, json.dumps(content))
 
 
 class VideoWriter(_Transaction):

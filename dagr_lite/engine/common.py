@@ -17,6 +17,7 @@ from torch.utils.data import DataLoader, Sampler
 
 from dagr_lite.data.collate import GraphCollate, collate
 from dagr_lite.data.dataset import EventEgoHands
+from dagr_lite.data.writer import temporary_name
 
 CHECKPOINT_FORMAT = 1
 
@@ -60,7 +61,7 @@ def run_folder(cfg: DictConfig, kind: str) -> Path:
 def save_checkpoint(path: Path, state: dict) -> None:
     """``torch.save`` to a temporary name, then rename: a checkpoint on disk is always whole."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    tmp = temporary_name(path)
     torch.save({"format": CHECKPOINT_FORMAT, **state}, tmp)
     os.replace(tmp, path)
 

@@ -158,3 +158,18 @@ def radius_graph(pos, r: float, k: int, batch=None, *, workers: int = -1) -> tor
         parts.append(neighbours_to_edges(idx, ids) + part.start)
     edges = np.concatenate(parts, axis=1) if parts else np.zeros((2, 0), dtype=np.int64)
     return torch.from_numpy(edges).to(device)
+
+
+def event_graph(events: torch.Tensor, batch: torch.Tensor | None, *, radius: float, beta: float,
+                max_neighbors: int, workers: int = -1) -> torch.Tensor:
+    """The causal graph of events ``(N, 4)`` (x, y, t in us, p) at positions ``(x, y, beta * t)``.
+
+    The one definition used by the data loader's workers and by the event branch, so both give
+    the same edges (positions in float64).
+
+    Shapes:
+        events ``(N, 4)``, batch ``(N,)`` -> edge_index ``(2, E)``.
+    """
+    events = events.detach().double()
+    pos = torch.stack([events[:, 0], events[:, 1], beta * events[:, 2]], dim=1)  # (N, 3)
+    return radius_graph(pos, radius, max_neighbors, batch, workers=workers)

@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from dagr_lite.graph.pool import to_dense, voxel_max_pool
-from dagr_lite.graph.radius import radius_graph
+from dagr_lite.graph.radius import event_graph
 from dagr_lite.nn.gcn import GCNConv, GraphOperator
 
 ImageSampler = Callable[[torch.Tensor, torch.Tensor, int], torch.Tensor]
@@ -89,9 +89,7 @@ class EventBranch(nn.Module):
 
     def graph(self, events: torch.Tensor, batch: torch.Tensor) -> torch.Tensor:
         """The causal event graph, as :class:`~dagr_lite.data.collate.GraphCollate` builds it."""
-        events = events.detach().double()
-        pos = torch.stack([events[:, 0], events[:, 1], self.beta * events[:, 2]], dim=1)
-        return radius_graph(pos, self.radius, self.max_neighbors, batch)
+        return event_graph(events, batch, radius=self.radius, beta=self.beta, max_neighbors=self.max_neighbors)
 
     def forward(self, events: torch.Tensor, batch: torch.Tensor, batch_size: int,
                 image_sampler: ImageSampler | None = None, edge_index: torch.Tensor | None = None

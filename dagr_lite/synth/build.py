@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import sys
 import warnings
@@ -31,7 +30,7 @@ from tqdm import tqdm
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.reader import DatasetFormatError, frame_size, parse_boxes
-from dagr_lite.data.writer import VideoWriter, write_labels
+from dagr_lite.data.writer import VideoWriter, write_labels, write_text_atomically
 from dagr_lite.synth.dvs import PRESETS, DVSParams, preset
 from dagr_lite.synth.egohands import (EGOHANDS_HEIGHT, EGOHANDS_WIDTH, Labeller, default_split, interpolate_labels,
                                       load_metadata)
@@ -98,9 +97,7 @@ class BuildSettings:
 
 
 def _write_json(path: Path, content: dict) -> None:
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    tmp.write_text(json.dumps(content, indent=1, sort_keys=True))
-    os.replace(tmp, path)
+    write_text_atomically(path, json.dumps(content, indent=1, sort_keys=True))
 
 
 def _read_json(path: Path, default: dict) -> dict:
