@@ -1,10 +1,12 @@
 """Validate a dataset in the EventEgoHands layout: ``python -m dagr_lite.data.check ROOT``.
 
 Walks every split present and reports each problem with its file and key: missing keys,
-unequal lengths, unsorted ``t``, polarities outside {0, 1}, ``timeidx`` not matching ``t``,
-frames missing or of the wrong size, boxes outside the image or of non-positive size, and
-labels for frames or videos that do not exist. Exits with status 1 when anything is wrong.
-Event arrays are streamed in blocks, so files of any size are checked in bounded memory.
+unequal lengths, unsorted ``t``, polarities outside {0, 1}, ``timeidx`` fitting neither
+frame-time convention, frames missing, unreadable or of the wrong size, boxes outside the image
+or of non-positive size, and labels for frames or videos that do not exist. Names the
+frame-time convention (``round`` or ``truncate``, see :mod:`dagr_lite.data.format`) each event
+file follows. Exits with status 1 when anything is wrong. Event arrays are streamed in blocks,
+so files of any size are checked in bounded memory.
 """
 from __future__ import annotations
 
@@ -16,34 +18,40 @@ import numpy as np
 from tqdm import tqdm
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.reader import (DatasetFormatError, Problem, box_problems, frame_size, header_problems,
-                                   list_frames, list_videos, load_labels_json, open_h5, parse_boxes,
-                                   read_frame)
+from dagr_lite.data.reader import (DatasetFormatError, Problem, box_problems, fits_neither_message,
+                                   frame_header_problems, header_problems, jpeg_size, list_frames, list_videos,
+                                   load_labels_json, open_h5, parse_boxes, polarity_problem, read_frame)
 
 BLOCK_EVENTS = 1 << 22
 
 
 def check_events_file(path: Path, *, num_frames: int | None, width: int | None, height: int | None,
-                      fps: float = fmt.DEFAULT_FPS) -> list[Problem]:
-    """Full check of one event file: the header checks, then every event in blocks."""
+                      fps: float = fmt.DEFAULT_FPS) -> tuple[list[Problem], str | None]:
+    """Full check of one event file: the header checks, then every event in blocks.
+
+    Returns the problems and the frame-time convention found (None when ``timeidx`` could not
+    be checked or fits neither); ``"round (truncate fits too)"`` when no entry tells them apart.
+    """
     try:
         h5 = open_h5(path)
     except DatasetFormatError as err:
-        return err.problems
+        return err.problems, None
     with h5:
         try:
             problems = [Problem(path, key, msg) for key, msg in header_problems(h5, num_frames, fps)]
         except OSError as err:
-            return [Problem(path, "", f"cannot read the file's index ({err})")]
+            return [Problem(path, "", f"cannot read the file's index ({err})")], None
         if not _readable_in_blocks(h5):
-            return problems
+            return problems, None
         try:
-            timeidx_reported = any(p.key == fmt.KEY_TIMEIDX for p in problems)
-            problems += _check_event_blocks(h5, path, width=width, height=height, fps=fps,
-                                            check_timeidx=not timeidx_reported)
+            reported = {p.key for p in problems}  # keys the header checks found wrong already
+            block_problems, convention = _check_event_blocks(h5, path, width=width, height=height, fps=fps,
+                                                             reported=reported)
+            problems += block_problems
         except OSError as err:
             problems.append(Problem(path, "", f"cannot read the events ({err})"))
-    return problems
+            convention = None
+    return problems, convention
 
 
 def _readable_in_blocks(h5) -> bool:
@@ -56,14 +64,18 @@ def _readable_in_blocks(h5) -> bool:
 
 
 def _check_event_blocks(h5, path: Path, *, width: int | None, height: int | None, fps: float,
-                        check_timeidx: bool) -> list[Problem]:
-    """Sortedness, coordinate and polarity ranges and (if asked) ``timeidx`` against ``t``, block by block."""
+                        reported: set[str]) -> tuple[list[Problem], str | None]:
+    """Sortedness, coordinate and polarity ranges and ``timeidx`` against ``t``, block by block.
+
+    Keys in ``reported`` are not reported again. Returns the problems and the convention
+    ``timeidx`` follows (None when not checked or none fits).
+    """
     problems = []
     n = h5[fmt.KEY_T].shape[0]
     timeidx = h5[fmt.KEY_TIMEIDX][()].astype(np.int64)
-    frame_times = fmt.frame_time_us(np.arange(len(timeidx)), fps)
-    counted = np.zeros(len(timeidx), dtype=np.int64)
-    last_t, sorted_ok, reported = None, True, set()
+    frame_times = {c: fmt.frame_time_us(np.arange(len(timeidx)), fps, c) for c in fmt.FRAME_TIME_CONVENTIONS}
+    counted = {c: np.zeros(len(timeidx), dtype=np.int64) for c in fmt.FRAME_TIME_CONVENTIONS}
+    last_t, sorted_ok, reported = None, True, set(reported)
     for start in range(0, n, BLOCK_EVENTS):
         stop = min(n, start + BLOCK_EVENTS)
         t = h5[fmt.KEY_T][start:stop].astype(np.int64)
@@ -75,26 +87,48 @@ def _check_event_blocks(h5, path: Path, *, width: int | None, height: int | None
             elif len(down):
                 problems.append(Problem(path, fmt.KEY_T, f"not sorted ascending at index {start + down[0] + 1}"))
                 sorted_ok = False
-            counted += np.searchsorted(t, frame_times, side="left")
+            for c in fmt.FRAME_TIME_CONVENTIONS:
+                counted[c] += np.searchsorted(t, frame_times[c], side="left")
         last_t = t[-1]
-        for key, size in ((fmt.KEY_X, width), (fmt.KEY_Y, height)):
-            a = h5[key][start:stop].astype(np.int64)
-            if key not in reported and (a.min() < 0 or (size is not None and a.max() >= size)):
-                problems.append(Problem(path, key, f"values must lie in [0, {size}), found "
-                                                   f"[{a.min()}, {a.max()}] in events {start}..{stop - 1}"))
-                reported.add(key)
-        p = h5[fmt.KEY_P][start:stop]
-        if fmt.KEY_P not in reported and not np.all((p == 0) | (p == 1)):
-            problems.append(Problem(path, fmt.KEY_P, f"values must be 0 or 1, found {np.unique(p)[:5].tolist()}"))
+        problems += _value_problems(h5, path, start, stop, width=width, height=height, reported=reported)
+    if not sorted_ok or fmt.KEY_TIMEIDX in reported:
+        return problems, None
+    timeidx_problem, convention = _timeidx_against_counts(path, timeidx, counted, frame_times)
+    return problems + timeidx_problem, convention
+
+
+def _value_problems(h5, path: Path, start: int, stop: int, *, width: int | None, height: int | None,
+                    reported: set) -> list[Problem]:
+    """Coordinates and polarities of events ``[start, stop)``; each key is reported once (``reported``)."""
+    problems = []
+    for key, size in ((fmt.KEY_X, width), (fmt.KEY_Y, height)):
+        a = h5[key][start:stop].astype(np.int64)
+        if key not in reported and (a.min() < 0 or (size is not None and a.max() >= size)):
+            problems.append(Problem(path, key, f"values must lie in [0, {size}), found "
+                                               f"[{a.min()}, {a.max()}] in events {start}..{stop - 1}"))
+            reported.add(key)
+    if fmt.KEY_P not in reported:
+        message = polarity_problem(h5[fmt.KEY_P][start:stop], start)
+        if message is not None:
+            problems.append(Problem(path, fmt.KEY_P, message))
             reported.add(fmt.KEY_P)
-    if sorted_ok and check_timeidx:
-        wrong = np.flatnonzero(counted != timeidx)
-        if len(wrong):
-            k = int(wrong[0])
-            problems.append(Problem(path, fmt.KEY_TIMEIDX, f"{len(wrong)} entries disagree with events/t, "
-                                                           f"first at frame {k}: {timeidx[k]} stored, "
-                                                           f"{counted[k]} expected"))
     return problems
+
+
+def _timeidx_against_counts(path: Path, timeidx: np.ndarray, counted: dict[str, np.ndarray],
+                            frame_times: dict[str, np.ndarray]) -> tuple[list[Problem], str | None]:
+    """The convention whose counts equal every ``timeidx`` entry, or the problem when none does."""
+    wrong = {c: np.flatnonzero(counted[c] != timeidx) for c in fmt.FRAME_TIME_CONVENTIONS}
+    fitting = [c for c in fmt.FRAME_TIME_CONVENTIONS if not len(wrong[c])]
+    if fitting:
+        others = " (" + ", ".join(f"{c} fits too" for c in fitting[1:]) + ")" if len(fitting) > 1 else ""
+        return [], fitting[0] + others
+    first_wrong = {c: int(wrong[c][0]) for c in fmt.FRAME_TIME_CONVENTIONS}
+    k = max(first_wrong.values())  # entries before k fit one convention or the other, entry k neither
+    expected = {c: (int(counted[c][k]), int(frame_times[c][k])) for c in fmt.FRAME_TIME_CONVENTIONS}
+    counts = ", ".join(f"{len(wrong[c])} under {c}" for c in fmt.FRAME_TIME_CONVENTIONS)
+    message = fits_neither_message(k, int(timeidx[k]), expected, first_wrong)
+    return [Problem(path, fmt.KEY_TIMEIDX, f"{message}; entries disagreeing with events/t: {counts}")], None
 
 
 def check_frames(directory: Path, *, num_frames: int | None, expected_hw: tuple[int, int] | None,
@@ -118,24 +152,27 @@ def check_frames(directory: Path, *, num_frames: int | None, expected_hw: tuple[
     if extra:
         problems.append(Problem(directory, "", f"{len(extra)} frames beyond the {num_frames} frames of timeidx, "
                                                f"first {fmt.frame_name(extra[0])}"))
-    size = expected_hw
-    for k in sorted(frames):
-        path = directory / frames[k]
-        try:
-            hw = read_frame(path).shape[:2] if decode else frame_size(path)
-        except DatasetFormatError as err:
-            problems += err.problems
-            continue
-        if size is None:
-            size = hw
-        elif hw != tuple(size):
-            problems.append(Problem(path, "", f"frame is {hw[1]}x{hw[0]} (WxH), expected {size[1]}x{size[0]}"))
-    return problems, size, count
+    read_size = _decoded_size if decode else jpeg_size
+    size_problems, size = frame_header_problems({k: directory / name for k, name in frames.items()}, expected_hw,
+                                                "as configured" if expected_hw is not None else "",
+                                                read_size=read_size)
+    return problems + size_problems, size, count
+
+
+def _decoded_size(path: Path) -> tuple[int, int]:
+    """``(H, W)`` of a frame after reading its JPEG header and decoding it whole."""
+    jpeg_size(path)
+    return read_frame(path).shape[:2]
 
 
 def check_dataset(root: Path | str, *, fps: float = fmt.DEFAULT_FPS, decode_frames: bool = False,
-                  expected_hw: tuple[int, int] | None = None, progress: bool = False) -> list[Problem]:
-    """Every problem found in the dataset at ``root`` (an empty list when it is valid)."""
+                  expected_hw: tuple[int, int] | None = None, progress: bool = False,
+                  conventions: dict[Path, str | None] | None = None) -> list[Problem]:
+    """Every problem found in the dataset at ``root`` (an empty list when it is valid).
+
+    ``conventions``, when given, receives the frame-time convention of each event file checked
+    (None where ``timeidx`` could not be checked or fits neither).
+    """
     root = Path(root)
     if not root.is_dir():
         return [Problem(root, "", "dataset folder is missing")]
@@ -168,8 +205,12 @@ def check_dataset(root: Path | str, *, fps: float = fmt.DEFAULT_FPS, decode_fram
                                                  expected_hw=expected_hw, decode=decode_frames)
         problems += frame_problems
         height, width = hw if hw is not None else (None, None)
-        problems += check_events_file(fmt.events_path(root, split, video), num_frames=count,
-                                      width=width, height=height, fps=fps)
+        events_path = fmt.events_path(root, split, video)
+        event_problems, convention = check_events_file(events_path, num_frames=count, width=width,
+                                                       height=height, fps=fps)
+        problems += event_problems
+        if conventions is not None:
+            conventions[events_path] = convention
         videos[video] = (count, hw)
     problems += check_labels(root, videos)
     return problems
@@ -213,7 +254,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="decode every JPEG fully (slower; finds corrupt image data, not only bad headers)")
     parser.add_argument("--max-report", type=int, default=200, help="print at most this many problems")
     args = parser.parse_args(argv)
-    problems = check_dataset(args.root, fps=args.fps, decode_frames=args.decode_frames, progress=True)
+    conventions: dict[Path, str | None] = {}
+    problems = check_dataset(args.root, fps=args.fps, decode_frames=args.decode_frames, progress=True,
+                             conventions=conventions)
+    for path, convention in conventions.items():
+        print(f"{path}: frame times (timeidx): {convention or 'not determined'}")
     for problem in problems[: args.max_report]:
         print(problem)
     if len(problems) > args.max_report:

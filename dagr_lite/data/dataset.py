@@ -1,4 +1,4 @@
-"""The EventEgoHands dataset: one sample per label frame (DESIGN.md section 4).
+"""The EventEgoHands dataset: one sample per label frame (docs/design.md, "One sample").
 
 For label frame ``k`` a sample holds the image of frame ``k - image_lag``, the events with
 ``t`` in ``[t_k - window_us, t_k)`` and the boxes of frame ``k``. The events bring the stale
@@ -15,8 +15,11 @@ import torch
 from torch.utils.data import Dataset
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.reader import (DatasetFormatError, EventFile, Problem, box_problems, frame_size,
+from dagr_lite.data.reader import (DatasetFormatError, EventFile, Problem, box_problems, frame_header_problems,
                                    list_frames, list_videos, read_frame, read_labels)
+
+# At most this many frame problems are listed when the dataset refuses to open.
+MAX_LISTED_PROBLEMS = 10
 
 
 @dataclass
@@ -59,8 +62,9 @@ class EventEgoHands(Dataset):
     """Samples of one split of a dataset in the EventEgoHands layout.
 
     Opening checks each video cheaply (keys, lengths, ``timeidx`` against the frame count and a
-    few timestamps, frame size, label geometry) and raises :class:`DatasetFormatError` naming
-    the file and key. Event files are read lazily, per worker process.
+    few timestamps, every frame's JPEG header and size, label geometry) and raises
+    :class:`DatasetFormatError` naming the file and key. Event files are read lazily, per worker
+    process; each file's frame times follow its own convention (:attr:`EventFile.convention`).
 
     Args:
         root: dataset folder (holding ``train/``, ``valid/``, ``test/``, ``bounding_boxes.json``).
@@ -103,6 +107,7 @@ class EventEgoHands(Dataset):
         self.videos = available
         labels = read_labels(self.root)
         self.image_size: tuple[int, int] | None = tuple(image_size) if image_size is not None else None
+        self._size_from: Path | None = None  # the frame that set image_size, when not configured
         self._events: list[EventFile] = []
         self._boxes: list[dict[int, np.ndarray]] = []
         sample_video, sample_frame = [], []
@@ -125,14 +130,7 @@ class EventEgoHands(Dataset):
             raise DatasetFormatError.at(frames_dir, f"frames are not numbered 0..{num_frames - 1}: "
                                                     f"{fmt.frame_name(first_gap)} is missing")
         events = EventFile(fmt.events_path(self.root, self.split, video), fps=self.fps, num_frames=num_frames)
-        if num_frames:
-            size = frame_size(frames_dir / fmt.frame_name(0))
-            if self.image_size is None:
-                self.image_size = size
-            elif size != self.image_size:
-                raise DatasetFormatError.at(frames_dir / fmt.frame_name(0),
-                                            f"frame is {size[1]}x{size[0]} (WxH), but the dataset is configured "
-                                            f"as {self.image_size[1]}x{self.image_size[0]}")
+        self._check_frames({k: frames_dir / name for k, name in frames.items()})
         label_file = fmt.labels_path(self.root)
         problems, boxes = [], {}
         for k, xywh in labels.items():
@@ -154,6 +152,19 @@ class EventEgoHands(Dataset):
             raise DatasetFormatError(*problems)
         return events, boxes
 
+    def _check_frames(self, frames: dict[int, Path]) -> None:
+        """Every frame's JPEG header: readable, and of the dataset's size (the first frame's if not configured)."""
+        expected_from = "as the dataset is configured" if self._size_from is None else f"as {self._size_from}"
+        problems, size = frame_header_problems(frames, self.image_size, expected_from)
+        if self.image_size is None and size is not None:
+            self.image_size, self._size_from = size, frames[min(frames)]
+        if len(problems) > MAX_LISTED_PROBLEMS:
+            problems = problems[:MAX_LISTED_PROBLEMS] + [
+                Problem(frames[min(frames)].parent, "", f"... and {len(problems) - MAX_LISTED_PROBLEMS} more "
+                                                        "frame problems in this folder")]
+        if problems:
+            raise DatasetFormatError(*problems)
+
     def set_epoch(self, epoch: int) -> None:
         """Vary event subsampling and augmentation between epochs (same epoch, same samples)."""
         self.epoch = int(epoch)
@@ -171,7 +182,7 @@ class EventEgoHands(Dataset):
         index = int(index) % len(self)
         v, k = int(self._sample_video[index]), int(self._sample_frame[index])
         video, events_file = self.videos[v], self._events[v]
-        t_end = fmt.frame_time_us(k, self.fps)
+        t_end = events_file.frame_time_us(k)
         t_start = t_end - self.window_us
         raw = events_file.window(t_start, t_end)
         rng = np.random.default_rng([self.seed, self.epoch, index])

@@ -8,10 +8,19 @@ Layout (as released)::
     <root>/{train,valid,test}/frames/<video>/frame_<k>.jpg   k = 0, 1, ... (no zero padding)
     <root>/bounding_boxes.json   {"<video>_frame_<k>": [[x_tl, y_tl, w, h], ...], ...}
 
-``t`` is in microseconds from the start of the video, sorted ascending. Frame ``k`` is at
-:func:`frame_time_us` ``(k) = round(1e6 * k / fps)`` and ``timeidx[k]`` is the index of the first
-event with ``t >= frame_time_us(k)``, so the events of ``[t_a, t_b)`` form one contiguous slice.
-Boxes are top-left x, y, width, height in pixels of the version's resolution.
+``t`` is in microseconds from the start of the video, sorted ascending. ``timeidx[k]`` is the
+index of the first event with ``t >= frame_time_us(k)``, so the events of ``[t_a, t_b)`` form one
+contiguous slice. Boxes are top-left x, y, width, height in pixels of the version's resolution.
+
+Frame times follow one of two conventions (:data:`FRAME_TIME_CONVENTIONS`), which differ by 1 us
+at some frames (960 of the 2700 frames of a 90 s video at 30 fps, the last one included):
+
+* ``"round"``: ``round(1e6 * k / fps)``. This package writes every file this way.
+* ``"truncate"``: ``int(1e6 * ((1 / fps) * k))`` in float64, as the EventEgoHands reference
+  loader computes them; a release file's ``timeidx`` may have been built this way.
+
+Readers accept either: each file's convention is detected from its own ``timeidx`` and ``t``
+and then used for all of its frame times (event windows, image and label times).
 
 Everything else in the package imports these names instead of spelling them again.
 """
@@ -30,7 +39,6 @@ EVENTS_SUFFIX = ".h5"
 LABELS_FILE = "bounding_boxes.json"
 
 # HDF5 keys.
-EVENTS_GROUP = "events"
 KEY_X = "events/x"
 KEY_Y = "events/y"
 KEY_T = "events/t"
@@ -47,19 +55,41 @@ _FRAME_RE = re.compile(r"^frame_(0|[1-9][0-9]*)\.jpg$")
 _LABEL_KEY_RE = re.compile(r"^(?P<video>.+)_frame_(?P<k>0|[1-9][0-9]*)$")
 
 
-def frame_time_us(k, fps: float = DEFAULT_FPS):
-    """Timestamp of frame ``k`` in microseconds: ``round(1e6 * k / fps)``.
+# Frame-time conventions: ``round`` (written by this package) and ``truncate`` (accepted on reading).
+FRAME_TIME_CONVENTIONS = ("round", "truncate")
+WRITTEN_CONVENTION = "round"
 
-    Works on ints and integer arrays; rounds half to even (as Python's ``round`` and
-    ``np.rint`` do). Returns an int for an int and an int64 array for an array.
+
+def frame_time_us(k, fps: float = DEFAULT_FPS, convention: str = WRITTEN_CONVENTION):
+    """Timestamp of frame ``k`` in microseconds under a frame-time convention.
+
+    ``"round"``: ``round(1e6 * k / fps)``, half to even (as Python's ``round`` and ``np.rint``).
+    ``"truncate"``: ``int(1e6 * ((1 / fps) * k))``, the same float64 operations in the same order,
+    truncated toward zero. Works on ints and integer arrays; returns an int for an int and an
+    int64 array for an array.
     """
-    times = np.rint(1e6 * np.asarray(k, dtype=np.float64) / float(fps)).astype(np.int64)
+    k = np.asarray(k, dtype=np.float64)
+    if convention == "round":
+        times = np.rint(1e6 * k / float(fps))
+    elif convention == "truncate":
+        times = np.trunc(1e6 * ((1.0 / float(fps)) * k))
+    else:
+        raise ValueError(f"frame-time convention must be one of {FRAME_TIME_CONVENTIONS}, got {convention!r}")
+    times = times.astype(np.int64)
     return int(times) if times.ndim == 0 else times
 
 
-def expected_timeidx(t: np.ndarray, num_frames: int, fps: float = DEFAULT_FPS) -> np.ndarray:
+def differing_frames(num_frames: int, fps: float = DEFAULT_FPS) -> np.ndarray:
+    """Indices of the frames whose time differs between the two conventions, ascending."""
+    k = np.arange(num_frames)
+    return np.flatnonzero(frame_time_us(k, fps, "round") != frame_time_us(k, fps, "truncate"))
+
+
+def expected_timeidx(t: np.ndarray, num_frames: int, fps: float = DEFAULT_FPS,
+                     convention: str = WRITTEN_CONVENTION) -> np.ndarray:
     """``timeidx`` of sorted timestamps ``t``: for each frame, the index of the first ``t >= t_frame``."""
-    return np.searchsorted(t, frame_time_us(np.arange(num_frames), fps), side="left").astype(np.int64)
+    frame_times = frame_time_us(np.arange(num_frames), fps, convention)
+    return np.searchsorted(t, frame_times, side="left").astype(np.int64)
 
 
 def events_path(root: Path | str, split: str, video: str) -> Path:

@@ -83,8 +83,10 @@ class EventFileWriter(_Transaction):
     """Writes one ``<video>.h5`` event file, in appended pieces of any size.
 
     ``timeidx`` is counted as the pieces arrive (for each frame, how many events lie before its
-    time), so the whole stream is never held in memory. The file appears under its final name
-    only on :meth:`close`; leaving the ``with`` block through an exception removes it.
+    time), so the whole stream is never held in memory. Frame times are always those of the
+    ``round`` convention (:data:`dagr_lite.data.format.WRITTEN_CONVENTION`). The file appears
+    under its final name only on :meth:`close`; leaving the ``with`` block through an exception
+    removes it.
 
     Args:
         path: target ``.h5`` file.
@@ -106,7 +108,7 @@ class EventFileWriter(_Transaction):
             raise ValueError(f"num_frames must be >= 0, got {num_frames}")
         options = _compression_kwargs(compression)
         self.height, self.width = height, width
-        self._frame_times = fmt.frame_time_us(np.arange(num_frames), fps)  # (K,)
+        self._frame_times = fmt.frame_time_us(np.arange(num_frames), fps, fmt.WRITTEN_CONVENTION)  # (K,)
         self._timeidx = np.zeros(num_frames, dtype=np.int64)  # (K,)
         self._count = 0
         self._last_t: int | None = None

@@ -29,7 +29,7 @@ import numpy as np
 from tqdm import tqdm
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.reader import DatasetFormatError, frame_size, parse_boxes
+from dagr_lite.data.reader import DatasetFormatError, frame_size, read_json_object, read_label_file
 from dagr_lite.data.writer import VideoWriter, write_labels, write_text_atomically
 from dagr_lite.synth.dvs import PRESETS, DVSParams, preset
 from dagr_lite.synth.egohands import (EGOHANDS_HEIGHT, EGOHANDS_WIDTH, Labeller, default_split, interpolate_labels,
@@ -101,7 +101,7 @@ def _write_json(path: Path, content: dict) -> None:
 
 
 def _read_json(path: Path, default: dict) -> dict:
-    return json.loads(path.read_text()) if path.exists() else default
+    return read_json_object(path) if path.exists() else default
 
 
 def _drop_video_keys(mapping: dict, video: str) -> dict:
@@ -139,6 +139,20 @@ def build(jobs: list[VideoJob], out: Path | str, settings: BuildSettings, *, pro
     static scene, a single frame) cannot be a dataset video: it is left out with a warning.
     """
     out = Path(out)
+    info = _start_build(jobs, out, settings)
+    for job in tqdm(jobs, desc="videos", unit="video", disable=not progress):
+        if _finished_split(out, job.name) is not None:
+            if job.name not in info["videos"]:  # finished, but the run stopped before recording it
+                info["videos"][job.name] = {"split": job.split, "dvs_model": settings.model_for(job.name)}
+                _write_json(out / BUILD_INFO, info)
+            continue
+        _build_video(job, out, settings, info, progress=progress)
+        _write_json(out / BUILD_INFO, info)
+    return info
+
+
+def _start_build(jobs: list[VideoJob], out: Path, settings: BuildSettings) -> dict:
+    """Refuse repeated names, moved videos and other settings; record the settings; returns the build info."""
     names = [job.name for job in jobs]
     if len(set(names)) != len(names):
         raise ValueError(f"video names must be unique, got {sorted(n for n in set(names) if names.count(n) > 1)}")
@@ -156,45 +170,40 @@ def build(jobs: list[VideoJob], out: Path | str, settings: BuildSettings, *, pro
     _write_json(info_path, info)
     if not fmt.labels_path(out).exists():
         write_labels(out, {})
-    for job in tqdm(jobs, desc="videos", unit="video", disable=not progress):
-        if _finished_split(out, job.name) is not None:
-            if job.name not in info["videos"]:  # finished, but the run stopped before recording it
-                info["videos"][job.name] = {"split": job.split, "dvs_model": settings.model_for(job.name)}
-                _write_json(info_path, info)
-            continue
-        source = FolderSource(job.frames, scale=settings.scale)
-        if source.num_frames < 2:
-            warnings.warn(f"{job.frames}: {source.num_frames} frame(s); a video needs two to give events, skipped")
-            info["skipped"][job.name] = "fewer than two frames"
-            _write_json(info_path, info)
-            continue
-        model = settings.model_for(job.name)
-        boxes, sources = _labels_at_scale(job, source, settings.scale)
-        # Labels go first: a video counts as finished only once its events file exists.
-        _set_video_labels(out, job.name, boxes, sources)
-        writer = VideoWriter(out, job.split, job.name, num_frames=source.num_frames, height=source.height,
-                             width=source.width, fps=settings.fps, compression=settings.compression)
-        try:
-            with tqdm(total=source.num_frames - 1, desc=job.name, unit="frame", leave=False,
-                      disable=not progress) as bar:
-                count = emulate_video(source, writer, params=settings.params(model), upsample=settings.upsample,
-                                      fps=settings.fps, seed=settings.video_seed(job.name), progress=bar.update)
-            if count == 0:
-                writer.abort()
-                shutil.rmtree(writer.folder, ignore_errors=True)
-                _set_video_labels(out, job.name, {}, {})
-                warnings.warn(f"{job.frames}: the emulator gave no events (a static video?); skipped")
-                info["skipped"][job.name] = "no events"
-                _write_json(info_path, info)
-                continue
-            writer.close()
-        except BaseException:
-            writer.abort()
-            raise
-        info["videos"][job.name] = {"split": job.split, "dvs_model": model, "frames": source.num_frames,
-                                    "events": count, "labelled_frames": len(boxes)}
-        _write_json(info_path, info)
     return info
+
+
+def _build_video(job: VideoJob, out: Path, settings: BuildSettings, info: dict, *, progress: bool) -> None:
+    """Emulate and write one video, recording it in ``info`` as built or skipped (with a warning)."""
+    source = FolderSource(job.frames, scale=settings.scale)
+    if source.num_frames < 2:
+        warnings.warn(f"{job.frames}: {source.num_frames} frame(s); a video needs two to give events, skipped")
+        info["skipped"][job.name] = "fewer than two frames"
+        return
+    model = settings.model_for(job.name)
+    boxes, sources = _labels_at_scale(job, source, settings.scale)
+    # Labels go first: a video counts as finished only once its events file exists.
+    _set_video_labels(out, job.name, boxes, sources)
+    writer = VideoWriter(out, job.split, job.name, num_frames=source.num_frames, height=source.height,
+                         width=source.width, fps=settings.fps, compression=settings.compression)
+    try:
+        with tqdm(total=source.num_frames - 1, desc=job.name, unit="frame", leave=False,
+                  disable=not progress) as bar:
+            count = emulate_video(source, writer, params=settings.params(model), upsample=settings.upsample,
+                                  fps=settings.fps, seed=settings.video_seed(job.name), progress=bar.update)
+        if count == 0:
+            writer.abort()
+            shutil.rmtree(writer.folder, ignore_errors=True)
+            _set_video_labels(out, job.name, {}, {})
+            warnings.warn(f"{job.frames}: the emulator gave no events (a static video?); skipped")
+            info["skipped"][job.name] = "no events"
+            return
+        writer.close()
+    except BaseException:
+        writer.abort()
+        raise
+    info["videos"][job.name] = {"split": job.split, "dvs_model": model, "frames": source.num_frames,
+                                "events": count, "labelled_frames": len(boxes)}
 
 
 # Jobs from the two kinds of input.
@@ -204,11 +213,8 @@ def _read_splits(path: Path | None, videos: list[str], default: dict[str, list[s
     if path is None:
         mapping = default
     else:
-        try:
-            mapping = json.loads(Path(path).read_text())
-        except (OSError, json.JSONDecodeError) as err:
-            raise DatasetFormatError.at(path, f"cannot read the split file ({err})") from err
-        if not isinstance(mapping, dict) or set(mapping) - set(fmt.SPLITS):
+        mapping = read_json_object(path, "split file", 'a JSON object {"train": [...], "valid": [...], "test": [...]}')
+        if set(mapping) - set(fmt.SPLITS):
             raise DatasetFormatError.at(path, f"expected an object with keys among {fmt.SPLITS}")
     assignment = {}
     for split, names in mapping.items():
@@ -232,27 +238,13 @@ def folder_jobs(frames: Path, *, labels: Path | None = None, splits: Path | None
         raise DatasetFormatError.at(frames, "holds no video folders (expected <video>/frame_<k>.jpg)")
     per_video: dict[str, dict[int, tuple[np.ndarray, list[str]]]] = {v: {} for v in videos}
     if labels is not None:
-        for key, value in _load_label_file(labels).items():
-            parsed = fmt.parse_label_key(key)
-            if parsed is None or parsed[0] not in per_video:
-                raise DatasetFormatError.at(labels, "key names no video of the frames folder", key=key)
-            try:
-                boxes = parse_boxes(value)
-            except ValueError as err:
-                raise DatasetFormatError.at(labels, str(err), key=key) from err
-            per_video[parsed[0]][parsed[1]] = (boxes, ["given"] * len(boxes))
+        for video, frame_boxes in read_label_file(labels).items():
+            if video not in per_video:
+                raise DatasetFormatError.at(labels, "key names no video of the frames folder",
+                                            key=fmt.label_key(video, min(frame_boxes)))
+            per_video[video] = {k: (boxes, ["given"] * len(boxes)) for k, boxes in frame_boxes.items()}
     assignment = _read_splits(splits, videos, {"train": videos})
     return [VideoJob(v, assignment[v], frames / v, per_video[v]) for v in videos if v in assignment]
-
-
-def _load_label_file(path: Path) -> dict:
-    try:
-        content = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise DatasetFormatError.at(path, f"cannot read the label file ({err})") from err
-    if not isinstance(content, dict):
-        raise DatasetFormatError.at(path, "expected a JSON object keyed <video>_frame_<k>")
-    return content
 
 
 def egohands_jobs(metadata: Path, frames: Path, *, splits: Path | None = None, labeller: Labeller = interpolate_labels,

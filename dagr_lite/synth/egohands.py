@@ -126,7 +126,7 @@ def default_split(videos: list[str], counts: tuple[int, int, int] = (30, 10, 8),
     if sum(counts) != len(videos):
         raise ValueError(f"split counts {counts} add up to {sum(counts)}, but there are {len(videos)} videos")
     order = sorted(videos)
-    np.random.default_rng(seed).shuffle(order)
+    np.random.default_rng([seed]).shuffle(order)
     n_train, n_valid = counts[0], counts[1]
     return {"train": sorted(order[:n_train]), "valid": sorted(order[n_train:n_train + n_valid]),
             "test": sorted(order[n_train + n_valid:])}

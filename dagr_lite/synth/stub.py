@@ -71,7 +71,7 @@ class HandScene:
 
     def __init__(self, seed: int, *, height: int = STUB_HEIGHT, width: int = STUB_WIDTH, seconds: float = STUB_SECONDS,
                  fps: float = fmt.DEFAULT_FPS):
-        rng = np.random.default_rng(seed)
+        rng = np.random.default_rng([seed])
         self.height, self.width, self.fps = height, width, fps
         self.num_frames = int(round(seconds * fps))
         # Background: two scales of smooth noise in non-skin colours, larger than the frame for the shake.

@@ -10,6 +10,7 @@ from dagr_lite.data import format as fmt
 from dagr_lite.data.collate import collate
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.data.reader import DatasetFormatError, read_frame
+from dagr_lite.data.writer import write_frame
 from tests.conftest import make_dataset
 
 
@@ -134,7 +135,7 @@ def test_corrupt_jpeg_names_the_file(dataset_copy):
 
 
 def test_configured_size_must_match_the_frames(dataset):
-    with pytest.raises(DatasetFormatError, match=r"frame_0\.jpg: frame is 64x48 \(WxH\), but the dataset is configured as 640x360"):
+    with pytest.raises(DatasetFormatError, match=r"frame_0\.jpg: frame is 64x48 \(WxH\), expected 640x360 as the dataset is configured"):
         EventEgoHands(dataset.root, "train", image_size=(360, 640))
     assert EventEgoHands(dataset.root, "train").image_size == (48, 64)
 
@@ -157,3 +158,57 @@ def test_bad_boxes_are_refused_or_clipped(dataset_copy):
 def test_bad_arguments(dataset, kwargs, match):
     with pytest.raises(ValueError, match=match):
         EventEgoHands(dataset.root, "train", **kwargs)
+
+
+def test_polarity_outside_0_1_stops_the_dataset(tmp_path):
+    written = make_dataset(tmp_path / "small", compression=None)
+    path = fmt.events_path(written.root, "train", "vid_b")
+    with h5py.File(path, "a") as h5:
+        h5[fmt.KEY_P][100] = 2
+    with pytest.raises(DatasetFormatError, match=r"vid_b\.h5: events/p: values must be 0 or 1, found 2 at index 100 "):
+        EventEgoHands(written.root, "train")
+    # In a longer file the opening check samples only the ends; the window holding the value raises.
+    written = make_dataset(tmp_path / "long", videos={"v": "train"}, events_per_video=30_000, compression=None)
+    path = fmt.events_path(written.root, "train", "v")
+    with h5py.File(path, "a") as h5:
+        h5[fmt.KEY_P][15_000] = 2
+    ds = EventEgoHands(written.root, "train", image_lag=0)
+    with pytest.raises(DatasetFormatError, match=r"v\.h5: events/p: values must be 0 or 1, found 2 at index 15000 "):
+        for index in range(len(ds)):
+            ds[index]
+
+
+def test_frame_problems_stop_the_dataset_when_it_opens(dataset_copy):
+    root = dataset_copy.root
+    frame = fmt.frame_path(root, "valid", "vid_c", 7)
+    frame.write_bytes(frame.read_bytes()[:300])  # cut inside the image data
+    with pytest.raises(DatasetFormatError, match=r"vid_c/frame_7\.jpg: not a readable JPEG: no end-of-image marker"):
+        EventEgoHands(root, "valid")
+    small = fmt.frame_path(root, "test", "vid_d", 9)
+    small.unlink()
+    write_frame(small, np.zeros((10, 10, 3), np.uint8))
+    with pytest.raises(DatasetFormatError, match=r"vid_d/frame_9\.jpg: frame is 10x10 \(WxH\), expected 64x48 as "
+                                                 r"frame_0\.jpg$"):
+        EventEgoHands(root, "test")
+    with pytest.raises(DatasetFormatError, match=r"vid_d/frame_0\.jpg: frame is 64x48 \(WxH\), expected 10x10 as the "
+                                                 r"dataset is configured"):
+        EventEgoHands(root, "test", image_size=(10, 10))
+    header = fmt.frame_path(root, "train", "vid_b", 3)
+    header.write_bytes(header.read_bytes()[:100])
+    with pytest.raises(DatasetFormatError, match=r"vid_b/frame_3\.jpg: not a readable JPEG: .*truncated header"):
+        EventEgoHands(root, "train")
+    assert len(EventEgoHands(root, "train", videos=["CARDS_COURTYARD_B_T"])) == 11  # the other video opens
+
+
+def test_frame_size_must_agree_across_videos(dataset_copy):
+    root = dataset_copy.root
+    for k in range(12):
+        path = fmt.frame_path(root, "train", "vid_b", k)
+        path.unlink()
+        write_frame(path, np.zeros((48, 60, 3), np.uint8))
+    first = fmt.frame_path(root, "train", "CARDS_COURTYARD_B_T", 0)
+    with pytest.raises(DatasetFormatError) as info:
+        EventEgoHands(root, "train")
+    lines = str(info.value).splitlines()
+    assert lines[0] == f"{fmt.frame_path(root, 'train', 'vid_b', 0)}: frame is 60x48 (WxH), expected 64x48 as {first}"
+    assert len(lines) == 11 and lines[-1].endswith("vid_b: ... and 2 more frame problems in this folder")

@@ -48,3 +48,29 @@ def test_box_conversions(xywh, xyxy):
     np.testing.assert_allclose(fmt.xywh_to_xyxy(xywh), xyxy)
     np.testing.assert_allclose(fmt.xyxy_to_xywh(xyxy), xywh)
     assert fmt.xywh_to_xyxy(np.zeros((0, 4))).shape == (0, 4)
+
+
+def test_truncating_frame_times_are_the_reference_loaders_expression():
+    k = np.arange(2700)
+    reference = np.array([int(1e6 * ((1 / 30) * int(i))) for i in k])
+    truncated = fmt.frame_time_us(k, 30, "truncate")
+    np.testing.assert_array_equal(truncated, reference)
+    assert all(fmt.frame_time_us(int(i), 30, "truncate") == reference[i] for i in (0, 1, 2, 1349, 2699))
+    assert isinstance(fmt.frame_time_us(7, 30, "truncate"), int)
+    rounded = fmt.frame_time_us(k, 30, "round")
+    differing = np.flatnonzero(rounded != truncated)
+    assert len(differing) == 960 and differing[-1] == 2699
+    assert set((rounded - truncated).tolist()) == {0, 1}
+    assert (rounded[2699], truncated[2699]) == (89966667, 89966666)
+    np.testing.assert_array_equal(fmt.differing_frames(2700, 30), differing)
+    np.testing.assert_array_equal(fmt.frame_time_us(k), rounded)  # round is the default, the one written
+    assert fmt.WRITTEN_CONVENTION == "round" and fmt.FRAME_TIME_CONVENTIONS == ("round", "truncate")
+    with pytest.raises(ValueError, match="convention must be one of"):
+        fmt.frame_time_us(3, 30, "floor")
+
+
+def test_expected_timeidx_follows_the_convention():
+    t = np.array([0, 33333, 66666, 66666, 66667, 99999, 100000])  # frame 2: 66667 (round), 66666 (truncate)
+    np.testing.assert_array_equal(fmt.expected_timeidx(t, 4), [0, 1, 4, 6])
+    np.testing.assert_array_equal(fmt.expected_timeidx(t, 4, convention="round"), [0, 1, 4, 6])
+    np.testing.assert_array_equal(fmt.expected_timeidx(t, 4, convention="truncate"), [0, 1, 2, 6])

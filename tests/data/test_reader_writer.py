@@ -4,9 +4,11 @@ import pickle
 import h5py
 import numpy as np
 import pytest
+from PIL import Image
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.reader import (DatasetFormatError, EventFile, list_videos, read_frame, read_labels)
+from dagr_lite.data.reader import (DatasetFormatError, EventFile, frame_size, jpeg_size, list_videos, read_frame,
+                                   read_labels)
 from dagr_lite.data.writer import EventFileWriter, write_events, write_frame, write_labels, write_video
 from tests.conftest import make_dataset, random_events
 
@@ -202,7 +204,9 @@ def test_timeidx_that_disagrees_with_t_is_an_error(tmp_path):
     path = write_events(tmp_path / "v.h5", [1, 1, 1], [1, 1, 1], [0, 40_000, 70_000], [1, 1, 1], num_frames=3)
     with h5py.File(path, "a") as h5:
         h5[fmt.KEY_TIMEIDX][2] = 1
-    with pytest.raises(DatasetFormatError, match=r"v\.h5: timeidx: entry 2 = 1 is not the first event"):
+    with pytest.raises(DatasetFormatError, match=r"v\.h5: timeidx: entry 2 = 1 fits neither frame-time convention; "
+                                                 r"expected 2 \(round: first event at or after 66667 us\) "
+                                                 r"or 2 \(truncate: first event at or after 66666 us\)"):
         EventFile(path, num_frames=3)
 
 
@@ -247,3 +251,66 @@ def test_videos_pair_by_name_and_unpaired_ones_are_named(tmp_path):
     assert "c.h5: events file has no frame folder" in message and "frames/a: frame folder has no events file" in message
     with pytest.raises(DatasetFormatError, match=r"valid: split folder is missing"):
         list_videos(tmp_path, "valid")
+
+
+def _with_polarity(path, index, value, num_events=20_000, num_frames=4):
+    """A file written by hand (the writer refuses bad polarities) with ``p[index] = value``."""
+    rng = np.random.default_rng([7])
+    t = np.sort(rng.integers(0, fmt.frame_time_us(num_frames), num_events))
+    p = rng.integers(0, 2, num_events).astype(np.uint8)
+    p[index] = value
+    with h5py.File(path, "w") as h5:
+        h5[fmt.KEY_X] = h5[fmt.KEY_Y] = np.ones(num_events, np.uint16)
+        h5[fmt.KEY_T], h5[fmt.KEY_P] = t, p
+        h5[fmt.KEY_TIMEIDX] = fmt.expected_timeidx(t, num_frames)
+    return t
+
+
+def test_polarity_outside_0_1_is_caught_on_reading(tmp_path):
+    path = tmp_path / "p.h5"
+    t = _with_polarity(path, 10_000, 2)  # far from both ends: the opening check does not sample it
+    reader = EventFile(path, num_frames=4)
+    assert len(reader.window(0, int(t[9_000]))["p"]) == 9_000  # windows without it read normally
+    match = r"p\.h5: events/p: values must be 0 or 1, found 2 at index 10000 \(in events 9990\.\.10009\)"
+    with pytest.raises(DatasetFormatError, match=match):
+        reader.read(9_990, 10_010)
+    with pytest.raises(DatasetFormatError, match=r"p\.h5: events/p: values must be 0 or 1, found 2 at index 10000 "):
+        reader.window(int(t[9_000]), int(t[11_000]))
+
+
+@pytest.mark.parametrize("index", [5, 19_990])
+def test_polarity_outside_0_1_near_either_end_is_caught_on_opening(tmp_path, index):
+    _with_polarity(tmp_path / "p.h5", index, 2)
+    with pytest.raises(DatasetFormatError, match=rf"p\.h5: events/p: values must be 0 or 1, found 2 at index {index} "):
+        EventFile(tmp_path / "p.h5", num_frames=4)
+
+
+@pytest.mark.parametrize("height,width,options", [
+    (48, 64, {}), (1, 1, {}), (720, 1280, {"progressive": True}), (300, 17, {"quality": 20}),
+    (37, 91, {"exif": b"Exif\x00\x00" + bytes(9000)}),  # metadata longer than the first read
+])
+def test_jpeg_size_reads_the_frame_header(tmp_path, height, width, options):
+    path = tmp_path / "f.jpg"
+    Image.fromarray(np.zeros((height, width, 3), np.uint8)).save(path, format="JPEG", **options)
+    assert jpeg_size(path) == (height, width) == frame_size(path)
+    Image.fromarray(np.zeros((height, width), np.uint8)).save(tmp_path / "g.jpg", format="JPEG")  # greyscale
+    assert jpeg_size(tmp_path / "g.jpg") == (height, width)
+
+
+def test_jpeg_size_refuses_what_is_not_a_whole_jpeg(tmp_path):
+    path = write_frame(tmp_path / "frame_0.jpg", np.full((48, 64, 3), 100, np.uint8))
+    data = path.read_bytes()
+    cases = {"cut_in_header.jpg": (data[:120], r"file ends at byte \d+ before the frame header \(truncated header\)"),
+             "cut_in_data.jpg": (data[: len(data) - 40], r"no end-of-image marker at the end \(truncated file\?\)"),
+             "empty.jpg": (b"", "does not start with the JPEG start-of-image marker"),
+             "no_sof.jpg": (b"\xff\xd8\xff\xda\x00\x02" + bytes(40) + b"\xff\xd9", "no frame header before marker 0xda"),
+             "junk.jpg": (b"\xff\xd8\x12\x34" + bytes(40), "expected a marker at byte 2, found 0x12")}
+    for name, (content, message) in cases.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(DatasetFormatError, match=rf"{name}: not a readable JPEG: {message}"):
+            jpeg_size(tmp_path / name)
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(tmp_path / "png.jpg", format="PNG")
+    with pytest.raises(DatasetFormatError, match=r"png\.jpg: not a readable JPEG: does not start with the JPEG"):
+        jpeg_size(tmp_path / "png.jpg")
+    with pytest.raises(DatasetFormatError, match=r"gone\.jpg: frame file is missing"):
+        jpeg_size(tmp_path / "gone.jpg")

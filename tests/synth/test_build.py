@@ -178,3 +178,44 @@ def test_egohands_frame_folders_must_count_from_one_at_full_size(tmp_path):
     assert main(args + ["--frames", str(tmp_path / "f0")]) == 2
     write_moving_square_videos(tmp_path / "small", ["V"], num_frames=3, height=36, width=64, first_number=1, pad=4)
     assert main(args + ["--frames", str(tmp_path / "small")]) == 2
+
+
+def test_label_file_is_read_by_the_dataset_parser_and_errors_name_file_and_key(tmp_path):
+    from dagr_lite.data.reader import DatasetFormatError, read_label_file
+    from dagr_lite.synth.build import folder_jobs
+    write_moving_square_videos(tmp_path / "frames", ["a", "b"])
+    path = tmp_path / "labels.json"
+    path.write_text(json.dumps({"a_frame_1": [[1, 2, 3, 4]], "a_frame_3": [], "b_frame_0": [[5, 5, 2.5, 2]]}))
+    jobs = {job.name: job for job in folder_jobs(tmp_path / "frames", labels=path)}
+    parsed = read_label_file(path)
+    for video in ("a", "b"):
+        assert sorted(jobs[video].labels) == sorted(parsed[video])
+        for k, (boxes, sources) in jobs[video].labels.items():
+            np.testing.assert_array_equal(boxes, parsed[video][k])
+            assert sources == ["given"] * len(boxes)
+    cases = [({"zz_frame_2": []}, r"labels\.json: zz_frame_2: key names no video of the frames folder"),
+             ({"a_frame_1": [[1, 2, 3]]}, r"labels\.json: a_frame_1: expected a box \[x_tl, y_tl, w, h\] of 4 numbers"),
+             ({"a_frame_01": []}, r"labels\.json: a_frame_01: key is not of the form <video>_frame_<k>"),
+             ([1, 2], r"labels\.json: expected a JSON object keyed <video>_frame_<k>, found list")]
+    for content, match in cases:
+        path.write_text(json.dumps(content))
+        with pytest.raises(DatasetFormatError, match=match):
+            folder_jobs(tmp_path / "frames", labels=path)
+    path.write_text("{oops")
+    with pytest.raises(DatasetFormatError, match=r"labels\.json: cannot parse as JSON"):
+        folder_jobs(tmp_path / "frames", labels=path)
+    with pytest.raises(DatasetFormatError, match=r"none\.json: label file is missing"):
+        folder_jobs(tmp_path / "frames", labels=tmp_path / "none.json")
+
+
+def test_a_damaged_build_record_is_named(tmp_path, capsys):
+    write_moving_square_videos(tmp_path / "frames", ["a"])
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / BUILD_INFO).write_text('{"settings": ')
+    assert main(["--frames", str(tmp_path / "frames"), "--out", str(out), "--version", "v1"]) == 2
+    assert f"{out / BUILD_INFO}: cannot parse as JSON" in capsys.readouterr().err
+    (tmp_path / "splits.json").write_text("[]")
+    assert main(["--frames", str(tmp_path / "frames"), "--out", str(tmp_path / "o2"), "--version", "v1",
+                 "--splits", str(tmp_path / "splits.json")]) == 2
+    assert "splits.json: expected a JSON object" in capsys.readouterr().err

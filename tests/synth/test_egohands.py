@@ -77,3 +77,10 @@ def test_default_split_is_30_10_8_and_fixed():
     assert default_split(list(reversed(names))) == split
     with pytest.raises(ValueError, match="add up"):
         default_split(names[:10])
+
+
+def test_default_split_of_the_48_videos_is_pinned():
+    # The split of a built dataset must never change: these are the videos of seed 0.
+    split = default_split([f"V{i:02d}" for i in range(48)])
+    assert split["valid"] == ["V07", "V09", "V12", "V13", "V26", "V32", "V38", "V39", "V40", "V42"]
+    assert split["test"] == ["V05", "V14", "V15", "V29", "V31", "V33", "V41", "V47"]
