@@ -24,7 +24,7 @@ from torch.utils.data import Dataset
 from dagr_lite.data.collate import GraphCollate
 from dagr_lite.data.dataset import Sample
 from dagr_lite.engine.common import make_loader
-from dagr_lite.nn.detector import Detector, DetectorConfig
+from dagr_lite.config import build_model, compose_config, resolve_config
 from dagr_lite.synth.stub import HandScene
 
 WINDOW_US = 33_333
@@ -61,12 +61,11 @@ class SyntheticSamples(Dataset):
 
 
 def run(variant: str, height: int, width: int, args) -> None:
-    use_events, use_image = {"hybrid": (True, True), "events_only": (True, False), "image_only": (False, True)}[variant]
     torch.manual_seed(0)
-    model = Detector(DetectorConfig(height=height, width=width, use_events=use_events, use_image=use_image))
+    model = build_model(resolve_config(compose_config("train", [f"model={variant}"])), height=height, width=width)
     optimizer = torch.optim.AdamW(model.parameters(), lr=2e-4)
     dataset = SyntheticSamples(height, width, args.events, size=args.batch * (args.steps + 1))
-    graph = {"radius": 5.0, "beta": 5e-4, "max_neighbors": 16} if use_events else None
+    graph = model.graph_spec
     loader = make_loader(dataset, batch_size=args.batch, num_workers=args.workers, graph=graph)
     waits, forwards, backwards = [], [], []
     iterator = iter(loader)
@@ -87,10 +86,10 @@ def run(variant: str, height: int, width: int, args) -> None:
     wait, fwd, bwd = (float(np.mean(x)) for x in (waits, forwards, backwards))
     step = wait + fwd + bwd
     graph_note = ""
-    if use_events:
+    if graph is not None:
         samples = [dataset[i] for i in range(args.batch)]
         start = time.perf_counter()
-        GraphCollate(**graph)(samples)
+        GraphCollate(graph)(samples)
         graph_note = f", one batch's graph alone {time.perf_counter() - start:.2f} s"
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     verdict = "ok" if wait < step / 3 else "DATA-BOUND"

@@ -6,24 +6,24 @@ functions are the only places that read config objects: everything else takes ty
 """
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
+from typing import Sequence
 
+import torch
+from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.augment import TrainAugment
 from dagr_lite.data.dataset import EventEgoHands
+from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.detector import Detector, DetectorConfig
 
-# Model sizes: image CNN width, event branch channels (input stage, then strides 8, 16, 32), head width.
-MODEL_SIZES = {
-    "s": {"image_width": 16, "event_channels": (16, 32, 48, 64), "head_hidden": 64},
-    "m": {"image_width": 24, "event_channels": (24, 48, 72, 96), "head_hidden": 96},
-}
-
 ROOT_ENV = "EVENTEGOHANDS_ROOT"
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 
 class ConfigError(ValueError):
@@ -39,6 +39,16 @@ def _eventegohands_root(version: str) -> str:
 
 
 OmegaConf.register_new_resolver("eventegohands_root", _eventegohands_root, replace=True)
+# hydra.run.dir: the run's own run_dir when one is given, else a new dated folder.
+OmegaConf.register_new_resolver("run_folder", lambda run_dir, default: default if run_dir is None else run_dir,
+                                replace=True)
+
+
+def compose_config(name: str = "train", overrides: Sequence[str] = ()) -> DictConfig:
+    """``conf/<name>.yaml`` composed with ``overrides``, as the command line would (for scripts and tests)."""
+    from hydra import compose, initialize_config_dir
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        return compose(config_name=name, overrides=list(overrides))
 
 
 def resolve_config(cfg: DictConfig) -> DictConfig:
@@ -66,6 +76,52 @@ def _check_dataset(dataset: DictConfig) -> None:
                           f"{dataset.get('height')!r} and {dataset.get('width')!r}")
     if not dataset.get("fps") or dataset.fps <= 0:
         raise ConfigError(f"dataset.fps must be positive, got {dataset.get('fps')!r}")
+
+
+def _integer(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+# key: (what it must be, test). Keys a config does not have are skipped.
+_RULES = {
+    "seed": ("an integer", _integer),
+    "data.image_lag": ("an integer >= 0", lambda v: _integer(v) and v >= 0),
+    "data.window_us": ("a positive integer (microseconds)", lambda v: _integer(v) and v > 0),
+    "data.max_events": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
+    "loader.batch_size": ("a positive integer", lambda v: _integer(v) and v > 0),
+    "loader.num_workers": ("an integer >= 0", lambda v: _integer(v) and v >= 0),
+    "optim.lr": ("a positive number", lambda v: _number(v) and v > 0),
+    "trainer.max_steps": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
+    "trainer.max_epochs": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
+    "trainer.max_minutes": ("a positive number or null", lambda v: v is None or (_number(v) and v > 0)),
+    "trainer.val_every": ("an integer >= 0 (0: every epoch)", lambda v: _integer(v) and v >= 0),
+    "trainer.log_every": ("a positive integer", lambda v: _integer(v) and v > 0),
+    "trainer.image_every": ("an integer >= 0 (0: never)", lambda v: _integer(v) and v >= 0),
+    "trainer.warmup_steps": ("an integer >= 0", lambda v: _integer(v) and v >= 0),
+    "trainer.min_lr_ratio": ("a number in [0, 1]", lambda v: _number(v) and 0 <= v <= 1),
+    "trainer.grad_clip": ("a positive number", lambda v: _number(v) and v > 0),
+    "trainer.ema_decay": ("a number in [0, 1)", lambda v: _number(v) and 0 <= v < 1),
+    "trainer.ema_tau": ("a positive number", lambda v: _number(v) and v > 0),
+    "eval.conf_threshold": ("a number in [0, 1]", lambda v: _number(v) and 0 <= v <= 1),
+    "eval.nms_threshold": ("a number in (0, 1]", lambda v: _number(v) and 0 < v <= 1),
+    "save_images": ("an integer >= 0", lambda v: _integer(v) and v >= 0),
+}
+_ABSENT = object()
+
+
+def check_values(cfg: DictConfig) -> None:
+    """Raise :class:`ConfigError` naming the first key whose value is of the wrong type or range."""
+    for key, (expected, ok) in _RULES.items():
+        value = OmegaConf.select(cfg, key, default=_ABSENT)
+        if value is not _ABSENT and not ok(value):
+            raise ConfigError(f"{key} must be {expected}, got {value!r}")
+    trainer = cfg.get("trainer")
+    if trainer is not None and trainer.max_steps is None and trainer.max_epochs is None:
+        raise ConfigError("set trainer.max_steps or trainer.max_epochs (both are null)")
 
 
 def dataset_root(dataset: DictConfig) -> Path:
@@ -96,11 +152,43 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool) -> EventEgoHands:
                          transform=transform, clip_boxes=data.clip_boxes, seed=cfg.seed)
 
 
+def graph_spec(model: DictConfig) -> EventGraphSpec | None:
+    """The event-graph settings of ``model.graph`` (None for a model without an event branch)."""
+    if not model.use_events:
+        return None
+    try:
+        return EventGraphSpec(radius=model.graph.radius, beta=model.graph.beta,
+                              max_neighbors=model.graph.max_neighbors)
+    except ValueError as err:
+        raise ConfigError(f"model.{err}") from err
+
+
+def detector_config(cfg: DictConfig, *, height: int, width: int) -> DetectorConfig:
+    """The architecture of ``cfg.model`` (size chosen from ``model.sizes``) for ``height x width`` frames."""
+    model = cfg.model
+    if model.size not in model.sizes:
+        raise ConfigError(f"model.size must be one of {sorted(model.sizes)}, got {model.size!r}")
+    size = model.sizes[model.size]
+    return DetectorConfig(height=height, width=width, use_events=model.use_events, use_image=model.use_image,
+                          image_width=size.image_width, event_channels=tuple(size.event_channels),
+                          event_blocks=model.event_blocks, fuse_channels=model.fuse_channels,
+                          head_hidden=size.head_hidden, num_classes=model.num_classes,
+                          strides=tuple(model.strides), graph=graph_spec(model), window_us=cfg.data.window_us)
+
+
 def build_model(cfg: DictConfig, *, height: int, width: int) -> Detector:
     """The detector of ``cfg.model`` for frames of ``height x width`` pixels."""
-    model = cfg.model
-    if model.size not in MODEL_SIZES:
-        raise ConfigError(f"model.size must be one of {sorted(MODEL_SIZES)}, got {model.size!r}")
-    return Detector(DetectorConfig(height=height, width=width, use_events=model.use_events, use_image=model.use_image,
-                                   radius=model.radius, beta=model.beta, max_neighbors=model.max_neighbors,
-                                   window_us=cfg.data.window_us, **MODEL_SIZES[model.size]))
+    try:
+        return Detector(detector_config(cfg, height=height, width=width))
+    except ValueError as err:
+        if isinstance(err, ConfigError):
+            raise
+        raise ConfigError(f"model: {err}") from err
+
+
+def build_optimizer(cfg: DictConfig, parameters) -> torch.optim.Optimizer:
+    """The optimiser of ``cfg.optim`` (a ``_target_`` with ``_partial_: true``) over ``parameters``."""
+    try:
+        return instantiate(cfg.optim, _convert_="all")(parameters)
+    except Exception as err:  # instantiation wraps the optimiser's own errors
+        raise ConfigError(f"optim: cannot build {cfg.optim.get('_target_')!r}: {err}") from err

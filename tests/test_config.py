@@ -5,7 +5,10 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 
-from dagr_lite.config import ConfigError, build_dataset, resolve_config
+import torch
+
+from dagr_lite.config import (ConfigError, build_dataset, build_model, build_optimizer, check_values, detector_config,
+                              resolve_config)
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 VERSIONS = {"v1": (720, 1280, 1, 1, "clean"), "v2": (180, 320, 4, 1, "clean"), "v3": (360, 640, 2, 1, "clean"),
@@ -24,7 +27,8 @@ def compose_cfg(name, overrides=()):
 def test_groups_hold_the_expected_options():
     assert options("dataset") == ["custom", "stub", "v1", "v2", "v3", "v4", "v5", "v6"]
     assert {"hybrid", "events_only", "image_only"} <= set(options("model"))
-    assert options("optim") == ["adamw"] and options("recipe") == ["stub"]
+    assert options("optim") == ["adamw", "sgd"] and options("recipe") == ["stub"]
+    assert options("data") == options("loader") == options("eval") == ["default"]
 
 
 @pytest.mark.parametrize("config,group", [("train", "dataset"), ("train", "model"), ("train", "optim"),
@@ -33,7 +37,10 @@ def test_every_option_composes_and_resolves(config, group, tmp_path):
     extra = [f"ckpt={tmp_path / 'last.pt'}"] if config == "evaluate" else []
     for option in options(group):
         cfg = resolve_config(compose_cfg(config, [f"{group}={option}", f"dataset.root={tmp_path}", *extra]))
-        assert cfg[group].name == option
+        if group == "optim":  # an optimiser config names its class
+            assert type(build_optimizer(cfg, [torch.nn.Parameter(torch.zeros(1))])).__name__.lower() == option
+        else:
+            assert cfg[group].name == option
         assert cfg.dataset.root == str(tmp_path)
 
 
@@ -87,15 +94,15 @@ def test_custom_dataset_takes_its_resolution_from_the_frames(dataset):
     assert build_dataset(cfg, "valid", train=False).transform is None
     wrong = resolve_config(compose_cfg("train", ["dataset=custom", f"dataset.root={dataset.root}",
                                                  "dataset.height=360", "dataset.width=640"]))
-    with pytest.raises(ValueError, match=r"frame is 64x48 \(WxH\), but the dataset is configured as 640x360"):
+    with pytest.raises(ValueError, match=r"frame_0.jpg: frame is 64x48 \(WxH\), expected 640x360 as the dataset is "
+                                         r"configured"):
         build_dataset(wrong, "train", train=True)
     v6 = resolve_config(compose_cfg("train", ["dataset=v6", f"dataset.root={dataset.root}"]))
-    with pytest.raises(ValueError, match=r"configured as 640x360"):
+    with pytest.raises(ValueError, match=r"expected 640x360 as the dataset is configured"):
         build_dataset(v6, "train", train=True)
 
 
 def test_model_sizes_build_and_differ():
-    from dagr_lite.config import build_model
     sizes = {}
     for size in ("s", "m"):
         cfg = resolve_config(compose_cfg("train", [f"model.size={size}"]))
@@ -103,3 +110,57 @@ def test_model_sizes_build_and_differ():
     assert sizes["m"] > 1.5 * sizes["s"]
     with pytest.raises(ConfigError, match="model.size"):
         build_model(resolve_config(compose_cfg("train", ["model.size=xl"])), height=180, width=320)
+
+
+def test_train_and_evaluate_share_the_data_loader_and_eval_groups(tmp_path):
+    train = resolve_config(compose_cfg("train"))
+    evaluate = resolve_config(compose_cfg("evaluate", [f"ckpt={tmp_path / 'x.pt'}"]))
+    assert train.loader == evaluate.loader and train.eval == evaluate.eval
+    assert set(train.data) == set(evaluate.data) and train.data.augment == evaluate.data.augment
+    # evaluation takes what defines a sample from the checkpoint unless a value is given
+    assert evaluate.data.window_us is None and evaluate.data.image_lag is None and evaluate.graph.radius is None
+
+
+def test_the_optim_group_chooses_the_optimiser():
+    params = [torch.nn.Parameter(torch.zeros(3))]
+    adamw = build_optimizer(resolve_config(compose_cfg("train", ["optim.lr=3e-4"])), params)
+    assert type(adamw) is torch.optim.AdamW and adamw.param_groups[0]["lr"] == pytest.approx(3e-4)
+    assert adamw.param_groups[0]["betas"] == (0.9, 0.999)
+    sgd = build_optimizer(resolve_config(compose_cfg("train", ["optim=sgd"])), params)
+    assert type(sgd) is torch.optim.SGD and sgd.param_groups[0]["nesterov"]
+    with pytest.raises(ConfigError, match="optim"):
+        build_optimizer(resolve_config(compose_cfg("train", ["optim.lr=-1"])), params)
+
+
+def test_model_defaults_come_from_conf_and_variants_inherit_them():
+    hybrid = detector_config(resolve_config(compose_cfg("train")), height=180, width=320)
+    assert hybrid.strides == (8, 16, 32) and hybrid.event_channels == (16, 32, 48, 64) and hybrid.window_us == 33333
+    assert hybrid.graph.as_dict() == {"radius": 5.0, "beta": 5e-4, "max_neighbors": 16}
+    events = detector_config(resolve_config(compose_cfg("train", ["model=events_only", "model.graph.radius=3"])),
+                             height=180, width=320)
+    assert not events.use_image and events.use_events and events.graph.radius == 3.0
+    assert events.event_channels == hybrid.event_channels
+    image = detector_config(resolve_config(compose_cfg("train", ["model=image_only"])), height=180, width=320)
+    assert image.graph is None and not image.use_events
+    with pytest.raises(ConfigError, match=r"model\.graph radius must be a positive number, got -1"):
+        build_model(resolve_config(compose_cfg("train", ["model.graph.radius=-1"])), height=180, width=320)
+
+
+@pytest.mark.parametrize("override,match", [
+    ("loader.batch_size=0", r"loader\.batch_size must be a positive integer, got 0"),
+    ("data.window_us=abc", r"data\.window_us must be a positive integer \(microseconds\), got 'abc'"),
+    ("trainer.max_steps=-3", r"trainer\.max_steps must be a positive integer or null, got -3"),
+    ("trainer.val_every=-1", r"trainer\.val_every must be an integer >= 0"),
+    ("data.image_lag=-2", r"data\.image_lag must be an integer >= 0, got -2"),
+    ("data.max_events=0", r"data\.max_events must be a positive integer or null, got 0"),
+    ("trainer.ema_decay=1.5", r"trainer\.ema_decay must be a number in \[0, 1\)"),
+])
+def test_bad_values_name_their_key(override, match):
+    with pytest.raises(ConfigError, match=match):
+        check_values(resolve_config(compose_cfg("train", [override])))
+
+
+def test_a_run_needs_a_length():
+    with pytest.raises(ConfigError, match="trainer.max_steps or trainer.max_epochs"):
+        check_values(resolve_config(compose_cfg("train", ["trainer.max_steps=null", "trainer.max_epochs=null"])))
+    check_values(resolve_config(compose_cfg("train")))  # the defaults pass

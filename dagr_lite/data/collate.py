@@ -7,6 +7,7 @@ from typing import Sequence
 import torch
 
 from dagr_lite.data.dataset import Sample
+from dagr_lite.graph.spec import EventGraphSpec
 
 
 @dataclass
@@ -98,16 +99,14 @@ def collate(samples: Sequence[Sample]) -> Batch:
 class GraphCollate:
     """Collate and build the causal event graph in the loader's worker processes.
 
-    The graph is over positions ``(x, y, beta * t)`` of the batch's events (see
-    :func:`dagr_lite.graph.radius_graph`); building it in the workers keeps it off the training step.
+    ``spec`` is the model's own :class:`~dagr_lite.graph.spec.EventGraphSpec`, so the loader's
+    graph is the one the model would build; building it in the workers keeps it off the training step.
     """
 
-    def __init__(self, *, radius: float, beta: float, max_neighbors: int):
-        self.radius, self.beta, self.max_neighbors = radius, beta, max_neighbors
+    def __init__(self, spec: EventGraphSpec):
+        self.spec = spec
 
     def __call__(self, samples: Sequence[Sample]) -> Batch:
-        from dagr_lite.graph.radius import event_graph
         batch = collate(samples)
-        batch.edge_index = event_graph(batch.events, batch.batch_index, radius=self.radius, beta=self.beta,
-                                       max_neighbors=self.max_neighbors, workers=1)
+        batch.edge_index = self.spec.edges(batch.events, batch.batch_index, workers=1)
         return batch

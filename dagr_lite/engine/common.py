@@ -4,22 +4,24 @@ from __future__ import annotations
 import copy
 import math
 import os
-import random
 import time
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from torch import nn
 from torch.utils.data import DataLoader, Sampler
 
 from dagr_lite.data.collate import GraphCollate, collate
 from dagr_lite.data.dataset import EventEgoHands
-from dagr_lite.data.writer import temporary_name
+from dagr_lite.data.writer import temporary_name, write_text_atomically
+from dagr_lite.graph.spec import EventGraphSpec
 
-CHECKPOINT_FORMAT = 1
+CHECKPOINT_FORMAT = 2
+# What marks a folder as holding a run: none of these is ever overwritten by a new run.
+RUN_FILES = ("checkpoints", "metrics.json", "config.yaml", ".hydra")
 
 
 def resolve_device(name: str) -> torch.device:
@@ -33,16 +35,19 @@ def resolve_device(name: str) -> torch.device:
 
 
 def seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed)
+    """Seed torch's global generator (weight initialisation); every other draw has its own
+    ``np.random.default_rng([seed, ...])``."""
     torch.manual_seed(seed)
 
 
 def run_folder(cfg: DictConfig, kind: str) -> Path:
     """The run's own folder: ``cfg.run_dir``, else Hydra's, else a new ``runs/<kind>/<time>``.
 
-    An existing folder holding checkpoints or metrics is never reused (no run overwrites another).
+    An existing folder holding a run (checkpoints, metrics or its config) is never reused: the
+    check comes before anything is written. The resolved config and the command-line overrides
+    are then written into the folder as ``config.yaml`` and ``overrides.yaml``.
     """
+    overrides: list[str] = []
     if cfg.get("run_dir"):
         path = Path(cfg.run_dir)
     else:
@@ -51,10 +56,17 @@ def run_folder(cfg: DictConfig, kind: str) -> Path:
             path = Path(HydraConfig.get().runtime.output_dir)
         except (ImportError, ValueError):
             path = Path("runs") / kind / time.strftime("%Y-%m-%d/%H-%M-%S") / f"{os.getpid()}"
-    for name in ("checkpoints", "metrics.json"):
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        overrides = list(HydraConfig.get().overrides.task)
+    except (ImportError, ValueError):
+        pass
+    for name in RUN_FILES:
         if (path / name).exists():
             raise FileExistsError(f"{path}: holds an earlier run ({name}); choose a new run_dir")
     path.mkdir(parents=True, exist_ok=True)
+    write_text_atomically(path / "config.yaml", OmegaConf.to_yaml(cfg))
+    write_text_atomically(path / "overrides.yaml", OmegaConf.to_yaml(OmegaConf.create(overrides)))
     return path
 
 
@@ -75,9 +87,12 @@ def load_checkpoint(path: Path | str) -> dict:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # unpickling errors come in many types
         raise ValueError(f"{path}: cannot read as a dagr_lite checkpoint ({err})") from err
-    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT or "model" not in state:
-        raise ValueError(f"{path}: not a dagr_lite checkpoint of format {CHECKPOINT_FORMAT} "
-                         "(expected keys format, model, ema, config, ...)")
+    if not isinstance(state, dict) or "model" not in state:
+        raise ValueError(f"{path}: not a dagr_lite checkpoint (expected keys format, model, ema, detector, config, ...)")
+    if state.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path}: a checkpoint of format {state.get('format')}, but this dagr_lite reads format "
+                         f"{CHECKPOINT_FORMAT} (it records the model's architecture and event graph); "
+                         "train the model again with this version")
     return state
 
 
@@ -136,7 +151,7 @@ class EpochSampler(Sampler[int]):
     def order(self) -> list[int]:
         if not self.shuffle:
             return list(range(self.size))
-        return torch.randperm(self.size, generator=torch.Generator().manual_seed(self.seed * 100_003 + self.epoch)).tolist()
+        return np.random.default_rng([self.seed, self.epoch]).permutation(self.size).tolist()
 
     def __iter__(self):
         return iter(self.order()[self.start:])
@@ -146,10 +161,10 @@ class EpochSampler(Sampler[int]):
 
 
 def make_loader(dataset: EventEgoHands, *, batch_size: int, num_workers: int, sampler: Sampler | None = None,
-                graph: dict | None = None, drop_last: bool = False) -> DataLoader:
-    """A loader with :func:`collate`; with ``graph`` (radius, beta, max_neighbors) its workers also
-    build the event graph. Workers start per epoch, so ``dataset.set_epoch`` reaches them."""
-    collate_fn = GraphCollate(**graph) if graph else collate
+                graph: EventGraphSpec | None = None, drop_last: bool = False) -> DataLoader:
+    """A loader with :func:`collate`; with ``graph`` (the model's own spec) its workers also build
+    the event graph. Workers start per epoch, so ``dataset.set_epoch`` reaches them."""
+    collate_fn = GraphCollate(graph) if graph is not None else collate
     return DataLoader(dataset, batch_size=batch_size, sampler=sampler, shuffle=False, num_workers=num_workers,
                       collate_fn=collate_fn, drop_last=drop_last, pin_memory=torch.cuda.is_available(),
                       worker_init_fn=partial(_limit_threads) if num_workers else None)

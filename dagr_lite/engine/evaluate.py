@@ -1,69 +1,98 @@
-"""The evaluation entry: ``evaluate(cfg)`` is what ``python evaluate.py`` runs and what tests call."""
+"""The evaluation entry: ``evaluate(cfg)`` is what ``python evaluate.py`` runs and what tests call.
+
+The checkpoint defines the model (its architecture and event graph) and what one sample is
+(image lag, event window, event cap). A value given in ``data.*`` or ``graph.*`` overrides the
+checkpoint's: it is printed as an override and recorded in ``metrics.json``, beside the data and
+graph settings the evaluation actually used.
+"""
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
-import numpy as np
 from omegaconf import DictConfig, OmegaConf
-from PIL import Image
 
-from dagr_lite.config import build_dataset, build_model, resolve_config
+from dagr_lite.config import ConfigError, build_dataset, check_values, resolve_config
 from dagr_lite.engine.common import load_checkpoint, make_loader, resolve_device, run_folder
-from dagr_lite.engine.train import _graph_options, describe_dataset
-from dagr_lite.engine.validate import evaluate_model, render_sample
+from dagr_lite.engine.train import describe_dataset
 from dagr_lite.eval.coco import METRIC_KEYS, format_metrics
+from dagr_lite.eval.score import save_pictures, score_model
+from dagr_lite.graph.spec import EventGraphSpec
+from dagr_lite.nn.detector import Detector, DetectorConfig
+
+# The data settings that define a model's input: taken from the checkpoint unless overridden.
+SAMPLE_KEYS = ("image_lag", "window_us", "max_events")
+
+
+def _override(section: str, key: str, trained, given, overrides: dict):
+    """``given`` when set (recorded in ``overrides`` when it differs), else ``trained``."""
+    if given is None:
+        return trained
+    if given != trained:
+        overrides[f"{section}.{key}"] = {"checkpoint": trained, "used": given}
+    return given
+
+
+def settings(cfg: DictConfig, state: dict) -> tuple[dict, DetectorConfig, dict]:
+    """The data settings, the detector and the overrides of an evaluation of checkpoint ``state``."""
+    trained_data = state["config"]["data"]
+    detector = DetectorConfig.from_dict(state["detector"])
+    overrides: dict = {}
+    data = {key: _override("data", key, trained_data[key], cfg.data[key], overrides) for key in SAMPLE_KEYS}
+    given_graph = {key: value for key, value in cfg.graph.items() if value is not None}
+    if given_graph and detector.graph is None:
+        raise ConfigError(f"{cfg.ckpt}: graph.{next(iter(given_graph))}={next(iter(given_graph.values()))!r} "
+                          "was given, but the checkpoint's model has no event branch (use_events false)")
+    graph = detector.graph
+    if graph is not None:
+        values = {key: _override("graph", key, trained, cfg.graph[key], overrides)
+                  for key, trained in graph.as_dict().items()}
+        try:
+            graph = EventGraphSpec(**values)
+        except ValueError as err:
+            raise ConfigError(str(err)) from err
+    return data, dataclasses.replace(detector, graph=graph, window_us=data["window_us"]), overrides
+
+
+def load_model(state: dict, detector: DetectorConfig, image_size: tuple[int, int], ckpt: str) -> Detector:
+    """The checkpoint's EMA weights in the detector it describes; frames of another size are refused."""
+    if (detector.height, detector.width) != tuple(image_size):
+        raise ConfigError(f"{ckpt}: the model was trained on {detector.width}x{detector.height} frames, but the "
+                          f"dataset's frames are {image_size[1]}x{image_size[0]}; evaluate it on data of its size")
+    model = Detector(detector)
+    try:
+        model.load_state_dict(state["ema"]["module"])
+    except RuntimeError as err:
+        raise ValueError(f"{ckpt}: its weights do not fit the model its config describes ({err})") from err
+    return model
 
 
 def evaluate(cfg: DictConfig) -> dict:
     """Score a checkpoint's EMA weights on ``cfg.split``; writes ``metrics.json`` and ``detections.json``."""
     cfg = resolve_config(cfg)
-    print(OmegaConf.to_yaml(cfg), flush=True)
     state = load_checkpoint(cfg.ckpt)
-    trained = OmegaConf.create(state["config"])
-    if "model" not in trained or "data" not in trained:
-        raise ValueError(f"{cfg.ckpt}: the checkpoint's config has no model or data section")
+    data, detector, overrides = settings(cfg, state)
+    cfg = OmegaConf.merge(cfg, {"data": data})
+    check_values(cfg)
+    print(OmegaConf.to_yaml(cfg), flush=True)
+    for key, change in overrides.items():
+        print(f"override: {key}={change['used']!r} (the checkpoint was trained with {change['checkpoint']!r})")
     run_dir = run_folder(cfg, "evaluate")
     device = resolve_device(cfg.device)
     dataset = build_dataset(cfg, cfg.split, train=False)
     print(describe_dataset(dataset), flush=True)
-    height, width = dataset.image_size
-    model_cfg = OmegaConf.merge(trained, {"data": {"window_us": cfg.data.window_us}})
-    model = build_model(model_cfg, height=height, width=width)
-    try:
-        model.load_state_dict(state["ema"]["module"])
-    except RuntimeError as err:
-        raise ValueError(f"{cfg.ckpt}: its weights do not fit the model its config describes ({err})") from err
-    model.to(device)
+    model = load_model(state, detector, dataset.image_size, cfg.ckpt).to(device)
     loader = make_loader(dataset, batch_size=cfg.loader.batch_size, num_workers=cfg.loader.num_workers,
-                         graph=_graph_options(model_cfg))
-    metrics, evaluator = evaluate_model(model, loader, device, backend=cfg.eval.backend,
-                                        conf_threshold=cfg.eval.conf_threshold, nms_threshold=cfg.eval.nms_threshold)
+                         graph=model.graph_spec)
+    metrics, evaluator = score_model(model, loader, device, backend=cfg.eval.backend,
+                                     conf_threshold=cfg.eval.conf_threshold, nms_threshold=cfg.eval.nms_threshold)
     result = {**{key: metrics[key] for key in METRIC_KEYS}, "split": cfg.split, "num_images": len(evaluator.images),
-              "checkpoint": str(cfg.ckpt)}
+              "checkpoint": str(cfg.ckpt), "data": data,
+              "graph": None if detector.graph is None else detector.graph.as_dict(), "overrides": overrides}
     (run_dir / "metrics.json").write_text(json.dumps(result, indent=1))
     (run_dir / "detections.json").write_text(json.dumps(evaluator.results_json()))
     if cfg.save_images:
         save_pictures(model, loader, device, run_dir / "images", cfg.save_images)
     print(f"{cfg.split} split, {len(evaluator.images)} images ({run_dir}):\n{format_metrics(metrics)}", flush=True)
     return {"metrics": result, "run_dir": Path(run_dir)}
-
-
-def save_pictures(model, loader, device, folder: Path, count: int) -> None:
-    """PNGs of the first ``count`` samples with true (green) and predicted (red) boxes."""
-    import torch
-
-    folder.mkdir(parents=True, exist_ok=True)
-    model.eval()
-    saved = 0
-    with torch.no_grad():
-        for batch in loader:
-            batch = batch.to(device)
-            detections = model(batch)
-            for b in range(len(batch)):
-                if saved >= count:
-                    return
-                picture = render_sample(batch, b, detections[b])
-                Image.fromarray(np.ascontiguousarray(picture)).save(
-                    folder / f"{batch.videos[b]}_frame_{int(batch.frames[b])}.png")
-                saved += 1

@@ -1,5 +1,7 @@
-"""Scoring a detector on a split, and pictures of events, frames and boxes."""
+"""Scoring a detector over a loader with COCO metrics, and pictures of events, frames and boxes."""
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -14,7 +16,7 @@ from dagr_lite.eval.coco import CocoEvaluator
 
 
 @torch.no_grad()
-def evaluate_model(model: nn.Module, loader: DataLoader, device: torch.device, *, backend: str = "pycocotools",
+def score_model(model: nn.Module, loader: DataLoader, device: torch.device, *, backend: str = "pycocotools",
                    conf_threshold: float = 0.001, nms_threshold: float = 0.65, progress: bool = True,
                    desc: str = "evaluating") -> tuple[dict, CocoEvaluator]:
     """COCO metrics of ``model`` over every sample of ``loader`` (no batch is dropped)."""
@@ -56,3 +58,21 @@ def render_sample(batch: Batch, index: int, detections: dict | None = None, *, s
                     draw.rectangle(box, outline=(255, 0, 0))
         panels.append(np.asarray(panel))
     return np.concatenate(panels, axis=1)
+
+
+@torch.no_grad()
+def save_pictures(model: nn.Module, loader: DataLoader, device: torch.device, folder: Path, count: int) -> None:
+    """PNGs of the first ``count`` samples with true (green) and predicted (red) boxes."""
+    folder.mkdir(parents=True, exist_ok=True)
+    model.eval()
+    saved = 0
+    for batch in loader:
+        batch = batch.to(device)
+        detections = model(batch)
+        for b in range(len(batch)):
+            if saved >= count:
+                return
+            picture = render_sample(batch, b, detections[b])
+            Image.fromarray(np.ascontiguousarray(picture)).save(
+                folder / f"{fmt.label_key(batch.videos[b], int(batch.frames[b]))}.png")
+            saved += 1

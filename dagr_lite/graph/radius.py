@@ -1,4 +1,4 @@
-"""The causal radius graph of an event cloud (DESIGN.md section 5).
+"""The causal radius graph of an event cloud (docs/design.md, "The event graph").
 
 Node ``i`` is at ``pos_i = (x, y, beta * t)``. The edge ``j -> i`` exists iff ``j`` is earlier
 than ``i`` (smaller index: events are sorted by time, ties by index), ``|pos_i - pos_j| <= r``,
@@ -44,7 +44,7 @@ def sample_slices(batch: np.ndarray | None, n: int) -> list[slice]:
     return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
-def _first_k(dist: np.ndarray, idx: np.ndarray, ok: np.ndarray, k: int):
+def first_k(dist: np.ndarray, idx: np.ndarray, ok: np.ndarray, k: int):
     """Per row, the ``k`` best accepted candidates by (distance, index).
 
     ``dist`` and ``idx`` are ``(M, A)`` with each row sorted by distance (ties in any order).
@@ -110,7 +110,7 @@ def knn_within(tree: cKDTree, query: np.ndarray, query_id: np.ndarray | None, k:
                 kth[enough] = np.partition(np.where(ok[enough], dist[enough], np.inf), k - 1, axis=1)[:, k - 1]
             complete = (nbr[:, -1] == n_tree) | (ask == n_tree) | (enough & (dist[:, -1] > kth))
             done = rows[complete]
-            out_idx[done], out_dist[done] = _first_k(dist[complete], ids[complete], ok[complete], k)
+            out_idx[done], out_dist[done] = first_k(dist[complete], ids[complete], ok[complete], k)
             if not complete.all():
                 pending.append((rows[~complete], min(n_tree, 2 * ask)))
     return out_idx, out_dist
@@ -159,17 +159,3 @@ def radius_graph(pos, r: float, k: int, batch=None, *, workers: int = -1) -> tor
     edges = np.concatenate(parts, axis=1) if parts else np.zeros((2, 0), dtype=np.int64)
     return torch.from_numpy(edges).to(device)
 
-
-def event_graph(events: torch.Tensor, batch: torch.Tensor | None, *, radius: float, beta: float,
-                max_neighbors: int, workers: int = -1) -> torch.Tensor:
-    """The causal graph of events ``(N, 4)`` (x, y, t in us, p) at positions ``(x, y, beta * t)``.
-
-    The one definition used by the data loader's workers and by the event branch, so both give
-    the same edges (positions in float64).
-
-    Shapes:
-        events ``(N, 4)``, batch ``(N,)`` -> edge_index ``(2, E)``.
-    """
-    events = events.detach().double()
-    pos = torch.stack([events[:, 0], events[:, 1], beta * events[:, 2]], dim=1)  # (N, 3)
-    return radius_graph(pos, radius, max_neighbors, batch, workers=workers)

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from dagr_lite.graph.radius import _first_k, as_numpy_pos, knn_within, neighbours_to_edges
+from dagr_lite.graph.radius import as_numpy_pos, first_k, knn_within, neighbours_to_edges
 
 
 @dataclass
@@ -65,9 +65,6 @@ class StreamingGraph:
         """Events currently held (including some older than the window, until their chunk expires)."""
         return sum(len(c.ids) for c in self._chunks)
 
-    def node_ids(self) -> np.ndarray:
-        return np.concatenate([c.ids for c in self._chunks]) if self._chunks else np.zeros(0, np.int64)
-
     def insert(self, pos) -> torch.Tensor:
         """Add events ``(M, 3)`` (sorted by ``z``, not earlier than any before) and return their
         incoming edges ``(2, E)`` in global ids, sorted by destination and then source."""
@@ -96,7 +93,7 @@ class StreamingGraph:
             all_idx, all_dist = np.concatenate(candidates_idx, axis=1), np.concatenate(candidates_dist, axis=1)
             order = np.argsort(all_dist, axis=1, kind="stable")
             all_idx, all_dist = np.take_along_axis(all_idx, order, axis=1), np.take_along_axis(all_dist, order, axis=1)
-            idx, _ = _first_k(all_dist, all_idx, all_idx >= 0, self.k)
+            idx, _ = first_k(all_dist, all_idx, all_idx >= 0, self.k)
         edges = neighbours_to_edges(idx, ids)
         self._add_chunk(_Chunk(points, ids, own))
         self.num_inserted += m

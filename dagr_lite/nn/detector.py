@@ -8,45 +8,52 @@ variants); nothing else changes.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from typing import Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from dagr_lite.data.collate import Batch
+from dagr_lite.graph.spec import EventGraphSpec
+from dagr_lite.nn.blocks import conv_bn_act
 from dagr_lite.nn.event_branch import EventBranch
 from dagr_lite.nn.head import YOLOXHead, postprocess, yolox_losses
-
-STRIDES = (8, 16, 32)
-
-
-def _conv(c_in: int, c_out: int, stride: int = 1, k: int = 3) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(c_in, c_out, k, stride, k // 2, bias=False), nn.BatchNorm2d(c_out), nn.SiLU())
 
 
 class _Residual(nn.Module):
     def __init__(self, channels: int):
         super().__init__()
-        self.body = nn.Sequential(_conv(channels, channels, k=1), _conv(channels, channels))
+        self.body = nn.Sequential(conv_bn_act(channels, channels, k=1), conv_bn_act(channels, channels))
 
     def forward(self, x):
         return x + self.body(x)
 
 
 class ImageBranch(nn.Module):
-    """A small CNN from scratch: stride-4 stem, then one downsampling stage per head stride.
+    """A small CNN from scratch: a stride-4 stem, then one downsampling stage per head stride.
+
+    Args:
+        width: ``w``, the stem's channels; stage ``i`` has ``2^(i+1) w``.
+        strides: the head's strides, each twice the one before, starting at 8.
 
     Shapes:
-        images ``(B, 3, H, W)`` uint8 -> maps at strides 4, 8, 16, 32 with
-        ``channels = (2w, 4w, 8w, 16w)`` for ``width = w``.
+        images ``(B, 3, H, W)`` uint8 -> maps at strides ``(4, *strides)`` with
+        ``channels = (2w, 4w, 8w, ...)``.
     """
 
-    def __init__(self, width: int = 16):
+    def __init__(self, width: int, strides: Sequence[int]):
         super().__init__()
-        self.channels = (2 * width, 4 * width, 8 * width, 16 * width)
-        self.stem = nn.Sequential(_conv(3, width, 2), _conv(width, 2 * width, 2), _Residual(2 * width))
-        self.stages = nn.ModuleList(nn.Sequential(_conv(c_in, c_out, 2), _Residual(c_out))
+        expected = [8 * 2 ** i for i in range(len(strides))]
+        if list(strides) != expected:
+            raise ValueError(f"the image branch needs strides {expected} (each twice the one before, "
+                             f"starting at 8), got {list(strides)}")
+        self.strides = (4, *strides)
+        self.channels = tuple(2 ** (i + 1) * width for i in range(len(self.strides)))
+        self.stem = nn.Sequential(conv_bn_act(3, width, stride=2), conv_bn_act(width, 2 * width, stride=2),
+                                  _Residual(2 * width))
+        self.stages = nn.ModuleList(nn.Sequential(conv_bn_act(c_in, c_out, stride=2), _Residual(c_out))
                                     for c_in, c_out in zip(self.channels[:-1], self.channels[1:]))
 
     def forward(self, images: torch.Tensor) -> list[torch.Tensor]:
@@ -82,24 +89,61 @@ def sample_at(feature: torch.Tensor, xy: torch.Tensor, batch: torch.Tensor, stri
     return top * (1 - fv) + bottom * fv  # (N, C)
 
 
-@dataclass
+@dataclass(frozen=True)
 class DetectorConfig:
-    """Model hyper-parameters (see ``conf/model/``)."""
+    """Everything that defines a detector's architecture (defaults: ``conf/model/hybrid.yaml``).
+
+    Saved in every checkpoint (:meth:`as_dict`), so a checkpoint rebuilds its own model.
+
+    Args:
+        height, width: frame size in pixels.
+        use_events, use_image: which branches exist (at least one).
+        image_width: the image CNN's stem width.
+        event_channels: event-branch features of the input stage and of each pooled stage.
+        event_blocks: GCN blocks per event stage.
+        fuse_channels: image channels sampled at event nodes, per level (hybrid only).
+        head_hidden: the head's width; num_classes: object classes.
+        strides: the head's output strides in pixels.
+        graph: the event graph (None without an event branch).
+        window_us: the event window the node times are normalised by.
+    """
 
     height: int
     width: int
-    use_events: bool = True
-    use_image: bool = True
-    image_width: int = 16
-    event_channels: tuple[int, ...] = (16, 32, 48, 64)
-    event_blocks: int = 1
-    fuse_channels: int = 8
-    head_hidden: int = 64
-    num_classes: int = 1
-    radius: float = 5.0
-    beta: float = 5e-4
-    max_neighbors: int = 16
-    window_us: float = 33333.0
+    use_events: bool
+    use_image: bool
+    image_width: int
+    event_channels: tuple[int, ...]
+    event_blocks: int
+    fuse_channels: int
+    head_hidden: int
+    num_classes: int
+    strides: tuple[int, ...]
+    graph: EventGraphSpec | None
+    window_us: int
+
+    def __post_init__(self):
+        if not (self.use_events or self.use_image):
+            raise ValueError("a detector needs at least one branch: use_events or use_image")
+        if self.use_events and self.graph is None:
+            raise ValueError("a detector with an event branch needs an event-graph spec (graph)")
+
+    def as_dict(self) -> dict:
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        values["event_channels"], values["strides"] = list(self.event_channels), list(self.strides)
+        values["graph"] = None if self.graph is None else self.graph.as_dict()
+        return values
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "DetectorConfig":
+        """The config of :meth:`as_dict`'s output; a missing or unknown key is an error naming it."""
+        names = {f.name for f in fields(cls)}
+        if set(values) != names:
+            missing, unknown = sorted(names - set(values)), sorted(set(values) - names)
+            raise ValueError(f"detector config: missing keys {missing}, unknown keys {unknown}")
+        graph = values["graph"]
+        return cls(**{**values, "event_channels": tuple(values["event_channels"]), "strides": tuple(values["strides"]),
+                      "graph": None if graph is None else EventGraphSpec.from_dict(dict(graph))})
 
 
 class Detector(nn.Module):
@@ -107,31 +151,28 @@ class Detector(nn.Module):
 
     def __init__(self, cfg: DetectorConfig):
         super().__init__()
-        if not (cfg.use_events or cfg.use_image):
-            raise ValueError("a detector needs at least one branch: use_events or use_image")
         self.cfg = cfg
-        self.strides = list(STRIDES)
-        self.image = ImageBranch(cfg.image_width) if cfg.use_image else None
-        head_in = []
+        self.strides = list(cfg.strides)
+        self.image = ImageBranch(cfg.image_width, cfg.strides) if cfg.use_image else None
         if cfg.use_events:
-            fuse = (cfg.fuse_channels,) * 4 if cfg.use_image else None
+            fuse = (cfg.fuse_channels,) * (len(cfg.strides) + 1) if cfg.use_image else None
             self.events = EventBranch(height=cfg.height, width=cfg.width, channels=cfg.event_channels,
-                                      strides=STRIDES, radius=cfg.radius, beta=cfg.beta,
-                                      max_neighbors=cfg.max_neighbors, window_us=cfg.window_us,
+                                      strides=cfg.strides, graph=cfg.graph, window_us=cfg.window_us,
                                       blocks=cfg.event_blocks, image_channels=fuse)
         else:
             self.events = None
         if cfg.use_image and cfg.use_events:
             # 1x1 projections of the image maps (strides 4, 8, 16, 32) sampled at event nodes.
             self.to_nodes = nn.ModuleList(nn.Conv2d(c, cfg.fuse_channels, 1) for c in self.image.channels)
-            self.fuse = nn.ModuleList(_conv(ci + ce, ci, k=1) for ci, ce in
+            self.fuse = nn.ModuleList(conv_bn_act(ci + ce, ci, k=1) for ci, ce in
                                       zip(self.image.channels[1:], self.events.out_channels))
-            head_in = list(self.image.channels[1:])
-        elif cfg.use_image:
-            head_in = list(self.image.channels[1:])
-        else:
-            head_in = list(self.events.out_channels)
+        head_in = list(self.image.channels[1:]) if cfg.use_image else list(self.events.out_channels)
         self.head = YOLOXHead(head_in, self.strides, hidden=cfg.head_hidden, num_classes=cfg.num_classes)
+
+    @property
+    def graph_spec(self) -> EventGraphSpec | None:
+        """The event graph this model reads (None without an event branch)."""
+        return self.cfg.graph
 
     def features(self, batch: Batch) -> list[torch.Tensor]:
         """The fused maps the head reads, one per stride."""
@@ -153,7 +194,7 @@ class Detector(nn.Module):
     def _node_sampler(self, image_maps: list[torch.Tensor]):
         """Image features at event nodes: level 0 from the stride-4 map, pooled levels from theirs."""
         node_maps = [proj(m) for proj, m in zip(self.to_nodes, image_maps)]
-        strides = (4, *STRIDES)
+        strides = self.image.strides
 
         def sampler(xy: torch.Tensor, node_batch: torch.Tensor, level: int) -> torch.Tensor:
             return sample_at(node_maps[level], xy, node_batch, strides[level])

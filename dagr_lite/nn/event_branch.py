@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from dagr_lite.graph.pool import to_dense, voxel_max_pool
-from dagr_lite.graph.radius import event_graph
+from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.gcn import GCNConv, GraphOperator
 
 ImageSampler = Callable[[torch.Tensor, torch.Tensor, int], torch.Tensor]
@@ -49,8 +49,7 @@ class EventBranch(nn.Module):
         height, width: sensor size in pixels.
         channels: feature size of the input stage and of each pooled stage (``len(strides) + 1``).
         strides: pooling cell sizes in pixels, increasing; one dense map each.
-        radius: graph radius in pixels; beta: pixels per microsecond (``t`` scale);
-        max_neighbors: K, the incoming edges per node.
+        graph: the event graph's settings (node positions and edges).
         window_us: the length of a sample's event window (normalises t).
         blocks: GCN blocks per stage.
         image_channels: image feature channels joined at each level (input, then each stride).
@@ -60,10 +59,8 @@ class EventBranch(nn.Module):
         list of ``(B, channels[s + 1], ceil(H / strides[s]), ceil(W / strides[s]))``.
     """
 
-    def __init__(self, *, height: int, width: int, channels: Sequence[int] = (16, 32, 64, 96),
-                 strides: Sequence[int] = (8, 16, 32), radius: float = 5.0, beta: float = 5e-4,
-                 max_neighbors: int = 16, window_us: float = 33333.0, blocks: int = 1,
-                 image_channels: Sequence[int] | None = None):
+    def __init__(self, *, height: int, width: int, channels: Sequence[int], strides: Sequence[int],
+                 graph: EventGraphSpec, window_us: float, blocks: int, image_channels: Sequence[int] | None = None):
         super().__init__()
         if len(channels) != len(strides) + 1:
             raise ValueError(f"channels needs one entry for the input stage and one per stride: "
@@ -71,7 +68,7 @@ class EventBranch(nn.Module):
         if list(strides) != sorted(strides) or len(set(strides)) != len(strides):
             raise ValueError(f"strides must increase, got {list(strides)}")
         self.height, self.width, self.strides = height, width, tuple(strides)
-        self.radius, self.beta, self.max_neighbors, self.window_us = radius, beta, max_neighbors, window_us
+        self.spec, self.window_us = graph, window_us
         self.image_channels = tuple(image_channels) if image_channels is not None else (0,) * len(channels)
         if len(self.image_channels) != len(channels):
             raise ValueError(f"image_channels needs {len(channels)} entries, got {len(self.image_channels)}")
@@ -87,17 +84,13 @@ class EventBranch(nn.Module):
         x, y, t, p = events.unbind(dim=1)
         return torch.stack([2 * p - 1, x / self.width, y / self.height, t / self.window_us], dim=1)
 
-    def graph(self, events: torch.Tensor, batch: torch.Tensor) -> torch.Tensor:
-        """The causal event graph, as :class:`~dagr_lite.data.collate.GraphCollate` builds it."""
-        return event_graph(events, batch, radius=self.radius, beta=self.beta, max_neighbors=self.max_neighbors)
-
     def forward(self, events: torch.Tensor, batch: torch.Tensor, batch_size: int,
                 image_sampler: ImageSampler | None = None, edge_index: torch.Tensor | None = None
                 ) -> list[torch.Tensor]:
         """``edge_index``: the event graph if already built (e.g. by the data loader's workers)."""
-        pos = torch.stack([events[:, 0], events[:, 1], self.beta * events[:, 2]], dim=1)  # (N, 3)
+        pos = self.spec.positions(events)  # (N, 3)
         if edge_index is None:
-            edge_index = self.graph(events, batch)
+            edge_index = self.spec.edges(events, batch)
         edge_index = edge_index.to(events.device)  # (2, E)
         x = self.node_features(events)  # (N, 4)
         maps = []

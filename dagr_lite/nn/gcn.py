@@ -1,4 +1,4 @@
-"""The causal GCN layer as one sparse matrix product per layer (DESIGN.md section 5).
+"""The causal GCN layer as one sparse matrix product per layer (docs/design.md, "The event graph").
 
 ``h_i' = W * sum_{j in N(i) + {i}} h_j / sqrt(d_i * d_j)`` with ``d = 1 + in-degree``. A node's
 in-degree is fixed when it arrives (its edges come from earlier nodes only), so a node's output
@@ -112,14 +112,6 @@ class GraphOperator:
         self._adj: dict[torch.dtype, torch.Tensor] = {}
         self._adj_t: dict[torch.dtype, torch.Tensor] = {}
 
-    @property
-    def adj(self) -> torch.Tensor:
-        return self.matrix(torch.float32)
-
-    @property
-    def adj_t(self) -> torch.Tensor:
-        return self.transposed(torch.float32)
-
     def matrix(self, dtype: torch.dtype) -> torch.Tensor:
         """``adj`` as CSR of ``dtype``, made once per dtype."""
         if dtype not in self._adj:
@@ -136,15 +128,6 @@ class GraphOperator:
             order = self._order
             self._adj_t[dtype] = _csr(col[order], row[order], value[order].to(dtype), (self.num_nodes, self.num_out))
         return self._adj_t[dtype]
-
-    def to(self, device) -> "GraphOperator":
-        other = object.__new__(GraphOperator)
-        other.num_nodes, other.num_out = self.num_nodes, self.num_out
-        other.rows = None if self.rows is None else self.rows.to(device)
-        other._triplets = tuple(t.to(device) for t in self._triplets)
-        other._order = None if self._order is None else self._order.to(device)
-        other._adj, other._adj_t = {}, {}
-        return other
 
     def propagate(self, x: torch.Tensor) -> torch.Tensor:
         """``adj @ x`` with a sparse backward (``adj_t @ grad``).  ``(N, F) -> (N_out, F)``.

@@ -12,6 +12,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from dagr_lite.nn.blocks import conv_bn_act
+
 
 def box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Pairwise IoU of xyxy boxes.  ``(M, 4), (N, 4) -> (M, N)``."""
@@ -144,13 +146,12 @@ class YOLOXHead(nn.Module):
         super().__init__()
         self.strides, self.num_classes = list(strides), num_classes
 
-        def conv(c_in, c_out, k=3):
-            return nn.Sequential(nn.Conv2d(c_in, c_out, k, padding=k // 2, bias=False), nn.BatchNorm2d(c_out),
-                                 nn.SiLU())
+        def branch():
+            return nn.Sequential(conv_bn_act(hidden, hidden), conv_bn_act(hidden, hidden))
 
-        self.stems = nn.ModuleList(conv(c, hidden, 1) for c in in_channels)
-        self.cls_branches = nn.ModuleList(nn.Sequential(conv(hidden, hidden), conv(hidden, hidden)) for _ in strides)
-        self.reg_branches = nn.ModuleList(nn.Sequential(conv(hidden, hidden), conv(hidden, hidden)) for _ in strides)
+        self.stems = nn.ModuleList(conv_bn_act(c, hidden, k=1) for c in in_channels)
+        self.cls_branches = nn.ModuleList(branch() for _ in strides)
+        self.reg_branches = nn.ModuleList(branch() for _ in strides)
         self.cls_preds = nn.ModuleList(nn.Conv2d(hidden, num_classes, 1) for _ in strides)
         self.reg_preds = nn.ModuleList(nn.Conv2d(hidden, 4, 1) for _ in strides)
         self.obj_preds = nn.ModuleList(nn.Conv2d(hidden, 1, 1) for _ in strides)
@@ -170,37 +171,33 @@ class YOLOXHead(nn.Module):
 
 
 def yolox_losses(raw: torch.Tensor, shapes: list[tuple[int, int]], strides: list[int], gt_boxes: list[torch.Tensor],
-                 gt_labels: list[torch.Tensor], *, iou_weight: float = 5.0, use_l1: bool = False) -> dict:
-    """Training losses: IoU (1 - IoU^2) on foreground boxes, BCE objectness on all anchors, BCE class
-    (target = IoU) on foreground anchors, optional L1 on raw box offsets; normalised by foreground count.
+                 gt_labels: list[torch.Tensor], *, iou_weight: float = 5.0) -> dict:
+    """Training losses: IoU (1 - IoU^2) on foreground boxes, BCE objectness on all anchors and BCE class
+    (target = IoU) on foreground anchors, each normalised by the foreground count (at least 1).
+
+    ``loss = iou_weight * iou_loss + obj_loss + cls_loss``; also returns the parts (detached) and ``num_fg``.
     """
     # Assignment and losses in float32 even inside a mixed-precision step (BCE is not autocast-safe).
     with torch.autocast(raw.device.type, enabled=False):
-        return _yolox_losses(raw.float(), shapes, strides, gt_boxes, gt_labels, iou_weight=iou_weight, use_l1=use_l1)
+        return _yolox_losses(raw.float(), shapes, strides, gt_boxes, gt_labels, iou_weight=iou_weight)
 
 
-def _yolox_losses(raw, shapes, strides, gt_boxes, gt_labels, *, iou_weight, use_l1) -> dict:
+def _yolox_losses(raw, shapes, strides, gt_boxes, gt_labels, *, iou_weight) -> dict:
     batch, device = raw.shape[0], raw.device
     centres, stride_of = anchors_of(shapes, strides, device)
     boxes = decode_boxes(raw[..., :4], centres, stride_of)  # (B, A, 4)
     obj_logits, cls_logits = raw[..., 4], raw[..., 5:]
     obj_targets = torch.zeros_like(obj_logits)
-    fg_boxes, fg_targets, cls_fg, cls_targets, l1_pred, l1_target = [], [], [], [], [], []
+    fg_boxes, fg_targets, cls_fg, cls_targets = [], [], [], []
     for b in range(batch):
         a = simota_assign(boxes[b].detach(), obj_logits[b].detach(), cls_logits[b].detach(), gt_boxes[b].float(),
                           gt_labels[b], centres, stride_of)
         obj_targets[b, a.fg] = 1.0
         if a.fg.any():
-            matched = gt_boxes[b].float()[a.gt_index]
             fg_boxes.append(boxes[b, a.fg])
-            fg_targets.append(matched)
+            fg_targets.append(gt_boxes[b].float()[a.gt_index])
             cls_fg.append(cls_logits[b, a.fg])
             cls_targets.append(F.one_hot(gt_labels[b][a.gt_index], cls_logits.shape[-1]).float() * a.iou[:, None])
-            if use_l1:
-                s, c = stride_of[a.fg][:, None], centres[a.fg]
-                wh = (matched[:, 2:] - matched[:, :2]).clamp(min=1e-3)
-                l1_target.append(torch.cat([((matched[:, :2] + matched[:, 2:]) / 2 - c) / s, torch.log(wh / s)], 1))
-                l1_pred.append(raw[b, a.fg, :4])
     num_fg = sum(len(t) for t in fg_targets)
     norm = max(num_fg, 1)
     obj_loss = F.binary_cross_entropy_with_logits(obj_logits, obj_targets, reduction="sum") / norm
@@ -208,16 +205,11 @@ def _yolox_losses(raw, shapes, strides, gt_boxes, gt_labels, *, iou_weight, use_
         iou = aligned_iou(torch.cat(fg_boxes), torch.cat(fg_targets))
         iou_loss = (1 - iou ** 2).sum() / norm
         cls_loss = F.binary_cross_entropy_with_logits(torch.cat(cls_fg), torch.cat(cls_targets), reduction="sum") / norm
-        l1_loss = F.l1_loss(torch.cat(l1_pred), torch.cat(l1_target), reduction="sum") / norm if use_l1 else None
     else:
         iou_loss = cls_loss = raw.sum() * 0.0
-        l1_loss = raw.sum() * 0.0 if use_l1 else None
-    loss = iou_weight * iou_loss + obj_loss + cls_loss + (l1_loss if l1_loss is not None else 0.0)
-    out = {"loss": loss, "iou_loss": iou_loss.detach(), "obj_loss": obj_loss.detach(), "cls_loss": cls_loss.detach(),
-           "num_fg": torch.tensor(float(num_fg), device=device)}
-    if l1_loss is not None:
-        out["l1_loss"] = l1_loss.detach()
-    return out
+    loss = iou_weight * iou_loss + obj_loss + cls_loss
+    return {"loss": loss, "iou_loss": iou_loss.detach(), "obj_loss": obj_loss.detach(), "cls_loss": cls_loss.detach(),
+            "num_fg": torch.tensor(float(num_fg), device=device)}
 
 
 def postprocess(raw: torch.Tensor, shapes: list[tuple[int, int]], strides: list[int], *, conf_threshold: float = 0.001,

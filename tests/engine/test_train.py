@@ -7,9 +7,10 @@ import torch
 from hydra import compose, initialize_config_dir
 
 import dagr_lite.engine.train as train_module
+from dagr_lite.config import ConfigError
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.evaluate import evaluate
-from dagr_lite.engine.train import train
+from dagr_lite.engine.train import ResumeError, train
 from dagr_lite.synth.stub import stub_root
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
@@ -110,3 +111,79 @@ def test_runs_never_overwrite_and_bad_checkpoints_are_named(tmp_path):
         evaluate(config("evaluate", f"ckpt={tmp_path / 'junk.pt'}", f"run_dir={tmp_path / 'e2'}"))
     with pytest.raises(Exception, match="ckpt"):
         evaluate(config("evaluate", f"run_dir={tmp_path / 'e3'}"))  # ckpt is required
+
+
+def test_evaluation_takes_the_data_and_graph_settings_from_the_checkpoint(tmp_path, capsys):
+    train(small(tmp_path / "run", "model=events_only", "trainer.max_steps=1", "data.window_us=20000",
+                "data.image_lag=2", "model.graph.radius=4"))
+    ckpt = tmp_path / "run" / "checkpoints" / "last.pt"
+    evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'e'}", "loader.num_workers=0", "split=valid"))
+    out = json.loads((tmp_path / "e" / "metrics.json").read_text())
+    assert out["data"] == {"image_lag": 2, "window_us": 20000, "max_events": 6000}
+    assert out["graph"] == {"radius": 4.0, "beta": 5e-4, "max_neighbors": 16} and out["overrides"] == {}
+    assert out["num_images"] == len(EventEgoHands(stub_root(), "valid", image_lag=2))
+    capsys.readouterr()
+    evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'o'}", "loader.num_workers=0", "split=valid",
+                    "data.window_us=33333", "graph.radius=5"))
+    assert "override: data.window_us=33333 (the checkpoint was trained with 20000)" in capsys.readouterr().out
+    out = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert out["data"]["window_us"] == 33333 and out["graph"]["radius"] == 5.0
+    assert out["overrides"] == {"data.window_us": {"checkpoint": 20000, "used": 33333},
+                                "graph.radius": {"checkpoint": 4.0, "used": 5}}
+
+
+def test_evaluation_refuses_what_the_model_cannot_take(tmp_path, dataset):
+    train(small(tmp_path / "run", "model=image_only", "trainer.max_steps=1"))
+    ckpt = tmp_path / "run" / "checkpoints" / "last.pt"
+    with pytest.raises(ConfigError, match=r"trained on 320x180 frames, but the dataset's frames are 64x48"):
+        evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'a'}", "dataset=custom",
+                        f"dataset.root={dataset.root}", "loader.num_workers=0"))
+    with pytest.raises(ConfigError, match=r"graph\.radius=3\.0 was given, but the checkpoint's model has no event branch"):
+        evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'b'}", "graph.radius=3.0"))
+
+
+def test_bad_values_stop_before_the_run_folder_is_made(tmp_path):
+    for i, override in enumerate(("trainer.max_steps=-3", "trainer.val_every=-1", "loader.batch_size=0",
+                                  "data.window_us=abc")):
+        with pytest.raises(ConfigError, match=override.split("=")[0].replace(".", r"\.")):
+            train(small(tmp_path / f"run{i}", override))
+        assert not (tmp_path / f"run{i}").exists()
+
+
+def test_a_refused_run_writes_nothing_into_the_earlier_one(tmp_path):
+    import subprocess
+    import sys
+    repo = Path(__file__).resolve().parents[2]
+    earlier = tmp_path / "run"
+    (earlier / "checkpoints").mkdir(parents=True)
+    (earlier / "config.yaml").write_text("the earlier run's config\n")
+    run = subprocess.run([sys.executable, str(repo / "train.py"), f"run_dir={earlier}", "model=image_only"],
+                         capture_output=True, text=True, cwd=tmp_path)
+    assert run.returncode != 0 and "holds an earlier run" in run.stderr
+    assert sorted(p.name for p in earlier.iterdir()) == ["checkpoints", "config.yaml"]
+    assert (earlier / "config.yaml").read_text() == "the earlier run's config\n"
+    assert not (tmp_path / "runs").exists()  # nor a stray folder of Hydra's
+
+
+def test_resume_refuses_another_variant_and_keeps_the_best_checkpoint(tmp_path, monkeypatch):
+    train(small(tmp_path / "a", "model=image_only", "trainer.max_steps=2", "trainer.val_every=1"))
+    last = tmp_path / "a" / "checkpoints" / "last.pt"
+    with pytest.raises(ResumeError, match=r"use_events: False in the checkpoint, True here"):
+        train(small(tmp_path / "b", "model=hybrid", "trainer.max_steps=3", f"resume={last}"))
+    # The resumed run never beats the old best: its folder still holds the best weights.
+    monkeypatch.setattr(train_module, "validate", lambda *args, **kwargs: {k: 0.0 for k in METRIC_KEYS})
+    train(small(tmp_path / "c", "model=image_only", "trainer.max_steps=3", "trainer.val_every=1", f"resume={last}"))
+    best_old = torch.load(tmp_path / "a" / "checkpoints" / "best.pt", weights_only=True)
+    best_new = torch.load(tmp_path / "c" / "checkpoints" / "best.pt", weights_only=True)
+    assert best_new["step"] == best_old["step"] and best_new["best_metric"] == best_old["best_metric"]
+
+
+def test_last_checkpoint_is_saved_before_validation(tmp_path, monkeypatch):
+    def broken(*args, **kwargs):
+        raise OSError("a corrupt frame in the valid split")
+
+    monkeypatch.setattr(train_module, "validate", broken)
+    with pytest.raises(OSError, match="corrupt frame"):
+        train(small(tmp_path / "run", "model=image_only", "trainer.max_steps=2", "trainer.val_every=2"))
+    saved = torch.load(tmp_path / "run" / "checkpoints" / "last.pt", weights_only=True)
+    assert saved["step"] == 2

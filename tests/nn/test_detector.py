@@ -2,16 +2,17 @@ import torch
 
 from dagr_lite.data.collate import collate
 from dagr_lite.data.dataset import EventEgoHands
-from dagr_lite.nn.detector import Detector, DetectorConfig
+from dagr_lite.nn.detector import Detector
 from dagr_lite.nn.head import box_iou
 from dagr_lite.synth.stub import stub_root
+from tests.models import small_detector_config
 
 
 def test_the_hybrid_model_overfits_one_batch():
     torch.manual_seed(0)
     dataset = EventEgoHands(stub_root(), "train", max_events=4000)
     batch = collate([dataset[i] for i in (5, 60, 150, 260)])
-    model = Detector(DetectorConfig(height=180, width=320, image_width=8, event_channels=(8, 16, 16, 16), head_hidden=32))
+    model = Detector(small_detector_config(image_width=8, event_channels=(8, 16, 16, 16), head_hidden=32))
     optimizer = torch.optim.AdamW(model.parameters(), lr=3e-3)
     losses = []
     for _ in range(100):
@@ -36,8 +37,8 @@ def test_training_output_names_and_variants():
     dataset = EventEgoHands(stub_root(), "valid", max_events=2000)
     batch = collate([dataset[i] for i in (0, 40)])
     for use_events, use_image in ((True, True), (True, False), (False, True)):
-        model = Detector(DetectorConfig(height=180, width=320, use_events=use_events, use_image=use_image,
-                                        image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16))
+        model = Detector(small_detector_config(use_events=use_events, use_image=use_image, image_width=8,
+                                               event_channels=(8, 8, 8, 8), head_hidden=16))
         out = model(batch)
         assert set(out) == {"loss", "iou_loss", "obj_loss", "cls_loss", "num_fg"} and torch.isfinite(out["loss"])
         model.eval()
@@ -55,7 +56,7 @@ def test_mixed_precision_keeps_losses_and_graph_products_in_float32(monkeypatch)
     monkeypatch.setattr(head_module.F, "binary_cross_entropy", guarded_bce)
     dataset = EventEgoHands(stub_root(), "valid", max_events=2000)
     batch = collate([dataset[i] for i in (3, 50)])
-    model = Detector(DetectorConfig(height=180, width=320, image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16))
+    model = Detector(small_detector_config(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16))
     with torch.autocast("cpu", dtype=torch.bfloat16):
         out = model(batch)
     assert out["loss"].dtype == torch.float32 and torch.isfinite(out["loss"])

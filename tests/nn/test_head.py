@@ -1,8 +1,11 @@
+import math
+
 import torch
 import torch.nn.functional as F
 
 from dagr_lite.nn.detector import ImageBranch, sample_at
-from dagr_lite.nn.head import YOLOXHead, anchors_of, box_iou, decode_boxes, nms, postprocess, simota_assign
+from dagr_lite.nn.head import (YOLOXHead, anchors_of, box_iou, decode_boxes, nms, postprocess, simota_assign,
+                               yolox_losses)
 
 
 def brute_force_nms(boxes, scores, threshold, labels):
@@ -59,12 +62,31 @@ def test_simota_gives_a_box_its_centre_cells_within_dynamic_k_bounds():
     assert not none.fg.any()
 
 
-def test_two_boxes_never_share_an_anchor():
+def test_an_anchor_claimed_by_two_boxes_goes_to_the_cheaper_one():
+    # Two overlapping boxes of the same class; on an 8x8 map at stride 8 both have the cells with centres
+    # {20, 28, 36}^2 inside the box and near the centre. Every anchor predicts a far box (IoU 0) except:
+    #   Y (20, 20) predicts box 0 exactly:    IoU 1 with box 0, 784 / 1264 = 0.620 with box 1;
+    #   X (36, 36) predicts [11, 11, 43, 43]: IoU 841 / 1207 = 0.697 with box 0, 961 / 1087 = 0.884 with box 1;
+    #   W (28, 20) predicts [8, 8, 28, 28]:   IoU 400 / 1024 = 0.391 with box 0, 256 / 1168 = 0.219 with box 1.
+    # Dynamic k: box 0 int(1 + 0.697 + 0.391) = 2 -> Y and X; box 1 int(0.884 + 0.620 + 0.219) = 1 -> X.
+    # X is claimed by both and costs less for box 1 (-log 0.884 < -log 0.697), so X goes to box 1 alone.
     centres, stride_of = anchors_of([(8, 8)], [8], "cpu")
-    gt = torch.tensor([[8.0, 8.0, 40.0, 40.0], [16.0, 16.0, 48.0, 48.0]])
-    pred = torch.tensor([[12.0, 12.0, 44.0, 44.0]]).expand(64, 4)
-    a = simota_assign(pred, torch.zeros(64), torch.zeros(64, 1), gt, torch.zeros(2, dtype=torch.long), centres, stride_of)
-    assert len(a.gt_index) == int(a.fg.sum()) and set(a.gt_index.tolist()) <= {0, 1}
+    gt = torch.tensor([[8.0, 8.0, 40.0, 40.0], [12.0, 12.0, 44.0, 44.0]])
+    y, w, x = 2 * 8 + 2, 2 * 8 + 3, 4 * 8 + 4
+    pred = torch.tensor([[200.0, 200.0, 210.0, 210.0]]).repeat(64, 1)
+    pred[y], pred[x], pred[w] = gt[0], torch.tensor([11.0, 11.0, 43.0, 43.0]), torch.tensor([8.0, 8.0, 28.0, 28.0])
+    iou = box_iou(gt, pred[[y, x, w]])
+    assert torch.allclose(iou, torch.tensor([[1.0, 841 / 1207, 400 / 1024], [784 / 1264, 961 / 1087, 256 / 1168]]))
+    labels = torch.zeros(2, dtype=torch.long)
+    a = simota_assign(pred, torch.zeros(64), torch.zeros(64, 1), gt, labels, centres, stride_of)
+    assert torch.nonzero(a.fg).flatten().tolist() == [y, x]
+    assert a.gt_index.tolist() == [0, 1]
+    assert torch.allclose(a.iou, torch.tensor([1.0, 961 / 1087]))
+    # The same boxes listed the other way round: the same anchors, the same boxes.
+    b = simota_assign(pred, torch.zeros(64), torch.zeros(64, 1), gt.flip(0), labels, centres, stride_of)
+    assert torch.nonzero(b.fg).flatten().tolist() == [y, x]
+    assert b.gt_index.tolist() == [1, 0]
+    assert torch.allclose(b.iou, torch.tensor([1.0, 961 / 1087]))
 
 
 def test_bilinear_node_sampling_equals_grid_sample():
@@ -82,7 +104,7 @@ def test_bilinear_node_sampling_equals_grid_sample():
 
 
 def test_branch_and_head_shapes():
-    maps = ImageBranch(width=8)(torch.zeros(2, 3, 180, 320, dtype=torch.uint8))
+    maps = ImageBranch(width=8, strides=(8, 16, 32))(torch.zeros(2, 3, 180, 320, dtype=torch.uint8))
     assert [tuple(m.shape) for m in maps] == [(2, 16, 45, 80), (2, 32, 23, 40), (2, 64, 12, 20), (2, 128, 6, 10)]
     head = YOLOXHead([32, 64, 128], [8, 16, 32], hidden=16)
     raw, shapes = head(maps[1:])
@@ -90,3 +112,100 @@ def test_branch_and_head_shapes():
     dets = postprocess(raw, shapes, [8, 16, 32], image_size=(180, 320))
     assert len(dets) == 2 and dets[0]["boxes"].shape[1] == 4 and len(dets[0]["boxes"]) <= 100
     assert torch.all(dets[0]["boxes"][:, 2] <= 320) and torch.all(dets[0]["boxes"][:, 3] <= 180)
+
+
+def sigmoid(x: float) -> float:
+    return 1 / (1 + math.exp(-x))
+
+
+def bce(logit: float, target: float) -> float:
+    p = sigmoid(logit)
+    return -(target * math.log(p) + (1 - target) * math.log(1 - p))
+
+
+def postprocess_raw() -> torch.Tensor:
+    """Two images on one 2 x 2 map at stride 8 (anchors (4, 4), (12, 4), (4, 12), (12, 12)), two classes."""
+    ln2 = math.log(2)
+    raw = torch.full((2, 4, 7), -8.0)  # image 1: every score sigmoid(-8)^2 < 1e-6
+    raw[0, 0] = torch.tensor([0.0, 0.0, ln2, ln2, 2.0, 1.0, -1.0])  # centre (4, 4), 16 x 16, class 0
+    raw[0, 1] = torch.tensor([0.25, 0.0, ln2, 0.0, 1.0, 0.5, -2.0])  # centre (14, 4), 16 x 8, class 0
+    raw[0, 2] = torch.tensor([0.0, -0.5, ln2, ln2, 3.0, -3.0, 0.0])  # centre (4, 8), 16 x 16, class 1
+    raw[0, 3] = torch.tensor([0.0, 0.0, 0.0, 0.0, -5.0, -5.0, -6.0])  # centre (12, 12), 8 x 8, below threshold
+    return raw
+
+
+def test_postprocess_decodes_scores_clamps_and_suppresses_by_hand():
+    raw, shapes, strides = postprocess_raw(), [(2, 2)], [8]
+    s0, s1, s2 = sigmoid(2) * sigmoid(1), sigmoid(1) * sigmoid(0.5), sigmoid(3) * sigmoid(0)  # 0.644, 0.455, 0.476
+    unclamped = {0: [-4.0, -4.0, 12.0, 12.0], 1: [6.0, 0.0, 22.0, 8.0], 2: [-4.0, 0.0, 12.0, 16.0]}
+    clamped = {0: [0.0, 0.0, 12.0, 12.0], 1: [6.0, 0.0, 20.0, 8.0], 2: [0.0, 0.0, 12.0, 16.0]}  # image 16 x 20
+    # Same class, clamped: boxes 0 and 1 share [6, 12] x [0, 8] = 48 px of 144 + 112 - 48 -> IoU 0.231.
+    # Unclamped they share the same 48 px of 256 + 128 - 48 -> IoU 0.143. Box 2 is of the other class.
+    assert abs(48 / (144 + 112 - 48) - 0.2308) < 1e-4 and abs(48 / (256 + 128 - 48) - 0.1429) < 1e-4
+
+    def check(det, order, boxes):
+        assert det["labels"].tolist() == [{0: 0, 1: 0, 2: 1}[i] for i in order]
+        assert torch.allclose(det["scores"], torch.tensor([{0: s0, 1: s1, 2: s2}[i] for i in order]))
+        assert torch.allclose(det["boxes"], torch.tensor([boxes[i] for i in order]).reshape(-1, 4), atol=1e-5)
+
+    dets = postprocess(raw, shapes, strides, conf_threshold=0.01, nms_threshold=0.2, image_size=(16, 20))
+    check(dets[0], [0, 2], clamped)  # 1 falls to 0 (IoU 0.231 > 0.2); 3 is below the threshold
+    assert dets[1]["boxes"].shape == (0, 4) and len(dets[1]["scores"]) == 0 and len(dets[1]["labels"]) == 0
+    dets = postprocess(raw, shapes, strides, conf_threshold=0.01, nms_threshold=0.2)
+    check(dets[0], [0, 2, 1], unclamped)  # without clamping the overlap is only 0.143
+    dets = postprocess(raw, shapes, strides, conf_threshold=0.01, nms_threshold=0.5, image_size=(16, 20))
+    check(dets[0], [0, 2, 1], clamped)
+    for limit, order in ((2, [0, 2]), (1, [0])):
+        dets = postprocess(raw, shapes, strides, conf_threshold=0.01, nms_threshold=0.5, max_detections=limit,
+                           image_size=(16, 20))
+        check(dets[0], order, clamped)
+    dets = postprocess(raw, shapes, strides, conf_threshold=0.46, nms_threshold=0.5, image_size=(16, 20))
+    check(dets[0], [0, 2], clamped)  # 0.455 < 0.46 <= 0.476
+    dets = postprocess(raw, shapes, strides, conf_threshold=0.0, nms_threshold=0.5, image_size=(16, 20))
+    s3 = sigmoid(-5) * sigmoid(-5)
+    assert torch.allclose(dets[0]["scores"], torch.tensor([s0, s2, s1, s3]))
+    assert dets[0]["boxes"][-1].tolist() == [8.0, 8.0, 16.0, 16.0] and dets[0]["labels"][-1] == 0
+
+
+def loss_case():
+    """One GT [2, 2, 7, 7] on a 2 x 2 map at stride 8: only anchor 0 (4, 4) lies inside it."""
+    raw = torch.zeros(1, 4, 6)
+    raw[0, 0, :4] = torch.tensor([0.1, -0.2, math.log(0.5), 0.0])  # centre (4.8, 2.4), 4 x 8: [2.8, -1.6, 6.8, 6.4]
+    raw[0, :, 4] = torch.tensor([0.3, -1.0, 2.0, -0.5])  # objectness
+    raw[0, :, 5] = torch.tensor([0.7, 0.2, -0.4, 1.1])  # class
+    # The other anchors predict 8 x 8 boxes at their centres, [8, 0, 16, 8] ...: no overlap with the GT, so
+    # dynamic k = int(IoU of anchor 0) = 0 -> 1, and only anchor 0 is in the box and near its centre.
+    return raw, [(2, 2)], [8], torch.tensor([[2.0, 2.0, 7.0, 7.0]]), torch.zeros(1, dtype=torch.long)
+
+
+def test_yolox_losses_of_one_forced_match_by_hand():
+    raw, shapes, strides, gt, labels = loss_case()
+    iou = (4.0 * 4.4) / (25 + 32 - 4.0 * 4.4)  # overlap [2.8, 6.8] x [2, 6.4]; areas 5 x 5 and 4 x 8
+    obj = bce(0.3, 1) + bce(-1.0, 0) + bce(2.0, 0) + bce(-0.5, 0)
+    cls = bce(0.7, iou)  # the class target of a foreground anchor is its IoU
+    for weight in (5.0, 2.0):
+        out = yolox_losses(raw, shapes, strides, [gt], [labels], iou_weight=weight)
+        assert out["num_fg"].item() == 1
+        assert math.isclose(out["iou_loss"].item(), 1 - iou ** 2, rel_tol=1e-5)
+        assert math.isclose(out["obj_loss"].item(), obj, rel_tol=1e-5)
+        assert math.isclose(out["cls_loss"].item(), cls, rel_tol=1e-5)
+        assert math.isclose(out["loss"].item(), weight * (1 - iou ** 2) + obj + cls, rel_tol=1e-5)
+    # A second image without boxes adds its objectness terms; the normaliser is still the one match.
+    raw2 = torch.cat([raw, raw], 0)
+    out = yolox_losses(raw2, shapes, strides, [gt, torch.zeros(0, 4)], [labels, torch.zeros(0, dtype=torch.long)])
+    obj2 = obj + bce(0.3, 0) + bce(-1.0, 0) + bce(2.0, 0) + bce(-0.5, 0)
+    assert out["num_fg"].item() == 1 and math.isclose(out["obj_loss"].item(), obj2, rel_tol=1e-5)
+    assert math.isclose(out["loss"].item(), 5 * (1 - iou ** 2) + obj2 + cls, rel_tol=1e-5)
+
+
+def test_yolox_losses_without_boxes_are_objectness_only():
+    raw, shapes, strides, _, _ = loss_case()
+    raw.requires_grad_(True)
+    out = yolox_losses(raw, shapes, strides, [torch.zeros(0, 4)], [torch.zeros(0, dtype=torch.long)])
+    obj = bce(0.3, 0) + bce(-1.0, 0) + bce(2.0, 0) + bce(-0.5, 0)  # every target 0, divided by max(0, 1)
+    assert out["num_fg"].item() == 0 and out["iou_loss"].item() == 0 and out["cls_loss"].item() == 0
+    assert math.isclose(out["obj_loss"].item(), obj, rel_tol=1e-5)
+    assert math.isclose(out["loss"].item(), obj, rel_tol=1e-5)
+    out["loss"].backward()
+    expected = torch.tensor([sigmoid(x) for x in (0.3, -1.0, 2.0, -0.5)])  # d BCE(x, 0) / dx = sigmoid(x)
+    assert torch.allclose(raw.grad[0, :, 4], expected) and not raw.grad[0, :, :4].any() and not raw.grad[0, :, 5].any()

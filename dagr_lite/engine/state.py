@@ -1,0 +1,117 @@
+"""What training holds between steps, one optimiser step, and one validation pass.
+
+:class:`TrainState` gathers the model, its EMA, the optimiser, the learning-rate schedule, the
+gradient scaler, the step and the best validation metric, and saves and restores them as one
+``state_dict``. :func:`train_step` and :func:`validate` are what the training loop calls, and
+what tests call directly.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch.utils.data import DataLoader
+
+from dagr_lite.data.collate import Batch
+from dagr_lite.engine.common import ModelEMA, warmup_cosine
+from dagr_lite.eval.score import score_model
+from dagr_lite.nn.detector import Detector
+
+STATE_KEYS = ("model", "ema", "optimizer", "scheduler", "scaler", "step", "best_metric")
+
+
+@dataclass
+class TrainState:
+    """Everything a training run carries from one step to the next.
+
+    Attributes:
+        model: the detector being trained; ema: its moving average (validated and saved).
+        optimizer, scheduler, scaler: the optimiser, its learning-rate schedule, the AMP scaler.
+        grad_clip: the gradient-norm bound of each step.
+        step: optimiser steps taken; best_metric: the best validation mAP so far.
+    """
+
+    model: Detector
+    ema: ModelEMA
+    optimizer: torch.optim.Optimizer
+    scheduler: torch.optim.lr_scheduler.LRScheduler
+    scaler: torch.amp.GradScaler
+    grad_clip: float
+    step: int = 0
+    best_metric: float = -math.inf
+
+    @classmethod
+    def create(cls, model: Detector, optimizer: torch.optim.Optimizer, *, total_steps: int, warmup_steps: int,
+               min_lr_ratio: float, ema_decay: float, ema_tau: float, grad_clip: float, amp: bool) -> "TrainState":
+        """A fresh state: warm-up cosine schedule over ``total_steps``, EMA, and a scaler (on with ``amp``)."""
+        schedule = torch.optim.lr_scheduler.LambdaLR(
+            optimizer, lambda step: warmup_cosine(step, warmup=warmup_steps, total=total_steps, min_ratio=min_lr_ratio))
+        device = next(model.parameters()).device
+        return cls(model=model, ema=ModelEMA(model, ema_decay, ema_tau), optimizer=optimizer, scheduler=schedule,
+                   scaler=torch.amp.GradScaler(device.type, enabled=amp), grad_clip=grad_clip)
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.model.parameters()).device
+
+    @property
+    def amp(self) -> bool:
+        return self.scaler.is_enabled()
+
+    @property
+    def lr(self) -> float:
+        return self.optimizer.param_groups[0]["lr"]
+
+    def state_dict(self) -> dict:
+        return {"model": self.model.state_dict(), "ema": self.ema.state_dict(),
+                "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
+                "scaler": self.scaler.state_dict(), "step": self.step, "best_metric": self.best_metric}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore everything :meth:`state_dict` saved (a scaler state is optional: a run without
+        mixed precision saves an empty one)."""
+        missing = [key for key in STATE_KEYS if key not in state]
+        if missing:
+            raise KeyError(f"training state lacks {missing}")
+        self.model.load_state_dict(state["model"])
+        self.ema.load_state_dict(state["ema"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        if state["scaler"]:
+            self.scaler.load_state_dict(state["scaler"])
+        self.step, self.best_metric = int(state["step"]), float(state["best_metric"])
+
+
+def train_step(state: TrainState, batch: Batch) -> dict[str, torch.Tensor]:
+    """One optimiser step on ``batch`` (already on the model's device); returns the detached losses.
+
+    A non-finite loss raises :class:`FloatingPointError` naming the step and every loss term,
+    before any weight changes.
+    """
+    model = state.model
+    model.train()
+    with torch.autocast(state.device.type, enabled=state.amp):
+        out = model(batch)
+    loss = out["loss"]
+    if not torch.isfinite(loss):
+        parts = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in out.items())
+        raise FloatingPointError(f"non-finite loss {float(loss.detach())} at step {state.step} ({parts})")
+    state.optimizer.zero_grad(set_to_none=True)
+    state.scaler.scale(loss).backward()
+    state.scaler.unscale_(state.optimizer)
+    torch.nn.utils.clip_grad_norm_(model.parameters(), state.grad_clip)
+    state.scaler.step(state.optimizer)
+    state.scaler.update()
+    state.scheduler.step()
+    state.ema.update(model)
+    state.step += 1
+    return {key: value.detach() for key, value in out.items()}
+
+
+def validate(state: TrainState, loader: DataLoader, *, backend: str = "pycocotools", conf_threshold: float = 0.001,
+             nms_threshold: float = 0.65, progress: bool = True) -> dict[str, float]:
+    """COCO metrics of the EMA weights over every sample of ``loader``."""
+    metrics, _ = score_model(state.ema.module, loader, state.device, backend=backend, conf_threshold=conf_threshold,
+                             nms_threshold=nms_threshold, progress=progress, desc=f"validating at step {state.step}")
+    return metrics

@@ -1,0 +1,64 @@
+"""The event-graph settings, owned in one place.
+
+An :class:`EventGraphSpec` says how events become a graph: node ``i`` sits at
+``(x, y, beta * t)`` and takes incoming edges from at most ``max_neighbors`` earlier events
+within ``radius`` (see :func:`~dagr_lite.graph.radius.radius_graph`). The detector owns one,
+its checkpoint saves it, and the data loader's workers build their graphs from the model's own
+spec, so the graph a model was trained on and the one it is run on cannot drift apart.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+
+from dagr_lite.graph.radius import radius_graph
+
+
+@dataclass(frozen=True)
+class EventGraphSpec:
+    """How events become graph nodes and edges.
+
+    Args:
+        radius: neighbourhood radius, in pixels (time counts through ``beta``).
+        beta: pixels per microsecond: the time axis of a node's position is ``beta * t``.
+        max_neighbors: K, the most incoming edges per node (the nearest earlier events).
+    """
+
+    radius: float
+    beta: float
+    max_neighbors: int
+
+    def __post_init__(self):
+        for name in ("radius", "beta"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+                raise ValueError(f"graph {name} must be a positive number, got {value!r}")
+        if isinstance(self.max_neighbors, bool) or not isinstance(self.max_neighbors, int) or self.max_neighbors <= 0:
+            raise ValueError(f"graph max_neighbors must be a positive integer, got {self.max_neighbors!r}")
+
+    def positions(self, events: torch.Tensor) -> torch.Tensor:
+        """Node positions ``(x, y, beta * t)`` of events ``(N, 4)`` (x, y, t in us, p), in their dtype."""
+        return torch.stack([events[:, 0], events[:, 1], self.beta * events[:, 2]], dim=1)  # (N, 3)
+
+    def edges(self, events: torch.Tensor, batch: torch.Tensor | None = None, *, workers: int = -1) -> torch.Tensor:
+        """The causal event graph ``(2, E)`` of events ``(N, 4)`` of samples ``batch (N,)``.
+
+        Positions are computed in float64 whatever the events' dtype, so every caller (the
+        loader's workers, the model, the streaming detector) gets the same edges.
+        """
+        return radius_graph(self.positions(events.detach().double()), self.radius, self.max_neighbors, batch,
+                            workers=workers)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "EventGraphSpec":
+        """The spec of a saved dict; a missing or unknown key is an error naming it."""
+        expected = {"radius", "beta", "max_neighbors"}
+        if set(values) != expected:
+            raise ValueError(f"an event-graph spec needs exactly the keys {sorted(expected)}, got {sorted(values)}")
+        return cls(radius=float(values["radius"]), beta=float(values["beta"]),
+                   max_neighbors=values["max_neighbors"])

@@ -1,0 +1,114 @@
+import math
+
+import pytest
+import torch
+from torch import nn
+
+from dagr_lite.engine.common import EpochSampler, ModelEMA, warmup_cosine
+
+
+def test_warmup_cosine_by_hand():
+    schedule = [warmup_cosine(step, warmup=4, total=12, min_ratio=0.1) for step in range(16)]
+    assert schedule[:4] == pytest.approx([0.25, 0.5, 0.75, 1.0])  # (step + 1) / warmup
+    assert schedule[4] == pytest.approx(1.0)  # the cosine starts at its top
+    assert schedule[6] == pytest.approx(0.1 + 0.45 * (1 + math.sqrt(0.5)))  # a quarter of the way: cos(pi / 4)
+    assert schedule[8] == pytest.approx(0.55)  # halfway: min_ratio + (1 - min_ratio) / 2
+    assert schedule[10] == pytest.approx(0.1 + 0.45 * (1 - math.sqrt(0.5)))
+    assert schedule[12:] == pytest.approx([0.1] * 4)  # min_ratio at and after total
+    assert all(a >= b for a, b in zip(schedule[4:], schedule[5:]))
+    assert warmup_cosine(0, warmup=0, total=10, min_ratio=0.0) == pytest.approx(1.0)
+    assert warmup_cosine(5, warmup=0, total=10, min_ratio=0.0) == pytest.approx(0.5)
+
+
+def test_model_ema_follows_the_ramped_recursion():
+    torch.manual_seed(0)
+    model = nn.Linear(3, 2)
+    decay, tau = 0.9, 2.0
+    ema = ModelEMA(model, decay=decay, tau=tau)
+    expected = {name: value.clone() for name, value in model.state_dict().items()}
+    for update in range(1, 5):
+        with torch.no_grad():
+            model.weight.mul_(-1.5).add_(0.25 * update)
+            model.bias.add_(1.0)
+        assert torch.allclose(ema.module.bias, expected["bias"], atol=1e-6)  # unchanged until update() is called
+        ema.update(model)
+        d = decay * (1 - math.exp(-update / tau))
+        for name, value in model.state_dict().items():
+            expected[name] = d * expected[name] + (1 - d) * value
+    assert ema.updates == 4
+    for name, value in ema.module.state_dict().items():
+        assert torch.allclose(value, expected[name], atol=1e-6), name
+    assert not any(p.requires_grad for p in ema.module.parameters())
+
+
+def test_model_ema_copies_integer_buffers_and_averages_float_ones():
+    torch.manual_seed(0)
+    model = nn.Sequential(nn.Linear(3, 4), nn.BatchNorm1d(4))
+    ema = ModelEMA(model, decay=0.5, tau=1.0)
+    for _ in range(3):
+        model(torch.randn(8, 3))  # train mode: three batch-norm updates
+    ema.update(model)
+    d = 0.5 * (1 - math.exp(-1.0))
+    assert ema.module[1].num_batches_tracked.item() == 3
+    assert ema.module[1].num_batches_tracked.dtype == torch.int64
+    assert torch.allclose(ema.module[1].running_mean, (1 - d) * model[1].running_mean, atol=1e-6)  # started at 0
+    assert torch.allclose(ema.module[1].running_var, d * 1.0 + (1 - d) * model[1].running_var, atol=1e-6)
+
+
+def test_model_ema_state_dict_round_trip():
+    torch.manual_seed(0)
+    model = nn.Linear(3, 2)
+    ema = ModelEMA(model, decay=0.9, tau=2.0)
+    for _ in range(3):
+        with torch.no_grad():
+            model.weight.add_(1.0)
+        ema.update(model)
+    restored = ModelEMA(nn.Linear(3, 2), decay=0.9, tau=2.0)
+    restored.load_state_dict(ema.state_dict())
+    assert restored.updates == 3
+    for name, value in ema.module.state_dict().items():
+        assert torch.equal(restored.module.state_dict()[name], value)
+    # The next update uses the restored count: both copies move the same way.
+    with torch.no_grad():
+        model.weight.add_(1.0)
+    ema.update(model)
+    restored.update(model)
+    assert restored.updates == ema.updates == 4
+    assert torch.equal(restored.module.weight, ema.module.weight)
+
+
+def test_epoch_sampler_orders_are_reproducible_permutations():
+    size = 50
+    sampler = EpochSampler(size, seed=7)
+    sampler.set_epoch(3)
+    order = list(sampler)
+    assert sorted(order) == list(range(size)) and len(sampler) == size
+    again = EpochSampler(size, seed=7)
+    again.set_epoch(3)
+    assert list(again) == order
+    sampler.set_epoch(4)
+    assert list(sampler) != order and sorted(sampler) == list(range(size))
+    other_seed = EpochSampler(size, seed=8)
+    other_seed.set_epoch(3)
+    assert list(other_seed) != order
+
+
+@pytest.mark.parametrize("start", [0, 1, 17, 49, 50])
+def test_epoch_sampler_resumes_with_the_suffix(start):
+    full = EpochSampler(50, seed=3)
+    full.set_epoch(2)
+    order = list(full)
+    resumed = EpochSampler(50, seed=3)
+    resumed.set_epoch(2, start=start)
+    assert list(resumed) == order[start:] and len(resumed) == 50 - start
+    resumed.set_epoch(2)  # a new set_epoch without start begins at the beginning again
+    assert list(resumed) == order and len(resumed) == 50
+
+
+def test_epoch_sampler_without_shuffle_is_in_range_order():
+    sampler = EpochSampler(10, seed=1, shuffle=False)
+    for epoch in (0, 5):
+        sampler.set_epoch(epoch)
+        assert list(sampler) == list(range(10))
+    sampler.set_epoch(5, start=4)
+    assert list(sampler) == list(range(4, 10)) and len(sampler) == 6
