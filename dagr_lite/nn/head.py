@@ -142,7 +142,7 @@ class YOLOXHead(nn.Module):
         ``A = sum H_s W_s``: box ``(tx, ty, tw, th)``, objectness logit, class logits.
     """
 
-    def __init__(self, in_channels: list[int], strides: list[int], *, hidden: int = 64, num_classes: int = 1):
+    def __init__(self, in_channels: list[int], strides: list[int], *, hidden: int, num_classes: int):
         super().__init__()
         self.strides, self.num_classes = list(strides), num_classes
 

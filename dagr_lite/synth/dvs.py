@@ -119,7 +119,7 @@ class DVSEmulator:
 
     def __init__(self, height: int, width: int, params: DVSParams = PRESETS["clean"], *, seed: int = 0):
         self.height, self.width, self.params = int(height), int(width), params
-        self.rng = np.random.default_rng(seed)
+        self.rng = np.random.default_rng([seed])
         shape = (self.height, self.width)
         p = params
         self.pos_threshold = np.maximum(self.rng.normal(p.pos_threshold, p.sigma_threshold, shape), p.min_threshold)

@@ -187,3 +187,22 @@ def test_last_checkpoint_is_saved_before_validation(tmp_path, monkeypatch):
         train(small(tmp_path / "run", "model=image_only", "trainer.max_steps=2", "trainer.val_every=2"))
     saved = torch.load(tmp_path / "run" / "checkpoints" / "last.pt", weights_only=True)
     assert saved["step"] == 2
+
+
+def test_a_dataset_with_truncated_frame_times_passes_check_and_trains(tmp_path):
+    from dagr_lite.data import format as fmt
+    from dagr_lite.data.check import main as check_main
+    from dagr_lite.data.reader import EventFile
+    from tests.conftest import make_dataset
+    from tests.data.test_conventions import on_frame_events, reference_timeidx, write_by_hand
+    written = make_dataset(tmp_path / "ds", num_frames=12, compression=None)
+    for i, (video, split) in enumerate(written.splits.items()):
+        events = on_frame_events("truncate", num_frames=12, seed=i)  # events exactly on the truncated frame times
+        path = fmt.events_path(written.root, split, video)
+        write_by_hand(path, events, 12, reference_timeidx(events["t"], 12, "truncate"))
+        assert EventFile(path, num_frames=12).convention == "truncate"
+    assert check_main([str(written.root)]) == 0
+    result = train(config("train", f"run_dir={tmp_path / 'run'}", "dataset=custom", f"dataset.root={written.root}",
+                          "loader.batch_size=4", "loader.num_workers=0", "trainer.max_steps=2",
+                          "trainer.image_every=0"))
+    assert result["step"] == 2 and METRIC_KEYS <= set(result["metrics"])

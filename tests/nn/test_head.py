@@ -106,7 +106,7 @@ def test_bilinear_node_sampling_equals_grid_sample():
 def test_branch_and_head_shapes():
     maps = ImageBranch(width=8, strides=(8, 16, 32))(torch.zeros(2, 3, 180, 320, dtype=torch.uint8))
     assert [tuple(m.shape) for m in maps] == [(2, 16, 45, 80), (2, 32, 23, 40), (2, 64, 12, 20), (2, 128, 6, 10)]
-    head = YOLOXHead([32, 64, 128], [8, 16, 32], hidden=16)
+    head = YOLOXHead([32, 64, 128], [8, 16, 32], hidden=16, num_classes=1)
     raw, shapes = head(maps[1:])
     assert raw.shape == (2, 23 * 40 + 12 * 20 + 6 * 10, 6) and shapes == [(23, 40), (12, 20), (6, 10)]
     dets = postprocess(raw, shapes, [8, 16, 32], image_size=(180, 320))
