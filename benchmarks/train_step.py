@@ -57,7 +57,7 @@ class SyntheticSamples(Dataset):
         k = index % 8
         return Sample(events=torch.from_numpy(events), image=torch.from_numpy(self.frames[k]).permute(2, 0, 1).contiguous(),
                       boxes=self.boxes[k], labels=torch.zeros(len(self.boxes[k]), dtype=torch.int64),
-                      video="bench", frame=index, image_frame=index, t_start_us=0, t_end_us=WINDOW_US)
+                      video="bench", frame=index, image_frame=index, t_start_us=0, t_end_us=WINDOW_US, t_image_us=0)
 
 
 def run(variant: str, height: int, width: int, args) -> None:

@@ -13,12 +13,13 @@ from typing import Sequence
 
 import torch
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.augment import TrainAugment
 from dagr_lite.data.dataset import EventEgoHands
+from dagr_lite.data.reader import DatasetFormatError
 from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.detector import Detector, DetectorConfig
 
@@ -89,7 +90,12 @@ def _number(v) -> bool:
 # key: (what it must be, test). Keys a config does not have are skipped.
 _RULES = {
     "seed": ("an integer", _integer),
-    "data.image_lag": ("an integer >= 0", lambda v: _integer(v) and v >= 0),
+    "data.image_age": ("an integer >= 0 (frames)", lambda v: _integer(v) and v >= 0),
+    "data.train_image_age": ("a range [low, high] of frames, 0 <= low <= high",
+                             lambda v: isinstance(v, ListConfig) and len(v) == 2 and all(_integer(a) for a in v)
+                             and 0 <= v[0] <= v[1]),
+    "data.context_us": ("an integer >= 0 (microseconds)", lambda v: _integer(v) and v >= 0),
+    "model.time_scale_us": ("a positive number (microseconds)", lambda v: _number(v) and v > 0),
     "data.window_us": ("a positive integer (microseconds)", lambda v: _integer(v) and v > 0),
     "data.max_events": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
     "loader.batch_size": ("a positive integer", lambda v: _integer(v) and v > 0),
@@ -138,18 +144,36 @@ def dataset_root(dataset: DictConfig) -> Path:
     return root
 
 
-def build_dataset(cfg: DictConfig, split: str, *, train: bool) -> EventEgoHands:
-    """The dataset of one split, with augmentation when ``train`` and ``data.augment.enabled``."""
+def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
+                  image_age: int | None = None, first_frame: int | None = None) -> EventEgoHands:
+    """The dataset of one split for a model with or without an image branch.
+
+    Training draws each sample's image age from ``data.train_image_age`` and augments (when
+    ``data.augment.enabled``; images are dropped for grey only in a hybrid); otherwise the age
+    is ``image_age`` (default ``data.image_age``).
+    A model with an image reads the events since it, one without reads the fixed window.
+    """
     data, dataset = cfg.data, cfg.dataset
+    hybrid = with_image and bool(OmegaConf.select(cfg, "model.use_events", default=False))
+    if image_age is None:
+        image_age = tuple(data.train_image_age) if train else data.image_age
     transform = None
     augment = data.get("augment")
     if train and augment is not None and augment.enabled:
         transform = TrainAugment(flip_prob=augment.flip_prob, zoom=tuple(augment.zoom),
-                                 translate=augment.translate, min_box_size=augment.min_box_size)
+                                 translate=augment.translate, min_box_size=augment.min_box_size,
+                                 image_dropout=augment.image_dropout if hybrid else 0.0)
     image_size = (dataset.height, dataset.width) if dataset.height is not None else None
-    return EventEgoHands(dataset_root(dataset), split, image_lag=data.image_lag, window_us=data.window_us,
-                         max_events=data.max_events, fps=dataset.fps, image_size=image_size,
-                         transform=transform, clip_boxes=data.clip_boxes, seed=cfg.seed)
+    try:
+        return EventEgoHands(dataset_root(dataset), split, image_age=image_age,
+                             event_span="since_image" if with_image else "window", window_us=data.window_us,
+                             context_us=data.context_us, max_events=data.max_events, first_frame=first_frame,
+                             fps=dataset.fps, image_size=image_size, transform=transform,
+                             clip_boxes=data.clip_boxes, seed=cfg.seed)
+    except ValueError as err:
+        if "image_age" in str(err) and not isinstance(err, DatasetFormatError):
+            raise ConfigError(f"data.{'train_' if train else ''}{err}") from err
+        raise
 
 
 def graph_spec(model: DictConfig) -> EventGraphSpec | None:
@@ -173,7 +197,8 @@ def detector_config(cfg: DictConfig, *, height: int, width: int) -> DetectorConf
                           image_width=size.image_width, event_channels=tuple(size.event_channels),
                           event_blocks=model.event_blocks, fuse_channels=model.fuse_channels,
                           head_hidden=size.head_hidden, num_classes=model.num_classes,
-                          strides=tuple(model.strides), graph=graph_spec(model), window_us=cfg.data.window_us)
+                          strides=tuple(model.strides), graph=graph_spec(model), time_scale_us=model.time_scale_us,
+                          recency_us=tuple(model.recency_us))
 
 
 def build_model(cfg: DictConfig, *, height: int, width: int) -> Detector:

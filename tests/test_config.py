@@ -84,22 +84,22 @@ def test_inconsistent_values_fail(tmp_path):
         resolve_config(compose_cfg("train", ["dataset=custom", f"dataset.root={tmp_path}", "dataset.height=10"]))
     cfg = resolve_config(compose_cfg("train", ["dataset=v6", f"dataset.root={tmp_path / 'absent'}"]))
     with pytest.raises(ConfigError, match=r"dataset\.root=.*absent of v6 is not a folder"):
-        build_dataset(cfg, "train", train=True)
+        build_dataset(cfg, "train", train=True, with_image=True)
 
 
 def test_custom_dataset_takes_its_resolution_from_the_frames(dataset):
     cfg = resolve_config(compose_cfg("train", ["dataset=custom", f"dataset.root={dataset.root}"]))
-    ds = build_dataset(cfg, "train", train=True)
+    ds = build_dataset(cfg, "train", train=True, with_image=True)
     assert ds.image_size == (48, 64) and ds.transform is not None
-    assert build_dataset(cfg, "valid", train=False).transform is None
+    assert build_dataset(cfg, "valid", train=False, with_image=True).transform is None
     wrong = resolve_config(compose_cfg("train", ["dataset=custom", f"dataset.root={dataset.root}",
                                                  "dataset.height=360", "dataset.width=640"]))
     with pytest.raises(ValueError, match=r"frame_0.jpg: frame is 64x48 \(WxH\), expected 640x360 as the dataset is "
                                          r"configured"):
-        build_dataset(wrong, "train", train=True)
+        build_dataset(wrong, "train", train=True, with_image=True)
     v6 = resolve_config(compose_cfg("train", ["dataset=v6", f"dataset.root={dataset.root}"]))
     with pytest.raises(ValueError, match=r"expected 640x360 as the dataset is configured"):
-        build_dataset(v6, "train", train=True)
+        build_dataset(v6, "train", train=True, with_image=True)
 
 
 def test_model_sizes_build_and_differ():
@@ -118,7 +118,7 @@ def test_train_and_evaluate_share_the_data_loader_and_eval_groups(tmp_path):
     assert train.loader == evaluate.loader and train.eval == evaluate.eval
     assert set(train.data) == set(evaluate.data) and train.data.augment == evaluate.data.augment
     # evaluation takes what defines a sample from the checkpoint unless a value is given
-    assert evaluate.data.window_us is None and evaluate.data.image_lag is None and evaluate.graph.radius is None
+    assert evaluate.data.window_us is None and evaluate.data.image_age is None and evaluate.graph.radius is None
 
 
 def test_the_optim_group_chooses_the_optimiser():
@@ -134,7 +134,7 @@ def test_the_optim_group_chooses_the_optimiser():
 
 def test_model_defaults_come_from_conf_and_variants_inherit_them():
     hybrid = detector_config(resolve_config(compose_cfg("train")), height=180, width=320)
-    assert hybrid.strides == (8, 16, 32) and hybrid.event_channels == (16, 32, 48, 64) and hybrid.window_us == 33333
+    assert hybrid.strides == (8, 16, 32) and hybrid.event_channels == (16, 32, 48, 64) and hybrid.time_scale_us == 1e5
     assert hybrid.graph.as_dict() == {"radius": 5.0, "beta": 5e-4, "max_neighbors": 16}
     events = detector_config(resolve_config(compose_cfg("train", ["model=events_only", "model.graph.radius=3"])),
                              height=180, width=320)
@@ -151,7 +151,7 @@ def test_model_defaults_come_from_conf_and_variants_inherit_them():
     ("data.window_us=abc", r"data\.window_us must be a positive integer \(microseconds\), got 'abc'"),
     ("trainer.max_steps=-3", r"trainer\.max_steps must be a positive integer or null, got -3"),
     ("trainer.val_every=-1", r"trainer\.val_every must be an integer >= 0"),
-    ("data.image_lag=-2", r"data\.image_lag must be an integer >= 0, got -2"),
+    ("data.image_age=-2", r"data\.image_age must be an integer >= 0 \(frames\), got -2"),
     ("data.max_events=0", r"data\.max_events must be a positive integer or null, got 0"),
     ("trainer.ema_decay=1.5", r"trainer\.ema_decay must be a number in \[0, 1\)"),
 ])

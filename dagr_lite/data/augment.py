@@ -70,12 +70,16 @@ class TrainAugment:
             enlarges it.
         translate: largest extra shift, as a fraction of the image size, in each direction.
         min_box_size: boxes thinner than this many pixels after the transform are dropped.
+        image_dropout: probability of replacing the image by mid-grey, so that a hybrid model
+            learns to detect from its events alone too (drawn last: the geometry draws are
+            the same with or without it).
     """
 
     flip_prob: float = 0.5
     zoom: tuple[float, float] = (1.0, 1.5)
     translate: float = 0.1
     min_box_size: float = 2.0
+    image_dropout: float = 0.0
 
     def __post_init__(self):
         low, high = self.zoom
@@ -85,8 +89,16 @@ class TrainAugment:
             raise ValueError(f"flip_prob must be in [0, 1], got {self.flip_prob}")
         if self.translate < 0:
             raise ValueError(f"translate must be >= 0, got {self.translate}")
+        if not 0 <= self.image_dropout <= 1:
+            raise ValueError(f"image_dropout must be in [0, 1], got {self.image_dropout}")
 
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
+        sample = self._geometry(sample, rng)
+        if self.image_dropout and rng.random() < self.image_dropout:
+            sample = sample.replace(image=torch.full_like(sample.image, 128))
+        return sample
+
+    def _geometry(self, sample: Sample, rng: np.random.Generator) -> Sample:
         if rng.random() < self.flip_prob:
             sample = hflip(sample)
         scale = float(rng.uniform(*self.zoom))

@@ -22,7 +22,8 @@ class Batch:
         boxes: ``B`` tensors ``(M_b, 4)`` float32 x1, y1, x2, y2 in pixels.
         labels: ``B`` tensors ``(M_b,)`` int64.
         videos, frames, image_frames: names of the samples (video and label frame).
-        t_start_us, t_end_us: ``(B,)`` int64 event windows.
+        t_start_us, t_end_us: ``(B,)`` int64 event windows; ``t_end_us`` is when the boxes hold.
+        t_image_us: ``(B,)`` int64 image times; event ``t`` counts from its sample's image time.
         edge_index: ``(2, E)`` causal event graph over ``events`` (see :class:`GraphCollate`), or None.
     """
 
@@ -37,10 +38,16 @@ class Batch:
     image_frames: torch.Tensor
     t_start_us: torch.Tensor
     t_end_us: torch.Tensor
+    t_image_us: torch.Tensor
     edge_index: torch.Tensor | None = None  # (2, E) event graph, when the loader builds it
 
     def __len__(self) -> int:
         return len(self.videos)
+
+    @property
+    def age_us(self) -> torch.Tensor:
+        """``(B,)`` how old each sample's image is when its boxes are asked for, in microseconds."""
+        return self.t_end_us - self.t_image_us
 
     def _map(self, fn) -> "Batch":
         values = {}
@@ -93,6 +100,7 @@ def collate(samples: Sequence[Sample]) -> Batch:
         image_frames=torch.tensor([s.image_frame for s in samples], dtype=torch.int64),
         t_start_us=torch.tensor([s.t_start_us for s in samples], dtype=torch.int64),
         t_end_us=torch.tensor([s.t_end_us for s in samples], dtype=torch.int64),
+        t_image_us=torch.tensor([s.t_image_us for s in samples], dtype=torch.int64),
     )
 
 

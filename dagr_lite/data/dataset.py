@@ -1,8 +1,10 @@
 """The EventEgoHands dataset: one sample per label frame (docs/design.md, "One sample").
 
-For label frame ``k`` a sample holds the image of frame ``k - image_lag``, the events with
-``t`` in ``[t_k - window_us, t_k)`` and the boxes of frame ``k``. The events bring the stale
-image up to date.
+For label frame ``k`` and image age ``a`` (in frames) a sample holds the image of frame
+``k - a``, the events since that image (``[t(k - a) - context_us, t(k))``; or, for a model
+without an image, the fixed window ``[t(k) - window_us, t(k))``) and the boxes of frame ``k``.
+The events bring the stale image up to date. Training draws ``a`` per sample from a range;
+evaluation fixes it.
 """
 from __future__ import annotations
 
@@ -20,6 +22,38 @@ from dagr_lite.data.reader import (DatasetFormatError, EventFile, Problem, box_p
 
 # At most this many frame problems are listed when the dataset refuses to open.
 MAX_LISTED_PROBLEMS = 10
+# Which events a sample holds: all since the image (models with an image), or a fixed window.
+EVENT_SPANS = ("since_image", "window")
+
+
+def age_range(image_age: int | Sequence[int]) -> tuple[int, int]:
+    """``(low, high)`` frames of an image age given as an int or an inclusive ``[low, high]`` range."""
+    ages = list(image_age) if isinstance(image_age, Sequence) else [image_age] * 2
+    integers = all(isinstance(a, (int, np.integer)) and not isinstance(a, bool) for a in ages)
+    if len(ages) != 2 or not integers or not 0 <= ages[0] <= ages[1]:
+        raise ValueError(f"image_age must be an integer >= 0 or a range [low, high] with 0 <= low <= high "
+                         f"(frames; the image is never from the future), got {image_age!r}")
+    return int(ages[0]), int(ages[1])
+
+
+def cap_events(t: np.ndarray, t_end: int, max_events: int | None, recent_us: int,
+               rng: np.random.Generator) -> slice | np.ndarray:
+    """Which of the sorted times ``t`` a sample keeps under the cap ``max_events``.
+
+    The events of the last ``recent_us`` before ``t_end`` (where the objects are now) are kept
+    whole when they fit, and the older ones are thinned uniformly to fill the cap; when the
+    recent ones alone exceed it, they are thinned uniformly and the older ones dropped. Time
+    order is kept.
+    """
+    n = len(t)
+    if max_events is None or n <= max_events:
+        return slice(None)
+    first_recent = int(np.searchsorted(t, t_end - recent_us, side="left"))
+    n_recent = n - first_recent
+    if n_recent >= max_events:
+        return first_recent + np.sort(rng.choice(n_recent, size=max_events, replace=False))
+    older = np.sort(rng.choice(first_recent, size=max_events - n_recent, replace=False))
+    return np.concatenate([older, np.arange(first_recent, n)])
 
 
 @dataclass
@@ -27,13 +61,15 @@ class Sample:
     """One training or evaluation sample.
 
     Attributes:
-        events: ``(N, 4)`` float32 columns x, y, t, p: pixel coordinates, microseconds since
-            ``t_start_us`` (so in ``[0, window_us)``), polarity in {0, 1}; sorted by t.
+        events: ``(N, 4)`` float32 columns x, y, t, p: pixel coordinates, microseconds since the
+            image (``t_image_us``; negative for events before it), polarity in {0, 1}; sorted by t.
         image: ``(3, H, W)`` uint8 RGB frame ``image_frame``.
         boxes: ``(M, 4)`` float32 x1, y1, x2, y2 in pixels (M may be 0).
         labels: ``(M,)`` int64 class indices (0 = hand).
-        video: video name; ``frame``: label frame index k; ``image_frame``: ``k - image_lag``.
-        t_start_us, t_end_us: the event window ``[t_start_us, t_end_us)``, ``t_end_us = t_k``.
+        video: video name; ``frame``: label frame index k; ``image_frame``: ``k - a`` for image age a.
+        t_start_us, t_end_us: the event window ``[t_start_us, t_end_us)``; ``t_end_us`` is the time
+            the boxes are for (``t(k)``, or between frames in a sweep).
+        t_image_us: the image's time ``t(k - a)``.
     """
 
     events: torch.Tensor
@@ -45,6 +81,12 @@ class Sample:
     image_frame: int
     t_start_us: int
     t_end_us: int
+    t_image_us: int
+
+    @property
+    def age_us(self) -> int:
+        """How old the image is when the boxes are asked for."""
+        return self.t_end_us - self.t_image_us
 
     @property
     def height(self) -> int:
@@ -69,33 +111,47 @@ class EventEgoHands(Dataset):
     Args:
         root: dataset folder (holding ``train/``, ``valid/``, ``test/``, ``bounding_boxes.json``).
         split: ``train``, ``valid`` or ``test``.
-        image_lag: the image is of frame ``k - image_lag`` (>= 0); frames ``k < image_lag`` give no sample.
-        window_us: length of the event window ending at the label frame's time.
-        max_events: cap on events per sample; above it, events are subsampled uniformly
-            (seeded by ``seed``, the epoch and the sample index), keeping time order.
+        image_age: how many frames older the image is than the label frame: an int (fixed, as in
+            evaluation) or an inclusive ``(low, high)`` range from which each sample draws its own
+            (training; a label frame ``k`` draws from ``[low, min(high, k)]``).
+        event_span: ``"since_image"``: the events of ``[t(k - a) - context_us, t(k))``;
+            ``"window"``: the fixed window ``[t(k) - window_us, t(k))`` (a model without an image).
+        window_us: the fixed window's length; with ``since_image`` the most recent ``window_us``
+            are kept whole when the cap thins a sample (see :func:`cap_events`).
+        context_us: events from before the image joined to a ``since_image`` sample.
+        max_events: cap on events per sample (None: no cap), see :func:`cap_events`; seeded by
+            ``seed``, the epoch and the sample index.
+        first_frame: the first label frame (default: the smallest image age), e.g. the largest
+            age of a sweep so that every age scores the same frames.
         fps: frame rate defining the frame times.
         image_size: expected ``(H, W)`` of the frames; a disagreeing frame is an error.
         videos: restrict to these videos of the split (all by default).
         transform: called as ``transform(sample, rng)`` on each sample (augmentation).
         clip_boxes: clip boxes to the image and drop empty ones instead of raising.
-        seed: seed of the event subsampling and of ``transform``'s generator.
+        seed: seed of the image ages, the event subsampling and ``transform``'s generator.
     """
 
-    def __init__(self, root: Path | str, split: str, *, image_lag: int = 1, window_us: int = fmt.DEFAULT_WINDOW_US,
-                 max_events: int | None = None, fps: float = fmt.DEFAULT_FPS,
+    def __init__(self, root: Path | str, split: str, *, image_age: int | Sequence[int] = 1,
+                 event_span: str = "since_image", window_us: int = fmt.DEFAULT_WINDOW_US, context_us: int = 0,
+                 max_events: int | None = None, first_frame: int | None = None, fps: float = fmt.DEFAULT_FPS,
                  image_size: Sequence[int] | None = None, videos: Sequence[str] | None = None,
                  transform: Callable[[Sample, np.random.Generator], Sample] | None = None,
                  clip_boxes: bool = False, seed: int = 0):
         if split not in fmt.SPLITS:
             raise ValueError(f"split must be one of {fmt.SPLITS}, got {split!r}")
-        if image_lag < 0:
-            raise ValueError(f"image_lag must be >= 0 (an image from the future is not causal), got {image_lag}")
+        self.age_range = age_range(image_age)
+        if event_span not in EVENT_SPANS:
+            raise ValueError(f"event_span must be one of {EVENT_SPANS}, got {event_span!r}")
         if window_us <= 0:
             raise ValueError(f"window_us must be > 0, got {window_us}")
+        if context_us < 0:
+            raise ValueError(f"context_us must be >= 0, got {context_us}")
         if max_events is not None and max_events <= 0:
             raise ValueError(f"max_events must be positive or None, got {max_events}")
         self.root, self.split = Path(root), split
-        self.image_lag, self.window_us, self.max_events = int(image_lag), int(window_us), max_events
+        self.event_span, self.window_us, self.context_us = event_span, int(window_us), int(context_us)
+        self.max_events = max_events
+        self.first_frame = self.age_range[0] if first_frame is None else max(int(first_frame), self.age_range[0])
         self.fps, self.transform, self.seed, self.epoch = float(fps), transform, int(seed), 0
         available = list_videos(self.root, split)
         if videos is not None:
@@ -115,7 +171,7 @@ class EventEgoHands(Dataset):
             events, boxes = self._open_video(video, labels.get(video, {}), clip_boxes)
             self._events.append(events)
             self._boxes.append(boxes)
-            ks = np.arange(self.image_lag, events.num_frames)
+            ks = np.arange(self.first_frame, events.num_frames)
             sample_video.append(np.full(len(ks), v, dtype=np.int64))
             sample_frame.append(ks)
         self._sample_video = np.concatenate(sample_video) if sample_video else np.zeros(0, np.int64)
@@ -181,15 +237,33 @@ class EventEgoHands(Dataset):
             raise IndexError(f"sample index {index} out of range for {len(self)} samples")
         index = int(index) % len(self)
         v, k = int(self._sample_video[index]), int(self._sample_frame[index])
-        video, events_file = self.videos[v], self._events[v]
-        t_end = events_file.frame_time_us(k)
-        t_start = t_end - self.window_us
-        raw = events_file.window(t_start, t_end)
         rng = np.random.default_rng([self.seed, self.epoch, index])
-        n = len(raw["t"])
-        keep = slice(None)
-        if self.max_events is not None and n > self.max_events:
-            keep = np.sort(rng.choice(n, size=self.max_events, replace=False))
+        low, high = self.age_range
+        age = int(rng.integers(low, min(high, k) + 1)) if high > low else low
+        t_end = self.frame_time_us(v, k)
+        return self.sample_at(v, k, k - age, t_end, self.boxes_of(v, k), rng)
+
+    def num_frames(self, v: int) -> int:
+        """Frames of video number ``v``."""
+        return self._events[v].num_frames
+
+    def frame_time_us(self, v: int, k: int) -> int:
+        """Time of frame ``k`` of video number ``v``, in its file's frame-time convention."""
+        return self._events[v].frame_time_us(k)
+
+    def boxes_of(self, v: int, k: int) -> np.ndarray:
+        """``(M, 4)`` xyxy boxes of frame ``k`` of video number ``v`` (none for an unlabelled frame)."""
+        return self._boxes[v].get(k, np.zeros((0, 4), np.float32))
+
+    def sample_at(self, v: int, k: int, image_frame: int, t_end: int, boxes: np.ndarray,
+                  rng: np.random.Generator) -> Sample:
+        """The sample of video number ``v`` with the image of ``image_frame``, the events up to
+        ``t_end`` (us) and ``boxes`` (xyxy) as the truth at ``t_end``; ``k`` names the label frame."""
+        video, events_file = self.videos[v], self._events[v]
+        t_image = events_file.frame_time_us(image_frame)
+        t_start = t_image - self.context_us if self.event_span == "since_image" else t_end - self.window_us
+        raw = events_file.window(t_start, t_end)
+        keep = cap_events(raw["t"], t_end, self.max_events, self.window_us, rng)
         height, width = self.image_size
         x, y = raw["x"][keep], raw["y"][keep]
         if len(x) and (x.max() >= width or y.max() >= height):
@@ -197,16 +271,14 @@ class EventEgoHands(Dataset):
                                                           f"{width}x{height} frame (x max {x.max()}, y max {y.max()})",
                                         key="events/x, events/y")
         events = np.stack([x.astype(np.float32), y.astype(np.float32),
-                           (raw["t"][keep] - t_start).astype(np.float32),
+                           (raw["t"][keep] - t_image).astype(np.float32),
                            raw["p"][keep].astype(np.float32)], axis=1).reshape(-1, 4)  # (N, 4)
-        image_frame = k - self.image_lag
         image = read_frame(fmt.frame_path(self.root, self.split, video, image_frame), self.image_size)  # (H, W, 3)
-        boxes = self._boxes[v].get(k, np.zeros((0, 4), np.float32))  # (M, 4)
         sample = Sample(events=torch.from_numpy(events),
                         image=torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))),  # (3, H, W)
-                        boxes=torch.from_numpy(boxes.copy()),
-                        labels=torch.zeros(len(boxes), dtype=torch.int64),
-                        video=video, frame=k, image_frame=image_frame, t_start_us=t_start, t_end_us=t_end)
+                        boxes=torch.from_numpy(np.array(boxes, dtype=np.float32).reshape(-1, 4)),
+                        labels=torch.zeros(len(boxes), dtype=torch.int64), video=video, frame=k,
+                        image_frame=image_frame, t_start_us=t_start, t_end_us=t_end, t_image_us=t_image)
         if self.transform is not None:
             sample = self.transform(sample, rng)
         return sample

@@ -1,7 +1,7 @@
 """The evaluation entry: ``evaluate(cfg)`` is what ``python evaluate.py`` runs and what tests call.
 
 The checkpoint defines the model (its architecture and event graph) and what one sample is
-(image lag, event window, event cap). A value given in ``data.*`` or ``graph.*`` overrides the
+(image age, event window and context, event cap). A value given in ``data.*`` or ``graph.*`` overrides the
 checkpoint's: it is printed as an override and recorded in ``metrics.json``, beside the data and
 graph settings the evaluation actually used.
 """
@@ -22,7 +22,7 @@ from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.detector import Detector, DetectorConfig
 
 # The data settings that define a model's input: taken from the checkpoint unless overridden.
-SAMPLE_KEYS = ("image_lag", "window_us", "max_events")
+SAMPLE_KEYS = ("image_age", "window_us", "context_us", "max_events")
 
 
 def _override(section: str, key: str, trained, given, overrides: dict):
@@ -52,7 +52,7 @@ def settings(cfg: DictConfig, state: dict) -> tuple[dict, DetectorConfig, dict]:
             graph = EventGraphSpec(**values)
         except ValueError as err:
             raise ConfigError(str(err)) from err
-    return data, dataclasses.replace(detector, graph=graph, window_us=data["window_us"]), overrides
+    return data, dataclasses.replace(detector, graph=graph), overrides
 
 
 def load_model(state: dict, detector: DetectorConfig, image_size: tuple[int, int], ckpt: str) -> Detector:
@@ -80,7 +80,7 @@ def evaluate(cfg: DictConfig) -> dict:
         print(f"override: {key}={change['used']!r} (the checkpoint was trained with {change['checkpoint']!r})")
     run_dir = run_folder(cfg, "evaluate")
     device = resolve_device(cfg.device)
-    dataset = build_dataset(cfg, cfg.split, train=False)
+    dataset = build_dataset(cfg, cfg.split, train=False, with_image=detector.use_image)
     print(describe_dataset(dataset), flush=True)
     model = load_model(state, detector, dataset.image_size, cfg.ckpt).to(device)
     loader = make_loader(dataset, batch_size=cfg.loader.batch_size, num_workers=cfg.loader.num_workers,

@@ -36,22 +36,42 @@ class ResumeError(ValueError):
 def describe_dataset(dataset: EventEgoHands) -> str:
     height, width = dataset.image_size
     return (f"{dataset.root} [{dataset.split}]: {len(dataset.videos)} videos, {len(dataset)} samples, "
-            f"{width}x{height} px, window {dataset.window_us} us, image lag {dataset.image_lag}")
+            f"{width}x{height} px, image age {describe_age(dataset.age_range)} frames, events "
+            f"{'since the image' if dataset.event_span == 'since_image' else f'of {dataset.window_us} us'}")
+
+
+def describe_age(ages: tuple[int, int]) -> str:
+    return str(ages[0]) if ages[0] == ages[1] else f"{ages[0]}-{ages[1]}"
 
 
 @dataclass
 class TrainData:
-    """The datasets and loaders of a run; the loaders build graphs with the model's spec."""
+    """The datasets and loaders of a run; the loaders build graphs with the model's spec.
+    Validation runs at each image age of ``valid_loaders`` (``data.image_age``, and for a model
+    with an image also the largest training age)."""
 
     train_set: EventEgoHands
-    valid_set: EventEgoHands
     sampler: EpochSampler
     train_loader: DataLoader
-    valid_loader: DataLoader
+    valid_loaders: dict[int, DataLoader]
     batch_size: int
 
 
-def make_data(cfg: DictConfig, train_set: EventEgoHands, valid_set: EventEgoHands, model) -> TrainData:
+def validation_ages(cfg: DictConfig) -> list[int]:
+    """``data.image_age``, and for a model with an image the largest training age too."""
+    ages = {cfg.data.image_age}
+    if cfg.model.use_image:
+        ages.add(cfg.data.train_image_age[1])
+    return sorted(ages)
+
+
+def make_data(cfg: DictConfig, train_set: EventEgoHands, model) -> TrainData:
+    """The training loader, and one validation loader per validation age."""
+    with_image = cfg.model.use_image
+    valid_sets = {age: build_dataset(cfg, "valid", train=False, with_image=with_image, image_age=age)
+                  for age in validation_ages(cfg)}
+    for dataset in (train_set, *valid_sets.values()):
+        print(describe_dataset(dataset), flush=True)
     batch_size, workers = cfg.loader.batch_size, cfg.loader.num_workers
     if len(train_set) < batch_size:
         raise ValueError(f"loader.batch_size={batch_size}, but the train split has {len(train_set)} samples: "
@@ -59,8 +79,9 @@ def make_data(cfg: DictConfig, train_set: EventEgoHands, valid_set: EventEgoHand
     sampler = EpochSampler(len(train_set), seed=cfg.seed)
     train_loader = make_loader(train_set, batch_size=batch_size, num_workers=workers, sampler=sampler,
                                graph=model.graph_spec, drop_last=True)
-    valid_loader = make_loader(valid_set, batch_size=batch_size, num_workers=workers, graph=model.graph_spec)
-    return TrainData(train_set, valid_set, sampler, train_loader, valid_loader, batch_size)
+    valid_loaders = {age: make_loader(dataset, batch_size=batch_size, num_workers=workers, graph=model.graph_spec)
+                     for age, dataset in valid_sets.items()}
+    return TrainData(train_set, sampler, train_loader, valid_loaders, batch_size)
 
 
 def make_state(cfg: DictConfig, model, steps_per_epoch: int, device: torch.device) -> TrainState:
@@ -151,21 +172,29 @@ class TrainLoop:
         return {**self.state.state_dict(), "detector": self.state.model.cfg.as_dict(), "config": self.config}
 
     def save_and_validate(self) -> dict:
-        """Save ``last.pt`` first (a failing validation loses no training), then validate and keep
-        ``best.pt`` when the metric improves."""
+        """Save ``last.pt`` first (a failing validation loses no training), then validate at each
+        validation age and keep ``best.pt`` when the mean mAP over those ages improves.
+
+        The returned metrics are those of the first age (``data.image_age``), with ``mAP_age<a>``,
+        ``AP50_age<a>`` for every age and their ``mAP_mean``.
+        """
         state = self.state
         save_checkpoint(self.checkpoints / "last.pt", self.checkpoint())
         ev = self.cfg.eval
-        metrics = validate(state, self.data.valid_loader, backend=ev.backend, conf_threshold=ev.conf_threshold,
-                           nms_threshold=ev.nms_threshold)
-        for key in ("mAP", "AP50", "AP75"):
+        per_age = {age: validate(state, loader, backend=ev.backend, conf_threshold=ev.conf_threshold,
+                                 nms_threshold=ev.nms_threshold) for age, loader in self.data.valid_loaders.items()}
+        metrics = dict(per_age[self.cfg.data.image_age])
+        for age, values in per_age.items():
+            metrics.update({f"mAP_age{age}": values["mAP"], f"AP50_age{age}": values["AP50"]})
+        metrics["mAP_mean"] = sum(values["mAP"] for values in per_age.values()) / len(per_age)
+        for key in ("mAP", "AP50", "AP75", "mAP_mean", *(f"{m}_age{a}" for a in per_age for m in ("mAP", "AP50"))):
             self.writer.add_scalar(f"val/{key}", metrics[key], state.step)
-        if metrics["mAP"] > state.best_metric or not (self.checkpoints / "best.pt").exists():
-            state.best_metric = max(state.best_metric, metrics["mAP"])
+        if metrics["mAP_mean"] > state.best_metric or not (self.checkpoints / "best.pt").exists():
+            state.best_metric = max(state.best_metric, metrics["mAP_mean"])
             save_checkpoint(self.checkpoints / "best.pt", self.checkpoint())
             save_checkpoint(self.checkpoints / "last.pt", self.checkpoint())  # with the new best metric
-        print(f"step {state.step}: val mAP {metrics['mAP']:.4f}  AP50 {metrics['AP50']:.4f}  "
-              f"AP75 {metrics['AP75']:.4f}", flush=True)
+        ages = "  ".join(f"age {a}: mAP {v['mAP']:.4f} AP50 {v['AP50']:.4f}" for a, v in per_age.items())
+        print(f"step {state.step}: val {ages}", flush=True)
         self.metrics = metrics
         return metrics
 
@@ -184,19 +213,18 @@ def train(cfg: DictConfig) -> dict:
     run_dir = run_folder(cfg, "train")
     seed_everything(cfg.seed)
     device = resolve_device(cfg.device)
-    train_set, valid_set = build_dataset(cfg, "train", train=True), build_dataset(cfg, "valid", train=False)
-    for dataset in (train_set, valid_set):
-        print(describe_dataset(dataset), flush=True)
+    train_set = build_dataset(cfg, "train", train=True, with_image=cfg.model.use_image)
     model = build_model(cfg, height=train_set.image_size[0], width=train_set.image_size[1]).to(device)
-    data = make_data(cfg, train_set, valid_set, model)
+    data = make_data(cfg, train_set, model)
     state = make_state(cfg, model, len(data.train_loader), device)
     if cfg.resume:
         resume(state, cfg.resume, run_dir / "checkpoints")
     with SummaryWriter(str(run_dir / "tensorboard")) as writer:
         loop = TrainLoop(cfg, state, data, run_dir, writer)
         metrics = loop.run()
-    result = {**{key: metrics[key] for key in METRIC_KEYS}, "split": "valid", "num_images": len(valid_set),
-              "step": state.step}
+    extra = {key: value for key, value in metrics.items() if "_age" in key or key == "mAP_mean"}
+    result = {**{key: metrics[key] for key in METRIC_KEYS}, **extra, "split": "valid", "image_age": cfg.data.image_age,
+              "num_images": len(data.valid_loaders[cfg.data.image_age].dataset), "step": state.step}
     (run_dir / "metrics.json").write_text(json.dumps(result, indent=1))
     print(f"validation metrics after {state.step} steps ({run_dir}):\n{format_metrics(metrics)}", flush=True)
     return {"metrics": result, "run_dir": Path(run_dir), "losses": loop.losses, "step": state.step}

@@ -8,6 +8,7 @@ row, column), so pooling the same nodes always gives the same cells.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -81,3 +82,29 @@ def to_dense(x: torch.Tensor, batch: torch.Tensor, cell: torch.Tensor, *, batch_
     inside = (cell[:, 0] < height) & (cell[:, 1] < width) & (batch < batch_size)
     dense[batch[inside], cell[inside, 0], cell[inside, 1]] = x[inside]
     return dense.permute(0, 3, 1, 2)  # (B, F, H, W)
+
+
+def recency_maps(events: torch.Tensor, batch: torch.Tensor, t_query: torch.Tensor, *, batch_size: int, stride: int,
+                 height: int, width: int, taus_us: tuple[float, ...]) -> torch.Tensor:
+    """How recently each ``stride``-pixel cell saw an event of each polarity, at the query time.
+
+    For the latest event of polarity ``p`` in a cell, at ``t_last``: ``exp(-(t_query - t_last) / tau)``
+    for each ``tau`` of ``taus_us``; 0 for a cell without such events. This depends on the
+    query time, so it lives on the dense maps, never on the nodes; it can only grow as events
+    arrive.
+
+    Shapes:
+        events ``(N, 4)`` x, y, t, p; batch ``(N,)``; t_query ``(B,)`` in the events' time origin ->
+        ``(B, 2 len(taus_us), height, width)``, channels by (tau, polarity).
+    """
+    if len(events) == 0 or not taus_us:
+        return events.new_zeros((batch_size, 2 * len(taus_us), height, width))
+    col = torch.div(events[:, 0], stride, rounding_mode="floor").long().clamp(0, width - 1)
+    row = torch.div(events[:, 1], stride, rounding_mode="floor").long().clamp(0, height - 1)
+    key = ((batch * 2 + events[:, 3].long()) * height + row) * width + col  # (N,)
+    latest = events.new_full((batch_size * 2 * height * width,), -math.inf)
+    latest = latest.scatter_reduce(0, key, events[:, 2].detach(), reduce="amax")
+    since = t_query.to(events.dtype)[:, None, None, None] - latest.view(batch_size, 2, height, width)  # (B, 2, h, w)
+    maps = [torch.where(torch.isfinite(since), torch.exp(-since.clamp(min=0) / tau), torch.zeros_like(since))
+            for tau in taus_us]
+    return torch.cat(maps, dim=1)

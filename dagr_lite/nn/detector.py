@@ -1,8 +1,12 @@
 """The hybrid event + image detector: image CNN, event GCN branch, fusion, YOLOX head.
 
 Fusion happens twice: image features sampled (bilinearly) at the event nodes join the node
-features at the event branch's input and at each pooled stage, and at each head stride the
-event branch's dense map is concatenated with the image map and mixed by a 1x1 convolution.
+features at the event branch's input and at each pooled stage (beside each node's time since
+the image), and at each head stride the event branch's dense map, the recency maps (how
+recently each cell saw events, at the query time), the image map and the image's age (a
+constant plane, in ``time_scale_us``) are concatenated and mixed by a 1x1 convolution, so the
+head can move from the stale image to the events as the image ages. Only the dense maps depend
+on the query time; node features never do (docs/design.md, "The event graph").
 ``use_events=False`` or ``use_image=False`` switch a branch off (the events-only and image-only
 variants); nothing else changes.
 """
@@ -16,6 +20,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from dagr_lite.data.collate import Batch
+from dagr_lite.graph.pool import recency_maps
 from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.blocks import conv_bn_act
 from dagr_lite.nn.event_branch import EventBranch
@@ -57,7 +62,7 @@ class ImageBranch(nn.Module):
                                     for c_in, c_out in zip(self.channels[:-1], self.channels[1:]))
 
     def forward(self, images: torch.Tensor) -> list[torch.Tensor]:
-        x = self.stem(images.float() / 255.0 - 0.5)  # (B, 2w, H/4, W/4)
+        x = self.stem(images.to(self.stem[0][0].weight.dtype) / 255.0 - 0.5)  # (B, 2w, H/4, W/4)
         maps = [x]
         for stage in self.stages:
             x = stage(x)
@@ -105,7 +110,9 @@ class DetectorConfig:
         head_hidden: the head's width; num_classes: object classes.
         strides: the head's output strides in pixels.
         graph: the event graph (None without an event branch).
-        window_us: the event window the node times are normalised by.
+        time_scale_us: the time unit of the image's age and of the nodes' time since the image.
+        recency_us: time constants of the recency maps read beside the event maps (see
+            :func:`~dagr_lite.graph.pool.recency_maps`); empty for none.
     """
 
     height: int
@@ -120,7 +127,8 @@ class DetectorConfig:
     num_classes: int
     strides: tuple[int, ...]
     graph: EventGraphSpec | None
-    window_us: int
+    time_scale_us: float
+    recency_us: tuple[float, ...]
 
     def __post_init__(self):
         if not (self.use_events or self.use_image):
@@ -131,6 +139,7 @@ class DetectorConfig:
     def as_dict(self) -> dict:
         values = {f.name: getattr(self, f.name) for f in fields(self)}
         values["event_channels"], values["strides"] = list(self.event_channels), list(self.strides)
+        values["recency_us"] = list(self.recency_us)
         values["graph"] = None if self.graph is None else self.graph.as_dict()
         return values
 
@@ -143,6 +152,7 @@ class DetectorConfig:
             raise ValueError(f"detector config: missing keys {missing}, unknown keys {unknown}")
         graph = values["graph"]
         return cls(**{**values, "event_channels": tuple(values["event_channels"]), "strides": tuple(values["strides"]),
+                      "recency_us": tuple(values["recency_us"]),
                       "graph": None if graph is None else EventGraphSpec.from_dict(dict(graph))})
 
 
@@ -157,17 +167,25 @@ class Detector(nn.Module):
         if cfg.use_events:
             fuse = (cfg.fuse_channels,) * (len(cfg.strides) + 1) if cfg.use_image else None
             self.events = EventBranch(height=cfg.height, width=cfg.width, channels=cfg.event_channels,
-                                      strides=cfg.strides, graph=cfg.graph, window_us=cfg.window_us,
+                                      strides=cfg.strides, graph=cfg.graph,
+                                      time_scale_us=cfg.time_scale_us if cfg.use_image else None,
                                       blocks=cfg.event_blocks, image_channels=fuse)
         else:
             self.events = None
         if cfg.use_image and cfg.use_events:
             # 1x1 projections of the image maps (strides 4, 8, 16, 32) sampled at event nodes.
             self.to_nodes = nn.ModuleList(nn.Conv2d(c, cfg.fuse_channels, 1) for c in self.image.channels)
-            self.fuse = nn.ModuleList(conv_bn_act(ci + ce, ci, k=1) for ci, ce in
+            # The fusion also reads the recency maps and the image's age, to move from the image to the events.
+            self.fuse = nn.ModuleList(conv_bn_act(ci + ce + 1 + self.num_recency, ci, k=1) for ci, ce in
                                       zip(self.image.channels[1:], self.events.out_channels))
-        head_in = list(self.image.channels[1:]) if cfg.use_image else list(self.events.out_channels)
+        head_in = (list(self.image.channels[1:]) if cfg.use_image
+                   else [c + self.num_recency for c in self.events.out_channels])
         self.head = YOLOXHead(head_in, self.strides, hidden=cfg.head_hidden, num_classes=cfg.num_classes)
+
+    @property
+    def num_recency(self) -> int:
+        """Channels of the recency maps (two polarities per time constant; none without events)."""
+        return 2 * len(self.cfg.recency_us) if self.cfg.use_events else 0
 
     @property
     def graph_spec(self) -> EventGraphSpec | None:
@@ -182,14 +200,31 @@ class Detector(nn.Module):
         sampler = self._node_sampler(image_maps) if image_maps is not None else None
         event_maps = self.events(batch.events, batch.batch_index, len(batch), image_sampler=sampler,
                                  edge_index=batch.edge_index)
+        event_maps = [torch.cat([m, self._recency(batch, stride, m.shape[-2:])], dim=1)
+                      for m, stride in zip(event_maps, self.strides)]
         if image_maps is None:
             return event_maps
+        age = (batch.age_us.to(image_maps[0].dtype) / self.cfg.time_scale_us)[:, None, None, None]  # (B, 1, 1, 1)
         fused = []
         for fuse, image_map, event_map in zip(self.fuse, image_maps[1:], event_maps):
             if event_map.shape[-2:] != image_map.shape[-2:]:  # ceil vs floor on odd sizes
                 event_map = F.interpolate(event_map, size=image_map.shape[-2:], mode="nearest")
-            fused.append(fuse(torch.cat([image_map, event_map], dim=1)))
+            age_plane = age.expand(-1, 1, *image_map.shape[-2:]).to(image_map.dtype)
+            fused.append(fuse(torch.cat([image_map, event_map, age_plane], dim=1)))
         return fused
+
+    def _recency(self, batch: Batch, stride: int, shape) -> torch.Tensor:
+        """``(B, num_recency, h, w)``: how recently each cell saw events, at the query time."""
+        return recency_maps(batch.events, batch.batch_index, batch.age_us, batch_size=len(batch), stride=stride,
+                            height=shape[0], width=shape[1], taus_us=self.cfg.recency_us)
+
+    def event_node_features(self, batch: Batch) -> torch.Tensor:
+        """``(N, C)`` features of the batch's event nodes after the event branch's first stage."""
+        if self.events is None:
+            raise ValueError("this detector has no event branch (use_events false)")
+        sampler = self._node_sampler(self.image(batch.images)) if self.image is not None else None
+        x, _ = self.events.event_nodes(batch.events, batch.batch_index, sampler, batch.edge_index)
+        return x
 
     def _node_sampler(self, image_maps: list[torch.Tensor]):
         """Image features at event nodes: level 0 from the stride-4 map, pooled levels from theirs."""

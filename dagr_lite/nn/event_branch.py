@@ -1,7 +1,7 @@
 """The event branch: causal GCN stages on the event graph, voxel pooling, dense maps per stride.
 
-Events become graph nodes at ``(x, y, beta * t)`` with features polarity (+-1) and position
-normalised to [0, 1] (x / W, y / H, t / window). A stage of GCN blocks runs on the full event
+Events become graph nodes at ``(x, y, beta * t)`` with features polarity (+-1), position
+normalised to [0, 1] (x / W, y / H) and, in a model with an image, the time since the image. A stage of GCN blocks runs on the full event
 graph, then the graph is max-pooled into ``stride``-pixel cells for each output stride in turn,
 with more GCN blocks after each pooling; each pooled level is written out as a dense map
 ``(B, C, H / stride, W / stride)`` for the detection head.
@@ -50,17 +50,18 @@ class EventBranch(nn.Module):
         channels: feature size of the input stage and of each pooled stage (``len(strides) + 1``).
         strides: pooling cell sizes in pixels, increasing; one dense map each.
         graph: the event graph's settings (node positions and edges).
-        window_us: the length of a sample's event window (normalises t).
+        time_scale_us: with it, nodes carry their time since the image, ``t / time_scale_us``
+            (events' ``t`` counts from the image); None: no time feature (a model without an image).
         blocks: GCN blocks per stage.
         image_channels: image feature channels joined at each level (input, then each stride).
 
     Shapes:
-        events ``(N, 4)`` x, y, t (us from the window start), p; batch ``(N,)`` sorted ->
+        events ``(N, 4)`` x, y, t (us since the image), p; batch ``(N,)`` sorted ->
         list of ``(B, channels[s + 1], ceil(H / strides[s]), ceil(W / strides[s]))``.
     """
 
     def __init__(self, *, height: int, width: int, channels: Sequence[int], strides: Sequence[int],
-                 graph: EventGraphSpec, window_us: float, blocks: int, image_channels: Sequence[int] | None = None):
+                 graph: EventGraphSpec, time_scale_us: float | None, blocks: int, image_channels: Sequence[int] | None = None):
         super().__init__()
         if len(channels) != len(strides) + 1:
             raise ValueError(f"channels needs one entry for the input stage and one per stride: "
@@ -68,46 +69,67 @@ class EventBranch(nn.Module):
         if list(strides) != sorted(strides) or len(set(strides)) != len(strides):
             raise ValueError(f"strides must increase, got {list(strides)}")
         self.height, self.width, self.strides = height, width, tuple(strides)
-        self.spec, self.window_us = graph, window_us
+        self.spec, self.time_scale_us = graph, time_scale_us
         self.image_channels = tuple(image_channels) if image_channels is not None else (0,) * len(channels)
         if len(self.image_channels) != len(channels):
             raise ValueError(f"image_channels needs {len(channels)} entries, got {len(self.image_channels)}")
         self.out_channels = tuple(channels[1:])
-        in_features = 4
+        in_features = 3 if time_scale_us is None else 4
         self.stages = nn.ModuleList()
         for level, out in enumerate(channels):
             width_in = (in_features if level == 0 else channels[level - 1]) + self.image_channels[level]
             self.stages.append(nn.ModuleList(GCNBlock(width_in if b == 0 else out, out) for b in range(blocks)))
 
     def node_features(self, events: torch.Tensor) -> torch.Tensor:
-        """``(N, 4)`` polarity in {-1, 1}, x / W, y / H, t / window."""
+        """``(N, 3)`` polarity in {-1, 1}, x / W, y / H, and with a time scale ``(N, 4)`` with the
+        time since the image, ``t / time_scale_us``.
+
+        Each depends on the event alone and on the image's time, never on a window's start or on
+        the time of a query, so a node's features are fixed once its event has arrived.
+        """
         x, y, t, p = events.unbind(dim=1)
-        return torch.stack([2 * p - 1, x / self.width, y / self.height, t / self.window_us], dim=1)
+        columns = [2 * p - 1, x / self.width, y / self.height]
+        if self.time_scale_us is not None:
+            columns.append(t / self.time_scale_us)
+        return torch.stack(columns, dim=1)
 
     def forward(self, events: torch.Tensor, batch: torch.Tensor, batch_size: int,
                 image_sampler: ImageSampler | None = None, edge_index: torch.Tensor | None = None
                 ) -> list[torch.Tensor]:
         """``edge_index``: the event graph if already built (e.g. by the data loader's workers)."""
         pos = self.spec.positions(events)  # (N, 3)
+        x, edge_index = self.event_nodes(events, batch, image_sampler, edge_index)
+        maps = []
+        for level, stride in enumerate(self.strides, start=1):
+            pooled = voxel_max_pool(x, pos, batch, edge_index, stride)
+            x, pos, batch, edge_index = pooled.x, pooled.pos, pooled.batch, pooled.edge_index
+            x = self._stage(level, x, pos, batch, edge_index, image_sampler)
+            maps.append(to_dense(x, batch, pooled.cell, batch_size=batch_size,
+                                 height=math.ceil(self.height / stride), width=math.ceil(self.width / stride)))
+        return maps
+
+    def event_nodes(self, events: torch.Tensor, batch: torch.Tensor, image_sampler: ImageSampler | None = None,
+                    edge_index: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The features ``(N, channels[0])`` of the event nodes after the first stage, and the graph.
+
+        A node's features here depend on its event, its causal past and the image only (the
+        causal graph and per-node normalisation): adding later events or asking at a later
+        time leaves them unchanged.
+        """
         if edge_index is None:
             edge_index = self.spec.edges(events, batch)
         edge_index = edge_index.to(events.device)  # (2, E)
-        x = self.node_features(events)  # (N, 4)
-        maps = []
-        for level, blocks in enumerate(self.stages):
-            if level > 0:
-                stride = self.strides[level - 1]
-                pooled = voxel_max_pool(x, pos, batch, edge_index, stride)
-                x, pos, batch, edge_index = pooled.x, pooled.pos, pooled.batch, pooled.edge_index
-            if self.image_channels[level]:
-                if image_sampler is None:
-                    raise ValueError(f"the branch expects {self.image_channels[level]} image channels at level "
-                                     f"{level}, but no image_sampler was given")
-                x = torch.cat([x, image_sampler(pos[:, :2], batch, level)], dim=1)
-            op = GraphOperator(edge_index, len(x))
-            for block in blocks:
-                x = block(x, op)
-            if level > 0:
-                maps.append(to_dense(x, batch, pooled.cell, batch_size=batch_size,
-                                     height=math.ceil(self.height / stride), width=math.ceil(self.width / stride)))
-        return maps
+        pos = self.spec.positions(events)
+        return self._stage(0, self.node_features(events), pos, batch, edge_index, image_sampler), edge_index
+
+    def _stage(self, level: int, x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge_index: torch.Tensor,
+               image_sampler: ImageSampler | None) -> torch.Tensor:
+        if self.image_channels[level]:
+            if image_sampler is None:
+                raise ValueError(f"the branch expects {self.image_channels[level]} image channels at level "
+                                 f"{level}, but no image_sampler was given")
+            x = torch.cat([x, image_sampler(pos[:, :2], batch, level)], dim=1)
+        op = GraphOperator(edge_index, len(x))
+        for block in self.stages[level]:
+            x = block(x, op)
+        return x

@@ -17,7 +17,7 @@ def make_sample(box=(10.0, 8.0, 30.0, 20.0)):
     n = xs.numel()
     events = torch.stack([xs.flatten().float(), ys.flatten().float(), torch.arange(n).float(), torch.ones(n)], 1)
     return Sample(events=events, image=image, boxes=torch.tensor([box]), labels=torch.zeros(1, dtype=torch.int64),
-                  video="v", frame=1, image_frame=0, t_start_us=0, t_end_us=33333)
+                  video="v", frame=1, image_frame=0, t_start_us=0, t_end_us=33333, t_image_us=0)
 
 
 def bright_extent(image):
@@ -105,3 +105,16 @@ def test_events_whose_pixel_centre_stays_inside_are_kept_within_pixel_range():
     assert out.events[:, 0].min() == 0.0
     gone = zoom_translate(sample, 1.0, -0.6, 0.0)  # column 0's centre moves to -0.1: outside
     assert len(gone.events) == len(sample.events) - 10
+
+
+def test_image_dropout_greys_the_image_and_leaves_the_geometry_alone():
+    sample = make_sample()
+    always = TrainAugment(image_dropout=1.0)(sample, np.random.default_rng([3]))
+    never = TrainAugment(image_dropout=0.0)(sample, np.random.default_rng([3]))
+    assert torch.all(always.image == 128)
+    assert torch.equal(always.boxes, never.boxes) and torch.equal(always.events, never.events)
+    kept = sum(bool(torch.all(TrainAugment(image_dropout=0.25)(sample, np.random.default_rng([i])).image == 128))
+               for i in range(400))
+    assert 60 < kept < 140  # about a quarter
+    with pytest.raises(ValueError, match="image_dropout"):
+        TrainAugment(image_dropout=1.5)

@@ -8,7 +8,7 @@ from dagr_lite.data.dataset import Sample
 def sample(n_events, n_boxes, frame, size=(8, 10)):
     return Sample(events=torch.rand(n_events, 4), image=torch.zeros(3, *size, dtype=torch.uint8),
                   boxes=torch.rand(n_boxes, 4), labels=torch.zeros(n_boxes, dtype=torch.int64),
-                  video=f"v{frame}", frame=frame, image_frame=frame - 1, t_start_us=0, t_end_us=10)
+                  video=f"v{frame}", frame=frame, image_frame=frame - 1, t_start_us=0, t_end_us=10, t_image_us=0)
 
 
 def test_collate_concatenates_events_with_a_batch_index():

@@ -146,14 +146,14 @@ def test_dataset_and_check_use_each_files_own_convention(tmp_path, capsys):
     events = {v: on_frame_events({"r": "round", "t": "truncate"}[v], seed=i) for i, v in enumerate(files)}
     for video, path in files.items():
         write_in_convention(path, events[video], {"r": "round", "t": "truncate"}[video])
-    ds = EventEgoHands(tmp_path, "train", image_lag=1, window_us=34_000)
+    ds = EventEgoHands(tmp_path, "train", image_age=1, event_span="window", window_us=34_000)
     for index in range(len(ds)):
         sample = ds[index]
         convention = {"r": "round", "t": "truncate"}[sample.video]
         k, t = sample.frame, events[sample.video]["t"]
         t_end = reference_time(k, convention)
         assert (sample.t_start_us, sample.t_end_us) == (t_end - 34_000, t_end)
-        got = sample.events[:, 2].numpy().astype(np.int64) + sample.t_start_us
+        got = sample.events[:, 2].numpy().astype(np.int64) + sample.t_image_us
         np.testing.assert_array_equal(got, t[(t >= t_end - 34_000) & (t < t_end)])
         assert np.sum(got == reference_time(k - 1, convention)) == 2  # the window holds frame k - 1's time...
         assert not np.any(got == t_end)  # ...but not frame k's: those events open the next window

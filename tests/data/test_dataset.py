@@ -8,16 +8,16 @@ from torch.utils.data import DataLoader
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.collate import collate
-from dagr_lite.data.dataset import EventEgoHands
+from dagr_lite.data.dataset import EventEgoHands, cap_events
 from dagr_lite.data.reader import DatasetFormatError, read_frame
 from dagr_lite.data.writer import write_frame
 from tests.conftest import make_dataset
 
 
 def test_sample_matches_brute_force(dataset):
-    ds = EventEgoHands(dataset.root, "train", image_lag=2, window_us=50_000)
+    ds = EventEgoHands(dataset.root, "train", image_age=2, event_span="window", window_us=50_000)
     assert ds.videos == ["CARDS_COURTYARD_B_T", "vid_b"]
-    assert len(ds) == 2 * (12 - 2)  # frames k < image_lag give no sample
+    assert len(ds) == 2 * (12 - 2)  # frames k < image_age give no sample
     for index in range(len(ds)):
         sample = ds[index]
         video, k = ds.sample_name(index)
@@ -25,9 +25,10 @@ def test_sample_matches_brute_force(dataset):
         raw = dataset.events[video]
         t_end = fmt.frame_time_us(k)
         mask = (raw["t"] >= t_end - 50_000) & (raw["t"] < t_end)
-        expected = np.stack([raw["x"][mask], raw["y"][mask], raw["t"][mask] - (t_end - 50_000), raw["p"][mask]], 1)
+        t_image = fmt.frame_time_us(k - 2)
+        expected = np.stack([raw["x"][mask], raw["y"][mask], raw["t"][mask] - t_image, raw["p"][mask]], 1)
         np.testing.assert_array_equal(sample.events.numpy(), expected.astype(np.float32))
-        assert (sample.t_start_us, sample.t_end_us) == (t_end - 50_000, t_end)
+        assert (sample.t_start_us, sample.t_end_us, sample.t_image_us) == (t_end - 50_000, t_end, t_image)
         image = read_frame(fmt.frame_path(dataset.root, "train", video, k - 2))
         np.testing.assert_array_equal(sample.image.permute(1, 2, 0).numpy(), image)
         boxes = dataset.labels[video].get(k, np.zeros((0, 4))).reshape(-1, 4)
@@ -36,7 +37,7 @@ def test_sample_matches_brute_force(dataset):
 
 
 def test_frames_without_boxes_are_samples_with_zero_boxes(dataset):
-    ds = EventEgoHands(dataset.root, "valid", image_lag=0)
+    ds = EventEgoHands(dataset.root, "valid", image_age=0)
     by_frame = {ds.sample_name(i)[1]: ds[i] for i in range(len(ds))}
     assert set(by_frame) == set(range(12))
     assert by_frame[1].boxes.shape == (0, 4)  # labelled with an empty list
@@ -72,7 +73,7 @@ def test_event_cap_subsamples_uniformly_and_reproducibly(dataset):
 def test_window_with_no_events_gives_zero_events(tmp_path):
     written = make_dataset(tmp_path, videos={"v": "train"}, num_frames=6, events_per_video=1)
     t_event = int(written.events["v"]["t"][0])
-    ds = EventEgoHands(tmp_path, "train", image_lag=0, window_us=1000)
+    ds = EventEgoHands(tmp_path, "train", image_age=0, event_span="window", window_us=1000)
     for i in range(len(ds)):
         sample = ds[i]
         inside = sample.t_start_us <= t_event < sample.t_end_us
@@ -126,7 +127,7 @@ def test_events_file_with_no_events(dataset_copy):
 
 
 def test_corrupt_jpeg_names_the_file(dataset_copy):
-    ds = EventEgoHands(dataset_copy.root, "valid", image_lag=1)
+    ds = EventEgoHands(dataset_copy.root, "valid", image_age=1)
     path = fmt.frame_path(dataset_copy.root, "valid", "vid_c", 4)
     path.write_bytes(path.read_bytes()[:200])
     index = [ds.sample_name(i)[1] for i in range(len(ds))].index(5)
@@ -147,13 +148,13 @@ def test_bad_boxes_are_refused_or_clipped(dataset_copy):
     path.write_text(json.dumps(labels))
     with pytest.raises(DatasetFormatError, match=r"vid_c_frame_2: box \[60.0, 40.0, 10.0, 10.0\] leaves the 64x48 image"):
         EventEgoHands(dataset_copy.root, "valid")
-    ds = EventEgoHands(dataset_copy.root, "valid", image_lag=0, clip_boxes=True)
+    ds = EventEgoHands(dataset_copy.root, "valid", image_age=0, clip_boxes=True)
     sample = ds[2]
     assert sample.frame == 2
     np.testing.assert_allclose(sample.boxes.numpy(), [[60, 40, 64, 48]])
 
 
-@pytest.mark.parametrize("kwargs,match", [(dict(image_lag=-1), "image_lag"), (dict(window_us=0), "window_us"),
+@pytest.mark.parametrize("kwargs,match", [(dict(image_age=-1), "image_age"), (dict(window_us=0), "window_us"),
                                           (dict(max_events=0), "max_events"), (dict(videos=["nope"]), "nope")])
 def test_bad_arguments(dataset, kwargs, match):
     with pytest.raises(ValueError, match=match):
@@ -172,7 +173,7 @@ def test_polarity_outside_0_1_stops_the_dataset(tmp_path):
     path = fmt.events_path(written.root, "train", "v")
     with h5py.File(path, "a") as h5:
         h5[fmt.KEY_P][15_000] = 2
-    ds = EventEgoHands(written.root, "train", image_lag=0)
+    ds = EventEgoHands(written.root, "train", image_age=0, event_span="window")
     with pytest.raises(DatasetFormatError, match=r"v\.h5: events/p: values must be 0 or 1, found 2 at index 15000 "):
         for index in range(len(ds)):
             ds[index]
@@ -212,3 +213,57 @@ def test_frame_size_must_agree_across_videos(dataset_copy):
     lines = str(info.value).splitlines()
     assert lines[0] == f"{fmt.frame_path(root, 'train', 'vid_b', 0)}: frame is 60x48 (WxH), expected 64x48 as {first}"
     assert len(lines) == 11 and lines[-1].endswith("vid_b: ... and 2 more frame problems in this folder")
+
+
+@pytest.mark.parametrize("age", [1, 3, 5])
+def test_events_since_the_image_match_a_brute_force_time_mask(dataset, age):
+    ds = EventEgoHands(dataset.root, "train", image_age=age, context_us=7_000)
+    assert len(ds) == 2 * (12 - age)
+    for index in range(len(ds)):
+        sample = ds[index]
+        video, k = ds.sample_name(index)
+        t_image, t_end = fmt.frame_time_us(k - age), fmt.frame_time_us(k)
+        raw = dataset.events[video]
+        mask = (raw["t"] >= t_image - 7_000) & (raw["t"] < t_end)
+        expected = np.stack([raw["x"][mask], raw["y"][mask], raw["t"][mask] - t_image, raw["p"][mask]], 1)
+        np.testing.assert_array_equal(sample.events.numpy(), expected.astype(np.float32))
+        assert (sample.image_frame, sample.t_image_us, sample.t_end_us) == (k - age, t_image, t_end)
+        assert sample.age_us == t_end - t_image
+
+
+def test_training_draws_ages_from_the_range_per_sample(dataset):
+    ds = EventEgoHands(dataset.root, "train", image_age=(1, 4))
+    assert len(ds) == 2 * (12 - 1)  # a frame k draws from [1, min(4, k)]
+    drawn = {}
+    for epoch in range(6):
+        ds.set_epoch(epoch)
+        for index in range(len(ds)):
+            sample = ds[index]
+            age = sample.frame - sample.image_frame
+            assert 1 <= age <= min(4, sample.frame)
+            drawn.setdefault(sample.frame, set()).add(age)
+    assert drawn[11] == {1, 2, 3, 4} and drawn[1] == {1}
+    ds.set_epoch(2)
+    again = [ds[i].image_frame for i in range(len(ds))]
+    assert again == [ds[i].image_frame for i in range(len(ds))]  # same seed and epoch, same ages
+
+
+def test_the_cap_keeps_the_latest_window_whole_and_thins_the_rest():
+    t = np.arange(0, 100_000, 10)  # 10,000 events, one every 10 us, up to t_end = 100,000
+    rng = np.random.default_rng([0])
+    keep = cap_events(t, 100_000, 4_000, 30_000, rng)
+    kept = t[keep]
+    assert len(kept) == 4_000 and np.all(np.diff(kept) > 0)
+    assert np.sum(kept >= 70_000) == 3_000  # the last 30 ms whole: 3,000 events
+    assert np.sum(kept < 70_000) == 1_000  # 1,000 of the 7,000 older ones, spread over them
+    assert kept[0] < 10_000 and np.sum(kept < 35_000) > 350
+    recent_only = t[cap_events(t, 100_000, 2_000, 30_000, rng)]
+    assert len(recent_only) == 2_000 and recent_only.min() >= 70_000  # too many recent ones: thinned, old dropped
+    assert isinstance(cap_events(t, 100_000, None, 30_000, rng), slice)
+    assert isinstance(cap_events(t, 100_000, 10_000, 30_000, rng), slice)
+
+
+@pytest.mark.parametrize("image_age", [-1, (3, 1), (1, 2, 3), 1.5])
+def test_bad_image_ages_are_refused(dataset, image_age):
+    with pytest.raises(ValueError, match="image_age"):
+        EventEgoHands(dataset.root, "train", image_age=image_age)

@@ -115,13 +115,13 @@ def test_runs_never_overwrite_and_bad_checkpoints_are_named(tmp_path):
 
 def test_evaluation_takes_the_data_and_graph_settings_from_the_checkpoint(tmp_path, capsys):
     train(small(tmp_path / "run", "model=events_only", "trainer.max_steps=1", "data.window_us=20000",
-                "data.image_lag=2", "model.graph.radius=4"))
+                "data.image_age=2", "model.graph.radius=4"))
     ckpt = tmp_path / "run" / "checkpoints" / "last.pt"
     evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'e'}", "loader.num_workers=0", "split=valid"))
     out = json.loads((tmp_path / "e" / "metrics.json").read_text())
-    assert out["data"] == {"image_lag": 2, "window_us": 20000, "max_events": 6000}
+    assert out["data"] == {"image_age": 2, "window_us": 20000, "context_us": 10000, "max_events": 6000}
     assert out["graph"] == {"radius": 4.0, "beta": 5e-4, "max_neighbors": 16} and out["overrides"] == {}
-    assert out["num_images"] == len(EventEgoHands(stub_root(), "valid", image_lag=2))
+    assert out["num_images"] == len(EventEgoHands(stub_root(), "valid", image_age=2))
     capsys.readouterr()
     evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'o'}", "loader.num_workers=0", "split=valid",
                     "data.window_us=33333", "graph.radius=5"))

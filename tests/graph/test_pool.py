@@ -54,3 +54,22 @@ def test_max_pool_gradient_reaches_the_maximum_only():
     pooled = voxel_max_pool(x, pos, torch.zeros(3, dtype=torch.int64), torch.zeros((2, 0), dtype=torch.int64), 8)
     pooled.x.sum().backward()
     assert x.grad.flatten().tolist() == [0.0, 1.0, 1.0]
+
+
+def test_recency_maps_by_hand():
+    from dagr_lite.graph.pool import recency_maps
+    # sample 0: ON at (3, 2) t=10 and t=40, OFF at (9, 1) t=25; sample 1: ON at (0, 7) t=5
+    events = torch.tensor([[3, 2, 10, 1], [9, 1, 25, 0], [3, 2, 40, 1], [0, 7, 5, 1]], dtype=torch.float64)
+    batch = torch.tensor([0, 0, 0, 1])
+    maps = recency_maps(events, batch, torch.tensor([50.0, 20.0]), batch_size=2, stride=4, height=2, width=3,
+                        taus_us=(10.0, 100.0))
+    assert maps.shape == (2, 4, 2, 3)  # channels: (tau 10: OFF, ON), (tau 100: OFF, ON)
+    expected = torch.zeros(2, 4, 2, 3, dtype=torch.float64)
+    for c, tau in ((0, 10.0), (2, 100.0)):
+        expected[0, c + 1, 0, 0] = math.exp(-(50 - 40) / tau)  # the latest ON event of cell (0, 0)
+        expected[0, c + 0, 0, 2] = math.exp(-(50 - 25) / tau)  # OFF at x 9 -> column 2
+        expected[1, c + 1, 1, 0] = math.exp(-(20 - 5) / tau)
+    assert torch.allclose(maps, expected)
+    empty = recency_maps(events[:0], batch[:0], torch.tensor([1.0]), batch_size=1, stride=4, height=2, width=3,
+                         taus_us=(10.0,))
+    assert empty.shape == (1, 2, 2, 3) and not empty.any()

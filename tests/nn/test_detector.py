@@ -62,3 +62,31 @@ def test_mixed_precision_keeps_losses_and_graph_products_in_float32(monkeypatch)
     assert out["loss"].dtype == torch.float32 and torch.isfinite(out["loss"])
     out["loss"].backward()
     assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+
+
+def in_float64(sample):
+    batch = collate([sample])
+    batch.events = batch.events.double()
+    return batch
+
+
+def test_node_features_ignore_later_events_and_the_query_time():
+    """The rule streaming depends on: a node depends on its event, its causal past and the image."""
+    torch.manual_seed(0)
+    dataset = EventEgoHands(stub_root(), "valid", image_age=3, max_events=None)
+    sample = dataset[20]
+    model = Detector(small_detector_config(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16)).double().eval()
+    n = len(sample.events)
+    early = sample.replace(events=sample.events[: n // 2], t_end_us=sample.t_image_us + 40_000)
+    later = sample.replace(t_end_us=sample.t_end_us + 50_000)  # more events, asked for later
+    with torch.no_grad():
+        a = model.event_node_features(in_float64(early))
+        b = model.event_node_features(in_float64(later))
+        c = model.event_node_features(in_float64(sample.replace(t_end_us=sample.t_end_us + 1)))
+    assert a.shape[0] == n // 2 and b.shape[0] == n
+    assert torch.equal(a, b[: n // 2]) and torch.equal(b, c)
+    # ...while the detections do follow the query time, through the image's age at the fusion
+    with torch.no_grad():
+        now = model(in_float64(sample), conf_threshold=0.0)[0]["scores"]
+        later_scores = model(in_float64(later), conf_threshold=0.0)[0]["scores"]
+    assert not torch.equal(now, later_scores)

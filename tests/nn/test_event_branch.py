@@ -17,7 +17,7 @@ def events_of(n, seed, height=48, width=64):
 
 def test_dense_maps_have_the_strides_shapes_and_carry_gradient():
     torch.manual_seed(0)
-    branch = EventBranch(height=48, width=64, channels=(8, 16, 16, 24), strides=STRIDES, graph=SPEC, window_us=33333,
+    branch = EventBranch(height=48, width=64, channels=(8, 16, 16, 24), strides=STRIDES, graph=SPEC, time_scale_us=1e5,
                          blocks=1)
     a, b = events_of(300, 0), events_of(200, 1)
     events = torch.cat([a, b])
@@ -32,7 +32,7 @@ def test_dense_maps_have_the_strides_shapes_and_carry_gradient():
 def test_samples_do_not_influence_each_other():
     torch.manual_seed(0)
     branch = EventBranch(height=48, width=64, channels=(8, 8, 8, 8), strides=STRIDES, graph=SPEC,
-                         window_us=33333, blocks=1).eval()
+                         time_scale_us=1e5, blocks=1).eval()
     a, b = events_of(250, 2), events_of(150, 3)
     alone = branch(a, torch.zeros(250, dtype=torch.long), batch_size=1)
     together = branch(torch.cat([a, b]), torch.cat([torch.zeros(250), torch.ones(150)]).long(), batch_size=2)
@@ -43,7 +43,7 @@ def test_samples_do_not_influence_each_other():
 def test_no_events_give_zero_maps_and_the_image_hook_joins_with_gradient():
     torch.manual_seed(0)
     branch = EventBranch(height=32, width=32, channels=(4, 4, 4, 4), strides=STRIDES,
-                         graph=EventGraphSpec(radius=5.0, beta=5e-4, max_neighbors=16), window_us=33333, blocks=1,
+                         graph=EventGraphSpec(radius=5.0, beta=5e-4, max_neighbors=16), time_scale_us=1e5, blocks=1,
                          image_channels=(3, 2, 0, 0))
     maps = branch(torch.zeros((0, 4)), torch.zeros(0, dtype=torch.long), batch_size=2,
                   image_sampler=lambda pos, batch, level: torch.zeros(len(pos), (3, 2)[level]))

@@ -44,7 +44,7 @@ def test_folder_input_builds_a_valid_dataset_with_scaled_labels(tmp_path):
             "--scale", "2", "--labels", str(tmp_path / "labels.json"), "--splits", str(tmp_path / "splits.json")]
     assert main(args) == 0
     assert check_dataset(out, decode_frames=True) == []
-    ds = EventEgoHands(out, "train", image_lag=0)
+    ds = EventEgoHands(out, "train", image_age=0, event_span="window")
     assert ds.videos == ["a", "b"] and ds.image_size == (12, 16)
     sample = next(ds[i] for i in range(len(ds)) if ds.sample_name(i) == ("a", 3))
     np.testing.assert_allclose(sample.boxes.numpy(), [[5.5, 3, 9.5, 7]])  # (11, 6, 19, 14) / 2

@@ -1,0 +1,234 @@
+"""Detection quality against the image's age, for several checkpoints on the same frames.
+
+    python -m dagr_lite.eval.sweep ckpt=[A.pt,B.pt] split=test ages=[1,2,3,5,7,10] out=DIR [between=10]
+
+Every checkpoint is scored at every image age ``a`` (the image of frame ``k - a`` and the
+events since it, boxes of frame ``k``) on one list of label frames, ``k >= max(ages)``, so the
+rows compare. With ``between=N`` each age is also scored at the ``N - 1`` times between label
+frames ``k`` and ``k + 1`` (every ``1/N`` of a frame interval), against boxes interpolated
+linearly between the two frames (:func:`interpolate_boxes`); only frame pairs whose boxes all
+match are used. Writes ``sweep.json``, ``sweep.csv`` and ``sweep.png`` into ``out`` and prints
+the table.
+"""
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from scipy.optimize import linear_sum_assignment
+from torch.utils.data import Dataset
+
+from dagr_lite.config import ConfigError, build_dataset, resolve_config
+from dagr_lite.data.dataset import EventEgoHands, Sample
+from dagr_lite.engine.common import load_checkpoint, make_loader, resolve_device
+from dagr_lite.data.writer import write_text_atomically
+from dagr_lite.engine.evaluate import SAMPLE_KEYS, load_model
+from dagr_lite.eval.score import score_model
+from dagr_lite.nn.detector import DetectorConfig
+from dagr_lite.nn.head import box_iou
+
+# Boxes of frames k and k + 1 are the same hand when their IoU is at least this (after the best one-to-one match).
+MATCH_IOU = 0.3
+RESULT_KEYS = ("ckpt", "model", "age_frames", "age_ms", "mAP", "AP50", "AP75", "num_images")
+
+
+def match_boxes(a: np.ndarray, b: np.ndarray, min_iou: float = MATCH_IOU) -> np.ndarray | None:
+    """The order of ``b`` that pairs each box of ``a`` with the same hand, or None.
+
+    Boxes (xyxy) are paired one to one by the largest total IoU (Hungarian assignment); the
+    frames match only when they hold as many boxes and every pair overlaps by ``min_iou``.
+    """
+    if len(a) != len(b):
+        return None
+    if len(a) == 0:
+        return np.zeros(0, dtype=np.int64)
+    iou = box_iou(torch.as_tensor(a, dtype=torch.float64), torch.as_tensor(b, dtype=torch.float64)).numpy()
+    rows, cols = linear_sum_assignment(-iou)
+    if np.any(iou[rows, cols] < min_iou):
+        return None
+    return cols[np.argsort(rows)]
+
+
+def interpolate_boxes(a: np.ndarray, b: np.ndarray, fraction: float) -> np.ndarray:
+    """Boxes a fraction of the way from frame k's ``a`` to frame k + 1's matched ``b``: ``(1 - f) a + f b``."""
+    order = match_boxes(a, b)
+    if order is None:
+        raise ValueError("the boxes of the two frames do not match one to one")
+    return ((1 - fraction) * np.asarray(a, np.float64) + fraction * np.asarray(b, np.float64)[order]).astype(np.float32)
+
+
+def sweep_frames(dataset: EventEgoHands, first: int, between: int) -> list[tuple[int, int]]:
+    """``(video number, k)`` of the label frames a sweep scores: ``k >= first``; with ``between``
+    also a next frame whose boxes match frame k's one to one."""
+    frames = []
+    for v in range(len(dataset.videos)):
+        for k in range(first, dataset.num_frames(v) - (1 if between else 0)):
+            if between and match_boxes(dataset.boxes_of(v, k), dataset.boxes_of(v, k + 1)) is None:
+                continue
+            frames.append((v, k))
+    return frames
+
+
+class SweepSamples(Dataset):
+    """The samples of one sweep point: image age ``age`` frames, asked for ``fraction`` of a frame
+    interval after label frame ``k``, over the sweep's ``frames``."""
+
+    def __init__(self, dataset: EventEgoHands, frames: list[tuple[int, int]], age: int, fraction: float, seed: int,
+                 blank_image: bool = False):
+        self.dataset, self.frames, self.age, self.fraction, self.seed = dataset, frames, age, fraction, seed
+        self.blank_image = blank_image
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, index: int) -> Sample:
+        ds, (v, k) = self.dataset, self.frames[index]
+        boxes = ds.boxes_of(v, k)
+        t_end = ds.frame_time_us(v, k)
+        if self.fraction:
+            boxes = interpolate_boxes(boxes, ds.boxes_of(v, k + 1), self.fraction)
+            t_end += int(round(self.fraction * (ds.frame_time_us(v, k + 1) - t_end)))
+        rng = np.random.default_rng([self.seed, index])
+        sample = ds.sample_at(v, k, k - self.age, t_end, boxes, rng)
+        if self.blank_image:  # an ablation: what the model makes of the events alone
+            sample = sample.replace(image=torch.full_like(sample.image, 128))
+        return sample
+
+
+def sweep_points(ages: list[int], between: int) -> list[tuple[int, float]]:
+    """``(age, fraction)`` of every point: each age, and with ``between`` its in-between times."""
+    steps = max(1, between)
+    return [(age, j / steps) for age in ages for j in range(steps)]
+
+
+def score_point(cfg: DictConfig, model, dataset: EventEgoHands, frames: list[tuple[int, int]], age: int,
+                fraction: float, device: torch.device) -> dict[str, float]:
+    """COCO metrics of ``model`` at one sweep point."""
+    samples = SweepSamples(dataset, frames, age, fraction, cfg.seed, blank_image=cfg.blank_image)
+    loader = make_loader(samples, batch_size=cfg.loader.batch_size,
+                         num_workers=cfg.loader.num_workers, graph=model.graph_spec)
+    metrics, evaluator = score_model(model, loader, device, backend=cfg.eval.backend,
+                                     conf_threshold=cfg.eval.conf_threshold, nms_threshold=cfg.eval.nms_threshold,
+                                     desc=f"age {age + fraction:g} frames")
+    return {"mAP": metrics["mAP"], "AP50": metrics["AP50"], "AP75": metrics["AP75"],
+            "num_images": len(evaluator.images)}
+
+
+def sweep_checkpoint(cfg: DictConfig, path: str, frames: list[tuple[int, int]] | None, device: torch.device
+                     ) -> tuple[list[dict], list[tuple[int, int]]]:
+    """The rows of one checkpoint at every sweep point, with its own data settings (image age
+    aside); the frames are found on first use and shared by every later checkpoint."""
+    state = load_checkpoint(path)
+    detector = DetectorConfig.from_dict(state["detector"])
+    trained = state["config"]
+    run_cfg = OmegaConf.merge(cfg, {"data": {key: trained["data"][key] for key in SAMPLE_KEYS}})
+    largest = max(cfg.ages)
+    dataset = build_dataset(run_cfg, cfg.split, train=False, with_image=detector.use_image, image_age=largest,
+                            first_frame=largest)
+    if frames is None:
+        frames = sweep_frames(dataset, largest, cfg.between)
+    model = load_model(state, detector, dataset.image_size, path).to(device)
+    name = trained["model"]["name"] + (" (grey image)" if cfg.blank_image else "")
+    print(f"{path}: {name}, {len(frames)} label frames of {cfg.split}", flush=True)
+    rows = [{"ckpt": str(path), "model": name, "age_frames": age + fraction,
+             "age_ms": 1000 * (age + fraction) / cfg.dataset.fps,
+             **score_point(run_cfg, model, dataset, frames, age, fraction, device)}
+            for age, fraction in sweep_points(list(cfg.ages), cfg.between)]
+    return rows, frames
+
+
+def check_sweep(cfg: DictConfig) -> None:
+    ages = cfg.ages
+    if not isinstance(ages, ListConfig) or not ages or not all(isinstance(a, int) and a >= 0 for a in ages):
+        raise ConfigError(f"ages must be a non-empty list of integers >= 0 (frames), got {ages!r}")
+    if not isinstance(cfg.between, int) or cfg.between < 0:
+        raise ConfigError(f"between must be an integer >= 0 (0: label frames only), got {cfg.between!r}")
+    if not isinstance(cfg.blank_image, bool):
+        raise ConfigError(f"blank_image must be true or false, got {cfg.blank_image!r}")
+    if not isinstance(cfg.ckpt, ListConfig) or not cfg.ckpt:
+        raise ConfigError(f"ckpt must be a list of checkpoints, e.g. ckpt=[a.pt,b.pt], got {cfg.ckpt!r}")
+    for path in cfg.ckpt:
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"{path}: checkpoint file is missing")
+    if (Path(cfg.out) / "sweep.json").exists():
+        raise FileExistsError(f"{cfg.out}: holds an earlier sweep (sweep.json); choose a new out")
+
+
+def sweep(cfg: DictConfig) -> dict:
+    """Score every checkpoint at every point; write ``sweep.json``, ``sweep.csv``, ``sweep.png``."""
+    cfg = resolve_config(cfg)
+    check_sweep(cfg)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    device = resolve_device(cfg.device)
+    rows, frames = [], None
+    for path in cfg.ckpt:
+        ckpt_rows, frames = sweep_checkpoint(cfg, path, frames, device)
+        rows += ckpt_rows
+    write_results(out, rows, split=cfg.split, between=cfg.between, blank_image=cfg.blank_image)
+    print(format_table(rows), flush=True)
+    return {"results": rows, "frames": frames, "out": out}
+
+
+def write_results(out: Path, rows: list[dict], *, split: str, between: int, blank_image: bool) -> None:
+    summary = {"split": split, "between": between, "blank_image": blank_image, "results": rows}
+    write_text_atomically(out / "sweep.json", json.dumps(summary, indent=1))
+    with open(out / "sweep.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=RESULT_KEYS)
+        writer.writeheader()
+        writer.writerows(rows)
+    plot_sweep(rows, out / "sweep.png", between=between)
+
+
+def format_table(rows: list[dict]) -> str:
+    """AP50 and mAP per checkpoint (rows) and image age (columns)."""
+    ages = sorted({r["age_ms"] for r in rows})
+    lines = []
+    for metric in ("AP50", "mAP"):
+        lines.append(f"{metric:<10s} {'checkpoint':<40s} " + " ".join(f"{a:7.1f}" for a in ages) + "   (image age, ms)")
+        for ckpt in dict.fromkeys(r["ckpt"] for r in rows):
+            mine = {r["age_ms"]: r for r in rows if r["ckpt"] == ckpt}
+            name = f"{mine[ages[0]]['model']} {Path(ckpt).name}"
+            lines.append(f"{'':<10s} {name[-40:]:<40s} " + " ".join(f"{mine[a][metric]:7.3f}" for a in ages))
+    return "\n".join(lines)
+
+
+def plot_sweep(rows: list[dict], path: Path, *, between: int) -> None:
+    """mAP and AP50 against the image's age in milliseconds, one line per checkpoint."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.8), sharex=True)
+    for ckpt in dict.fromkeys(r["ckpt"] for r in rows):
+        mine = sorted((r for r in rows if r["ckpt"] == ckpt), key=lambda r: r["age_ms"])
+        label = f"{mine[0]['model']} ({Path(ckpt).parent.parent.name}/{Path(ckpt).name})"
+        for ax, metric in zip(axes, ("mAP", "AP50")):
+            ax.plot([r["age_ms"] for r in mine], [max(r[metric], 0.0) for r in mine], marker="." if between else "o",
+                    label=label)
+    for ax, metric in zip(axes, ("mAP (AP@[.5:.95])", "AP50")):
+        ax.set_xlabel("image age: time since the image (ms)")
+        ax.set_ylabel(metric)
+        ax.set_ylim(0, min(1.0, 1.15 * max(max(r["AP50" if "50" in metric else "mAP"] for r in rows), 0.05)))
+        ax.grid(alpha=0.3)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 3), fontsize=8, frameon=False)
+    title = "detection against image age" + (f" (every 1/{between} of a frame interval)" if between else "")
+    fig.suptitle(title)
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+@hydra.main(config_path="../../conf", config_name="sweep", version_base=None)
+def main(cfg: DictConfig) -> None:
+    sweep(cfg)
+
+
+if __name__ == "__main__":
+    main()

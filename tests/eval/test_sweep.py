@@ -1,0 +1,84 @@
+"""The sweep over image ages: matching and interpolating boxes, shared frames, outputs."""
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from dagr_lite.config import compose_config
+from dagr_lite.data.dataset import EventEgoHands
+from dagr_lite.engine.train import train
+from dagr_lite.eval.sweep import SweepSamples, interpolate_boxes, match_boxes, sweep, sweep_frames, sweep_points
+from dagr_lite.synth.stub import stub_root
+
+
+def test_boxes_are_matched_one_to_one_by_overlap():
+    a = np.array([[0, 0, 10, 10], [50, 50, 70, 70]], np.float32)
+    b = np.array([[52, 51, 72, 71], [1, 0, 11, 10]], np.float32)  # the same hands, listed the other way round
+    assert match_boxes(a, b).tolist() == [1, 0]
+    assert match_boxes(a, b[:1]) is None  # a hand left: the frames do not match
+    assert match_boxes(a, np.array([[0, 0, 10, 10], [90, 90, 99, 99]], np.float32)) is None  # no overlap
+    assert match_boxes(np.zeros((0, 4)), np.zeros((0, 4))).tolist() == []
+
+
+def test_interpolated_boxes_by_hand():
+    a = np.array([[0, 0, 10, 10], [50, 50, 70, 70]], np.float32)
+    b = np.array([[54, 52, 74, 76], [2, 0, 14, 10]], np.float32)
+    # 0.25 of the way: first hand (0,0,10,10) -> (2,0,14,10); second (50,50,70,70) -> (54,52,74,76)
+    expected = np.array([[0.5, 0, 11, 10], [51, 50.5, 71, 71.5]], np.float32)
+    np.testing.assert_allclose(interpolate_boxes(a, b, 0.25), expected, atol=1e-6)
+    np.testing.assert_allclose(interpolate_boxes(a, b, 0.0), a)
+    with pytest.raises(ValueError, match="do not match"):
+        interpolate_boxes(a, b[:1], 0.5)
+
+
+def test_every_age_scores_the_same_frames_with_events_since_its_image():
+    dataset = EventEgoHands(stub_root(), "valid", image_age=7, first_frame=7, max_events=None)
+    frames = sweep_frames(dataset, 7, between=0)
+    assert frames and all(k >= 7 for _, k in frames)
+    assert len(frames) == sum(dataset.num_frames(v) - 7 for v in range(len(dataset.videos)))
+    named = None
+    for age in (1, 3, 7):
+        samples = SweepSamples(dataset, frames, age, 0.0, seed=0)
+        got = [(s.video, s.frame, s.image_frame) for s in (samples[i] for i in range(0, len(samples), 9))]
+        assert all(image == k - age for _, k, image in got)
+        names = [(video, k) for video, k, _ in got]
+        assert named is None or names == named
+        named = names
+    between = sweep_frames(dataset, 7, between=10)
+    assert set(between) <= set(frames) and between  # only frames whose boxes match the next frame's
+    sample = SweepSamples(dataset, between, 2, 0.5, seed=0)[0]
+    v, k = between[0]
+    t_k, t_next = dataset.frame_time_us(v, k), dataset.frame_time_us(v, k + 1)
+    assert sample.t_end_us == t_k + round(0.5 * (t_next - t_k)) and sample.image_frame == k - 2
+    assert sample.events[:, 2].max() + sample.t_image_us < sample.t_end_us
+    assert sample.events[:, 2].max() + sample.t_image_us >= t_k  # events past frame k come in
+
+
+def test_points_cover_ages_and_in_between_times():
+    assert sweep_points([1, 3], 0) == [(1, 0.0), (3, 0.0)]
+    assert sweep_points([2], 4) == [(2, 0.0), (2, 0.25), (2, 0.5), (2, 0.75)]
+
+
+def test_the_sweep_writes_its_table_plot_and_rows(tmp_path, capsys):
+    ckpts = []
+    for variant in ("image_only", "events_only"):
+        train(compose_config("train", [f"run_dir={tmp_path / variant}", f"model={variant}", "trainer.max_steps=1",
+                                       "loader.batch_size=4", "loader.num_workers=0", "data.max_events=3000",
+                                       "trainer.image_every=0"]))
+        ckpts.append(str(tmp_path / variant / "checkpoints" / "last.pt"))
+    out = tmp_path / "sweep"
+    result = sweep(compose_config("sweep", [f"ckpt=[{ckpts[0]},{ckpts[1]}]", "split=valid", "ages=[1,4]",
+                                            "between=2", f"out={out}", "loader.num_workers=0"]))
+    rows = json.loads((out / "sweep.json").read_text())["results"]
+    assert len(rows) == 2 * 2 * 2 and rows == result["results"]
+    assert {r["model"] for r in rows} == {"image_only", "events_only"}
+    assert sorted({r["age_frames"] for r in rows}) == [1.0, 1.5, 4.0, 4.5]
+    assert [r["age_ms"] for r in rows if r["age_frames"] == 1.5] == [pytest.approx(50.0)] * 2
+    assert len({r["num_images"] for r in rows}) == 1  # the same frames everywhere
+    with open(out / "sweep.csv") as handle:
+        assert len(list(csv.DictReader(handle))) == len(rows)
+    assert (out / "sweep.png").stat().st_size > 10_000
+    assert "AP50" in capsys.readouterr().out
+    with pytest.raises(FileExistsError, match="earlier sweep"):
+        sweep(compose_config("sweep", [f"ckpt=[{ckpts[0]}]", f"out={out}"]))
