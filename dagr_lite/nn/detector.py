@@ -223,7 +223,7 @@ class Detector(nn.Module):
         if self.events is None:
             raise ValueError("this detector has no event branch (use_events false)")
         sampler = self._node_sampler(self.image(batch.images)) if self.image is not None else None
-        x, _ = self.events.event_nodes(batch.events, batch.batch_index, sampler, batch.edge_index)
+        x, _, _ = self.events.event_nodes(batch.events, batch.batch_index, sampler, batch.edge_index)
         return x
 
     def _node_sampler(self, image_maps: list[torch.Tensor]):

@@ -97,8 +97,7 @@ class EventBranch(nn.Module):
                 image_sampler: ImageSampler | None = None, edge_index: torch.Tensor | None = None
                 ) -> list[torch.Tensor]:
         """``edge_index``: the event graph if already built (e.g. by the data loader's workers)."""
-        pos = self.spec.positions(events)  # (N, 3)
-        x, edge_index = self.event_nodes(events, batch, image_sampler, edge_index)
+        x, pos, edge_index = self.event_nodes(events, batch, image_sampler, edge_index)
         maps = []
         for level, stride in enumerate(self.strides, start=1):
             pooled = voxel_max_pool(x, pos, batch, edge_index, stride)
@@ -109,8 +108,9 @@ class EventBranch(nn.Module):
         return maps
 
     def event_nodes(self, events: torch.Tensor, batch: torch.Tensor, image_sampler: ImageSampler | None = None,
-                    edge_index: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """The features ``(N, channels[0])`` of the event nodes after the first stage, and the graph.
+                    edge_index: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The features ``(N, channels[0])`` of the event nodes after the first stage, their
+        positions ``(N, 3)`` and the graph ``(2, E)``.
 
         A node's features here depend on its event, its causal past and the image only (the
         causal graph and per-node normalisation): adding later events or asking at a later
@@ -119,8 +119,8 @@ class EventBranch(nn.Module):
         if edge_index is None:
             edge_index = self.spec.edges(events, batch)
         edge_index = edge_index.to(events.device)  # (2, E)
-        pos = self.spec.positions(events)
-        return self._stage(0, self.node_features(events), pos, batch, edge_index, image_sampler), edge_index
+        pos = self.spec.positions(events)  # (N, 3)
+        return self._stage(0, self.node_features(events), pos, batch, edge_index, image_sampler), pos, edge_index
 
     def _stage(self, level: int, x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge_index: torch.Tensor,
                image_sampler: ImageSampler | None) -> torch.Tensor:
