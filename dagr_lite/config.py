@@ -19,7 +19,6 @@ from omegaconf.errors import OmegaConfBaseException
 from dagr_lite.data import format as fmt
 from dagr_lite.data.augment import TrainAugment
 from dagr_lite.data.dataset import EventEgoHands
-from dagr_lite.data.reader import DatasetFormatError
 from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.detector import Detector, DetectorConfig
 
@@ -164,16 +163,11 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
                                  translate=augment.translate, min_box_size=augment.min_box_size,
                                  image_dropout=augment.image_dropout if hybrid else 0.0)
     image_size = (dataset.height, dataset.width) if dataset.height is not None else None
-    try:
-        return EventEgoHands(dataset_root(dataset), split, image_age=image_age,
-                             event_span="since_image" if with_image else "window", window_us=data.window_us,
-                             context_us=data.context_us, max_events=data.max_events, first_frame=first_frame,
-                             fps=dataset.fps, image_size=image_size, transform=transform,
-                             clip_boxes=data.clip_boxes, seed=cfg.seed)
-    except ValueError as err:
-        if "image_age" in str(err) and not isinstance(err, DatasetFormatError):
-            raise ConfigError(f"data.{'train_' if train else ''}{err}") from err
-        raise
+    return EventEgoHands(dataset_root(dataset), split, image_age=image_age,
+                         event_span="since_image" if with_image else "window", window_us=data.window_us,
+                         context_us=data.context_us, max_events=data.max_events, first_frame=first_frame,
+                         fps=dataset.fps, image_size=image_size, transform=transform,
+                         clip_boxes=data.clip_boxes, seed=cfg.seed)
 
 
 def graph_spec(model: DictConfig) -> EventGraphSpec | None:
