@@ -99,12 +99,23 @@ def recency_maps(events: torch.Tensor, batch: torch.Tensor, t_query: torch.Tenso
     """
     if len(events) == 0 or not taus_us:
         return events.new_zeros((batch_size, 2 * len(taus_us), height, width))
+    latest = events.new_full((batch_size * 2 * height * width,), -math.inf)
+    key = recency_cells(events, batch, stride=stride, height=height, width=width)
+    latest = latest.scatter_reduce(0, key, events[:, 2].detach(), reduce="amax")
+    return recency_from_latest(latest.view(batch_size, 2, height, width), t_query, taus_us)
+
+
+def recency_cells(events: torch.Tensor, batch: torch.Tensor, *, stride: int, height: int, width: int) -> torch.Tensor:
+    """``(N,)`` the flat index of each event's (sample, polarity, row, column) in the recency grid."""
     col = torch.div(events[:, 0], stride, rounding_mode="floor").long().clamp(0, width - 1)
     row = torch.div(events[:, 1], stride, rounding_mode="floor").long().clamp(0, height - 1)
-    key = ((batch * 2 + events[:, 3].long()) * height + row) * width + col  # (N,)
-    latest = events.new_full((batch_size * 2 * height * width,), -math.inf)
-    latest = latest.scatter_reduce(0, key, events[:, 2].detach(), reduce="amax")
-    since = t_query.to(events.dtype)[:, None, None, None] - latest.view(batch_size, 2, height, width)  # (B, 2, h, w)
+    return ((batch * 2 + events[:, 3].long()) * height + row) * width + col
+
+
+def recency_from_latest(latest: torch.Tensor, t_query: torch.Tensor, taus_us: tuple[float, ...]) -> torch.Tensor:
+    """The recency maps of :func:`recency_maps` from the latest event time of each (sample,
+    polarity, cell), ``latest (B, 2, h, w)`` (-inf where none), at ``t_query (B,)``."""
+    since = t_query.to(latest.dtype)[:, None, None, None] - latest  # (B, 2, h, w)
     maps = [torch.where(torch.isfinite(since), torch.exp(-since.clamp(min=0) / tau), torch.zeros_like(since))
             for tau in taus_us]
     return torch.cat(maps, dim=1)

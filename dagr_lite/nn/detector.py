@@ -197,14 +197,23 @@ class Detector(nn.Module):
         image_maps = self.image(batch.images) if self.image is not None else None
         if self.events is None:
             return image_maps[1:]
-        sampler = self._node_sampler(image_maps) if image_maps is not None else None
+        sampler = self.node_sampler(self.node_maps(image_maps)) if image_maps is not None else None
         event_maps = self.events(batch.events, batch.batch_index, len(batch), image_sampler=sampler,
                                  edge_index=batch.edge_index)
-        event_maps = [torch.cat([m, self._recency(batch, stride, m.shape[-2:])], dim=1)
-                      for m, stride in zip(event_maps, self.strides)]
+        recency = [recency_maps(batch.events, batch.batch_index, batch.age_us, batch_size=len(batch), stride=stride,
+                                height=m.shape[-2], width=m.shape[-1], taus_us=self.cfg.recency_us)
+                   for m, stride in zip(event_maps, self.strides)]
+        return self.combine(image_maps, event_maps, recency, batch.age_us)
+
+    def combine(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor],
+                recency: list[torch.Tensor], age_us: torch.Tensor) -> list[torch.Tensor]:
+        """The head's input from the event maps, the recency maps (``(B, num_recency, h, w)`` per
+        stride, how recently each cell saw events at the query time) and, in a hybrid, the image
+        maps (all strides of :class:`ImageBranch`) and the image's age ``(B,)`` in microseconds."""
+        event_maps = [torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)]
         if image_maps is None:
             return event_maps
-        age = (batch.age_us.to(image_maps[0].dtype) / self.cfg.time_scale_us)[:, None, None, None]  # (B, 1, 1, 1)
+        age = (age_us.to(image_maps[0].dtype) / self.cfg.time_scale_us)[:, None, None, None]  # (B, 1, 1, 1)
         fused = []
         for fuse, image_map, event_map in zip(self.fuse, image_maps[1:], event_maps):
             if event_map.shape[-2:] != image_map.shape[-2:]:  # ceil vs floor on odd sizes
@@ -213,22 +222,20 @@ class Detector(nn.Module):
             fused.append(fuse(torch.cat([image_map, event_map, age_plane], dim=1)))
         return fused
 
-    def _recency(self, batch: Batch, stride: int, shape) -> torch.Tensor:
-        """``(B, num_recency, h, w)``: how recently each cell saw events, at the query time."""
-        return recency_maps(batch.events, batch.batch_index, batch.age_us, batch_size=len(batch), stride=stride,
-                            height=shape[0], width=shape[1], taus_us=self.cfg.recency_us)
-
     def event_node_features(self, batch: Batch) -> torch.Tensor:
         """``(N, C)`` features of the batch's event nodes after the event branch's first stage."""
         if self.events is None:
             raise ValueError("this detector has no event branch (use_events false)")
-        sampler = self._node_sampler(self.image(batch.images)) if self.image is not None else None
+        sampler = self.node_sampler(self.node_maps(self.image(batch.images))) if self.image is not None else None
         x, _, _ = self.events.event_nodes(batch.events, batch.batch_index, sampler, batch.edge_index)
         return x
 
-    def _node_sampler(self, image_maps: list[torch.Tensor]):
+    def node_maps(self, image_maps: list[torch.Tensor]) -> list[torch.Tensor]:
+        """The image maps projected to the channels joined at the event nodes, one per level."""
+        return [proj(m) for proj, m in zip(self.to_nodes, image_maps)]
+
+    def node_sampler(self, node_maps: list[torch.Tensor]):
         """Image features at event nodes: level 0 from the stride-4 map, pooled levels from theirs."""
-        node_maps = [proj(m) for proj, m in zip(self.to_nodes, image_maps)]
         strides = self.image.strides
 
         def sampler(xy: torch.Tensor, node_batch: torch.Tensor, level: int) -> torch.Tensor:

@@ -18,7 +18,7 @@ from typing import Callable, Sequence
 import torch
 from torch import nn
 
-from dagr_lite.graph.pool import to_dense, voxel_max_pool
+from dagr_lite.graph.pool import PooledGraph, to_dense, voxel_max_pool
 from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.gcn import GCNConv, GraphOperator
 
@@ -39,7 +39,8 @@ class GCNBlock(nn.Module):
         self.skip = nn.Identity() if in_channels == out_channels else nn.Linear(in_channels, out_channels, bias=False)
 
     def forward(self, x: torch.Tensor, op: GraphOperator) -> torch.Tensor:
-        return torch.relu(self.norm(self.conv(x, op))) + self.skip(x)
+        """With ``op.rows`` set, the output holds those rows only (``x`` still holds every node)."""
+        return torch.relu(self.norm(self.conv(x, op))) + self.skip(x if op.rows is None else x[op.rows])
 
 
 class EventBranch(nn.Module):
@@ -98,9 +99,22 @@ class EventBranch(nn.Module):
                 ) -> list[torch.Tensor]:
         """``edge_index``: the event graph if already built (e.g. by the data loader's workers)."""
         x, pos, edge_index = self.event_nodes(events, batch, image_sampler, edge_index)
+        return self.pooled_maps(x, pos, batch, edge_index, batch_size, image_sampler)
+
+    def pooled_maps(self, x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge_index: torch.Tensor,
+                    batch_size: int, image_sampler: ImageSampler | None = None, *,
+                    first: PooledGraph | None = None) -> list[torch.Tensor]:
+        """The dense maps from the first stage's node features ``x (N, channels[0])``.
+
+        ``first``: the first pooled graph when it is already known (the streaming detector keeps it
+        up to date as nodes arrive); ``x``, ``pos``, ``batch`` and ``edge_index`` are then unused.
+        """
         maps = []
         for level, stride in enumerate(self.strides, start=1):
-            pooled = voxel_max_pool(x, pos, batch, edge_index, stride)
+            if level == 1 and first is not None:
+                pooled = first
+            else:
+                pooled = voxel_max_pool(x, pos, batch, edge_index, stride)
             x, pos, batch, edge_index = pooled.x, pooled.pos, pooled.batch, pooled.edge_index
             x = self._stage(level, x, pos, batch, edge_index, image_sampler)
             maps.append(to_dense(x, batch, pooled.cell, batch_size=batch_size,
@@ -122,13 +136,19 @@ class EventBranch(nn.Module):
         pos = self.spec.positions(events)  # (N, 3)
         return self._stage(0, self.node_features(events), pos, batch, edge_index, image_sampler), pos, edge_index
 
+    def level_input(self, level: int, x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor,
+                    image_sampler: ImageSampler | None) -> torch.Tensor:
+        """The input of level ``level``'s blocks: ``x`` with the image features at the nodes joined."""
+        if not self.image_channels[level]:
+            return x
+        if image_sampler is None:
+            raise ValueError(f"the branch expects {self.image_channels[level]} image channels at level "
+                             f"{level}, but no image_sampler was given")
+        return torch.cat([x, image_sampler(pos[:, :2], batch, level)], dim=1)
+
     def _stage(self, level: int, x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge_index: torch.Tensor,
                image_sampler: ImageSampler | None) -> torch.Tensor:
-        if self.image_channels[level]:
-            if image_sampler is None:
-                raise ValueError(f"the branch expects {self.image_channels[level]} image channels at level "
-                                 f"{level}, but no image_sampler was given")
-            x = torch.cat([x, image_sampler(pos[:, :2], batch, level)], dim=1)
+        x = self.level_input(level, x, pos, batch, image_sampler)
         op = GraphOperator(edge_index, len(x))
         for block in self.stages[level]:
             x = block(x, op)

@@ -217,7 +217,7 @@ def postprocess(raw: torch.Tensor, shapes: list[tuple[int, int]], strides: list[
                 image_size: tuple[int, int] | None = None) -> list[dict]:
     """Decoded, class-aware NMS-filtered detections per image: ``boxes (D, 4)``, ``scores (D,)``, ``labels (D,)``."""
     centres, stride_of = anchors_of(shapes, strides, raw.device)
-    raw = raw.float()
+    raw = raw if raw.dtype == torch.float64 else raw.float()  # float64 stays (exactness tests)
     boxes = decode_boxes(raw[..., :4], centres, stride_of)  # (B, A, 4)
     if image_size is not None:
         height, width = image_size

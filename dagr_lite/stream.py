@@ -1,0 +1,439 @@
+"""The streaming detector: detections at any moment, equal to the batch model on the same sample.
+
+Images arrive at the camera's rate, events continuously; :meth:`StreamingDetector.detect`
+answers at any time. The answer equals the batch model (:class:`~dagr_lite.nn.detector.Detector`)
+run on the sample of that moment, with no event cap (docs/design.md, "The streaming detector"):
+
+- a hybrid reads the latest image and every event since ``image time - context_us``;
+- an events-only model reads the events of ``[t - window_us, t]``.
+
+Work per update: new events get their incoming edges from the streaming graph builder, the
+first GCN stage computes the new nodes only (reading the cached features of older nodes; a
+node never changes once computed, as the graph is causal), and the first pooled cells take the
+new nodes in (max and mean are updated, never recomputed, as a hybrid's cells only gain
+members). The pooled stages, the dense maps and the head are then run in full: the query time
+enters every cell through the recency maps and the image's age, and the pooled graph has a few
+hundred cells. Image features are computed once per image. An events-only model's oldest
+events leave its window: the nodes near the window's start, whose edges or whose neighbours'
+in-degrees reached the events that left, are recomputed from the events of the window (a
+prefix of ``(event_blocks + 1) * radius / beta`` microseconds); its pooled graph is rebuilt
+from the window's nodes.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dagr_lite.graph.pool import PooledGraph, recency_cells, recency_from_latest
+from dagr_lite.graph.streaming import StreamingGraph
+from dagr_lite.nn.detector import Detector
+from dagr_lite.nn.gcn import GraphOperator
+from dagr_lite.nn.head import postprocess
+
+# Before the first image, how much of the event stream is kept for its context (an image may be
+# stamped this long before the latest event).
+MAX_IMAGE_DELAY_US = 1_000_000
+# An events-only stream moves its time origin forward after this long, so that float32 event
+# times stay whole microseconds (2^24 us is where float32 stops holding every integer).
+REORIGIN_US = 1 << 23
+
+
+class _Rows:
+    """A tensor (or numpy array) that grows along its first axis, with amortised doubling."""
+
+    def __init__(self, like: torch.Tensor | np.ndarray):
+        self.data = like[:0]
+        self.n = 0
+
+    @property
+    def view(self):
+        return self.data[: self.n]
+
+    def extend(self, rows) -> None:
+        need = self.n + len(rows)
+        if need > len(self.data):
+            size = max(need, 2 * len(self.data), 256)
+            if isinstance(rows, torch.Tensor):
+                grown = rows.new_empty((size, *rows.shape[1:]))
+            else:
+                grown = np.empty((size, *rows.shape[1:]), dtype=rows.dtype)
+            grown[: self.n] = self.data[: self.n]
+            self.data = grown
+        self.data[self.n: need] = rows
+        self.n = need
+
+    def drop_front(self, k: int) -> None:
+        """Forget the first ``k`` rows."""
+        if k:
+            self.data = self.data[k: self.n].clone() if isinstance(self.data, torch.Tensor) else \
+                self.data[k: self.n].copy()
+            self.n -= k
+
+
+class _Cells:
+    """The first pooled graph of a hybrid's nodes, kept up to date as nodes arrive (never leave).
+
+    Mirrors :func:`~dagr_lite.graph.pool.voxel_max_pool` over all nodes so far: a cell's
+    features are the running max of its members', its position their running sum over the
+    count, and its edges the set of cell pairs of the member edges.
+    """
+
+    def __init__(self, height: int, width: int, stride: int, channels: int, dtype, device):
+        self.stride, self.cols = stride, math.ceil(width / stride)
+        self.size = math.ceil(height / stride) * self.cols
+        self.x = torch.full((self.size, channels), -math.inf, dtype=dtype, device=device)
+        self.pos_sum = torch.zeros((self.size, 3), dtype=dtype, device=device)
+        self.count = torch.zeros(self.size, dtype=torch.int64, device=device)
+        self.seen = torch.zeros(self.size * self.size, dtype=torch.bool, device=device)  # by dst * size + src
+        self.keys = torch.zeros(0, dtype=torch.int64, device=device)  # sorted edge keys
+
+    def cell_of(self, pos: torch.Tensor) -> torch.Tensor:
+        col = torch.div(pos[:, 0], self.stride, rounding_mode="floor").to(torch.int64)
+        row = torch.div(pos[:, 1], self.stride, rounding_mode="floor").to(torch.int64)
+        return row * self.cols + col
+
+    def add(self, x: torch.Tensor, pos: torch.Tensor, cell: torch.Tensor, edge_cells: torch.Tensor) -> None:
+        """New members ``x (M, C)`` at ``pos (M, 3)`` in cells ``cell (M,)``, and the cells
+        ``(2, E)`` (source, destination) of their incoming edges."""
+        self.x.scatter_reduce_(0, cell[:, None].expand(-1, x.shape[1]), x, reduce="amax")
+        self.pos_sum.index_add_(0, cell, pos)
+        self.count += torch.bincount(cell, minlength=self.size)
+        keys = torch.unique(edge_cells[1] * self.size + edge_cells[0])
+        keys = keys[~self.seen[keys]]
+        if len(keys):
+            self.seen[keys] = True
+            self.keys = torch.sort(torch.cat([self.keys, keys])).values
+
+    def graph(self) -> PooledGraph:
+        """The pooled graph of the occupied cells, ordered as :func:`voxel_max_pool` orders them."""
+        occupied = torch.nonzero(self.count).flatten()  # (C,) ascending: by (row, column)
+        local = torch.full((self.size,), -1, dtype=torch.int64, device=occupied.device)
+        local[occupied] = torch.arange(len(occupied), device=occupied.device)
+        dst, src = torch.div(self.keys, self.size, rounding_mode="floor"), self.keys % self.size
+        counts = self.count[occupied].to(self.pos_sum.dtype)
+        return PooledGraph(x=self.x[occupied], pos=self.pos_sum[occupied] / counts[:, None],
+                           batch=torch.zeros_like(occupied),
+                           cell=torch.stack([torch.div(occupied, self.cols, rounding_mode="floor"),
+                                             occupied % self.cols], dim=1),
+                           edge_index=torch.stack([local[src], local[dst]]), cluster=occupied.new_zeros(0))
+
+
+class _Segment:
+    """Everything computed since a time origin: one image's events for a hybrid, or a stretch of an
+    events-only stream. Node ids are global (the streaming graph's); row ``i`` of the buffers is
+    node ``base + i``."""
+
+    def __init__(self, detector: "StreamingDetector", origin_us: float):
+        model, branch = detector.model, detector.model.events
+        spec = model.graph_spec
+        self.origin_us, self.base = origin_us, 0
+        self.first_us = origin_us  # the earliest event time of the segment's sample
+        window = math.inf if detector.hybrid else max(spec.radius, spec.beta * detector.window_us)
+        self.graph = StreamingGraph(spec.radius, spec.max_neighbors, window, workers=1)
+        like = torch.zeros(0, dtype=detector.dtype, device=detector.device)
+        self.events = _Rows(like.new_zeros((0, 4)))  # x, y, t - origin, p
+        self.t_abs = _Rows(np.zeros(0))
+        self.pos = _Rows(like.new_zeros((0, 3)))
+        width_in = branch.stages[0][0].conv.in_channels
+        self.h = [_Rows(like.new_zeros((0, width_in)))]  # the input of each first-stage block, then its output
+        self.h += [_Rows(like.new_zeros((0, block.conv.out_channels))) for block in branch.stages[0]]
+        self.in_degree = _Rows(torch.zeros(0, dtype=torch.int64, device=detector.device))
+        self.edges = _Rows(torch.zeros((0, 2), dtype=torch.int64, device=detector.device))  # (src, dst), events-only
+        self.cell = _Rows(torch.zeros(0, dtype=torch.int64, device=detector.device))  # first pooled cell, hybrid
+        self.cells = (_Cells(model.cfg.height, model.cfg.width, model.strides[0], branch.stages[0][-1].conv.out_channels,
+                             detector.dtype, detector.device) if detector.hybrid else None)
+        self.latest = [like.new_full((2 * h * w,), -math.inf) for h, w in detector.map_sizes]
+
+
+class StreamingDetector:
+    """A detector fed by a stream: ``push_image``, ``push_events``, then ``detect`` at any moment.
+
+    Args:
+        model: a :class:`Detector` with an event branch (hybrid or events-only); it is put in
+            evaluation mode.
+        context_us: a hybrid reads the events since ``image time - context_us``.
+        window_us: an events-only model reads the events of ``[t - window_us, t]``.
+        conf_threshold, nms_threshold: score threshold and NMS IoU of the detections.
+
+    Times are microseconds on the stream's clock. Events come as numpy arrays sorted by time;
+    ``x``, ``y`` in pixels of the model's frame size, ``p`` in {0, 1}. Bad input raises
+    ``ValueError`` naming what was wrong and leaves the detector as it was.
+    """
+
+    def __init__(self, model: Detector, *, context_us: int = 10_000, window_us: int = 33_333,
+                 conf_threshold: float = 0.25, nms_threshold: float = 0.65):
+        if model.events is None:
+            raise ValueError("the streaming detector needs a model with an event branch (use_events true)")
+        if context_us < 0 or window_us <= 0:
+            raise ValueError(f"context_us must be >= 0 and window_us > 0, got {context_us} and {window_us}")
+        self.model = model.eval()
+        parameter = next(model.parameters())
+        self.dtype, self.device = parameter.dtype, parameter.device
+        self.hybrid = model.image is not None
+        self.context_us, self.window_us = int(context_us), int(window_us)
+        self.conf_threshold, self.nms_threshold = float(conf_threshold), float(nms_threshold)
+        self.height, self.width = model.cfg.height, model.cfg.width
+        self.map_sizes = [(math.ceil(self.height / s), math.ceil(self.width / s)) for s in model.strides]
+        spec = model.graph_spec
+        # Nodes whose features can reach an event that left the window (events-only).
+        self.reach_us = (len(model.events.stages[0]) + 1) * spec.radius / spec.beta
+        self.reset()
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, device: str | torch.device = "cpu", **kwargs) -> "StreamingDetector":
+        """The EMA weights of a training checkpoint, with the context and window it was trained with."""
+        from dagr_lite.engine.common import load_checkpoint
+        from dagr_lite.nn.detector import DetectorConfig
+
+        state = load_checkpoint(path)
+        detector = DetectorConfig.from_dict(state["detector"])
+        model = Detector(detector)
+        try:
+            model.load_state_dict(state["ema"]["module"])
+        except RuntimeError as err:
+            raise ValueError(f"{path}: its weights do not fit the model its config describes ({err})") from err
+        data = state["config"]["data"]
+        kwargs = {"context_us": data["context_us"], "window_us": data["window_us"], **kwargs}
+        return cls(model.to(device), **kwargs)
+
+    def reset(self) -> None:
+        """Forget every image and event."""
+        self._log = {key: _Rows(np.zeros(0)) for key in ("x", "y", "t", "p")}  # raw events not yet dropped
+        self._done = 0  # events of the log already in the segment
+        self._last_t = -math.inf
+        self._kept_from = -math.inf  # the log holds every event since this time
+        self._image = None  # (image maps, node maps) of the latest image
+        self._t_image: float | None = None
+        self._segment: _Segment | None = None
+
+    @property
+    def origin_us(self) -> float | None:
+        """The time event times count from in the model (a hybrid's image time; None before any)."""
+        self._ingest()
+        return None if self._segment is None else self._segment.origin_us
+
+    # ---------------------------------------------------------------- input
+    def push_image(self, image: np.ndarray, t_us: float) -> None:
+        """A new image ``(H, W, 3)`` uint8 taken at ``t_us``; the hybrid restarts from it.
+        A model without an image branch ignores images."""
+        image = np.asarray(image)
+        if image.shape != (self.height, self.width, 3) or image.dtype != np.uint8:
+            raise ValueError(f"image must be ({self.height}, {self.width}, 3) uint8 (the model's frame size), "
+                             f"got {image.shape} {image.dtype}")
+        t_us = float(t_us)
+        if not math.isfinite(t_us):
+            raise ValueError(f"image time must be finite, got {t_us}")
+        if self._t_image is not None and t_us < self._t_image:
+            raise ValueError(f"image at t={t_us:g} us is older than the previous image ({self._t_image:g} us)")
+        if t_us - self.context_us < self._kept_from:
+            raise ValueError(f"image at t={t_us:g} us needs the events from {t_us - self.context_us:g} us, but "
+                             f"only those since {self._kept_from:g} us are kept (an image may be at most "
+                             f"{MAX_IMAGE_DELAY_US} us older than the latest event)")
+        if not self.hybrid:
+            return
+        with torch.no_grad():
+            pixels = torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1)))[None].to(self.device)
+            image_maps = self.model.image(pixels)
+            self._image = (image_maps, self.model.node_maps(image_maps))
+        self._t_image = t_us
+        self._start_segment(t_us, t_us - self.context_us)
+
+    def push_events(self, x, y, t, p) -> None:
+        """Events sorted by ``t`` (any number, including 0), not earlier than any pushed before."""
+        arrays = {"x": np.asarray(x), "y": np.asarray(y), "t": np.asarray(t), "p": np.asarray(p)}
+        for name, values in arrays.items():
+            if values.ndim != 1:
+                raise ValueError(f"events {name} must be a 1-D array, got shape {values.shape}")
+            if values.dtype.kind not in "iuf" and len(values):
+                raise ValueError(f"events {name} must be numeric, got dtype {values.dtype}")
+        lengths = {name: len(values) for name, values in arrays.items()}
+        if len(set(lengths.values())) != 1:
+            raise ValueError(f"events x, y, t, p must have the same length, got {lengths}")
+        if not lengths["t"]:
+            return
+        x, y, t, p = (arrays[k].astype(np.float64) for k in ("x", "y", "t", "p"))
+        if not np.all(np.isfinite(t)):
+            raise ValueError("events t holds non-finite values")
+        if np.any(np.diff(t) < 0):
+            i = int(np.flatnonzero(np.diff(t) < 0)[0])
+            raise ValueError(f"events must be sorted by t: t[{i + 1}]={t[i + 1]:g} < t[{i}]={t[i]:g}")
+        if t[0] < self._last_t:
+            raise ValueError(f"events must not be older than those pushed before: t[0]={t[0]:g} us < "
+                             f"{self._last_t:g} us")
+        for name, values, size in (("x", x, self.width), ("y", y, self.height)):
+            bad = ~((values >= 0) & (values < size))
+            if bad.any():
+                i = int(np.flatnonzero(bad)[0])
+                raise ValueError(f"events {name} must lie in [0, {size}) (the sensor), got {name}[{i}]={values[i]:g}")
+        if not np.all((p == 0) | (p == 1)):
+            i = int(np.flatnonzero((p != 0) & (p != 1))[0])
+            raise ValueError(f"events p must be 0 or 1, got p[{i}]={p[i]:g}")
+        for name, values in (("x", x), ("y", y), ("t", t), ("p", p)):
+            self._log[name].extend(values)
+        self._last_t = float(t[-1])
+
+    # ---------------------------------------------------------------- output
+    def detect(self, t_us: float | None = None) -> dict:
+        """Detections at ``t_us`` (default: the latest event or image time), which may not be earlier
+        than the latest event (or, for a hybrid, the image).
+
+        Returns ``boxes (D, 4)`` xyxy pixels, ``scores (D,)``, ``labels (D,)`` (numpy) and ``t_us``.
+        """
+        latest = max(self._last_t, self._t_image if self._t_image is not None else -math.inf)
+        if t_us is None:
+            if not math.isfinite(latest):
+                raise ValueError("nothing was pushed yet: give detect a time")
+            t_us = latest
+        t_us = float(t_us)
+        if t_us < self._last_t:
+            raise ValueError(f"detect time {t_us:g} us is earlier than the latest event ({self._last_t:g} us)")
+        if self.hybrid and self._t_image is None:
+            raise ValueError("a hybrid model needs an image before it can detect: call push_image first")
+        if self.hybrid and t_us < self._t_image:
+            raise ValueError(f"detect time {t_us:g} us is earlier than the image ({self._t_image:g} us)")
+        with torch.no_grad():
+            raw, shapes = self._head_outputs(t_us)
+            result = postprocess(raw, shapes, self.model.strides, conf_threshold=self.conf_threshold,
+                                 nms_threshold=self.nms_threshold, image_size=(self.height, self.width))[0]
+        return {"boxes": result["boxes"].cpu().numpy(), "scores": result["scores"].cpu().numpy(),
+                "labels": result["labels"].cpu().numpy(), "t_us": t_us}
+
+    def head_outputs(self, t_us: float) -> tuple[torch.Tensor, list[tuple[int, int]]]:
+        """The head's raw output ``(1, A, 5 + C)`` and map shapes at ``t_us`` (no checks)."""
+        with torch.no_grad():
+            return self._head_outputs(t_us)
+
+    def _head_outputs(self, t_us: float) -> tuple[torch.Tensor, list[tuple[int, int]]]:
+        if not self.hybrid:
+            self._ingest()
+            if self._segment is None:  # no event yet
+                self._start_segment(t_us - self.window_us, t_us - self.window_us)
+            event_maps, t_start = self._window_maps(t_us)
+            origin = self._segment.origin_us
+        else:
+            self._ingest()
+            segment = self._segment
+            first = segment.cells.graph()
+            event_maps = self.model.events.pooled_maps(None, None, None, None, 1, self._sampler(), first=first)
+            t_start, origin = -math.inf, segment.origin_us
+        t_query = torch.tensor([t_us - origin], dtype=torch.float64, device=self.device)
+        recency = []
+        for latest, (h, w) in zip(self._segment.latest, self.map_sizes):
+            if math.isfinite(t_start):  # events-only: a cell whose latest event left the window has none
+                latest = torch.where(latest >= t_start - origin, latest, torch.full_like(latest, -math.inf))
+            recency.append(recency_from_latest(latest.view(1, 2, h, w), t_query, self.model.cfg.recency_us))
+        image_maps = self._image[0] if self.hybrid else None
+        age = torch.tensor([t_us - (self._t_image if self.hybrid else origin)], dtype=torch.float64,
+                           device=self.device)
+        return self.model.head(self.model.combine(image_maps, event_maps, recency, age))
+
+    # ---------------------------------------------------------------- internals
+    def _sampler(self):
+        return self.model.node_sampler(self._image[1]) if self.hybrid else None
+
+    def _start_segment(self, origin_us: float, first_us: float) -> None:
+        """A new segment from ``origin_us``, fed with the logged events since ``first_us``."""
+        t = self._log["t"].view
+        self._trim_log(int(np.searchsorted(t, first_us, side="left")), first_us)
+        self._done = 0
+        self._segment = _Segment(self, origin_us)
+        self._segment.first_us = first_us
+        self._ingest()
+
+    def _trim_log(self, first: int, t_us: float) -> None:
+        """Forget the first ``first`` logged events (all before ``t_us``)."""
+        if first:
+            for rows in self._log.values():
+                rows.drop_front(first)
+            self._done = max(0, self._done - first)
+            self._kept_from = max(self._kept_from, t_us)
+
+    def _ingest(self) -> None:
+        """Bring the segment up to the logged events, and forget what no later answer can read."""
+        log = self._log
+        if self.hybrid and self._segment is None:  # no image yet: keep what a late image may need
+            keep_from = self._last_t - MAX_IMAGE_DELAY_US - self.context_us
+            self._trim_log(int(np.searchsorted(log["t"].view, keep_from, side="left")), keep_from)
+            return
+        if not self.hybrid:
+            if not log["t"].n and self._segment is None:
+                return
+            t_start = self._last_t - self.window_us  # the earliest window start of any later answer
+            if self._segment is None or self._last_t - self._segment.origin_us > REORIGIN_US:
+                self._start_segment(t_start, t_start)  # ingests the window again
+                return
+            self._trim_log(min(self._done, int(np.searchsorted(log["t"].view, t_start, side="left"))), t_start)
+            self._expire(t_start)
+        end = log["t"].n
+        if self.hybrid:  # events pushed after the image but from before its context are not the sample's
+            self._done = max(self._done, int(np.searchsorted(log["t"].view, self._segment.first_us, side="left")))
+        if end > self._done:
+            self._add(*(log[key].view[self._done:end] for key in ("x", "y", "t", "p")))
+            self._done = end
+
+    def _add(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> None:
+        """New events into the graph, the first stage (new nodes only), the cells and the recency times."""
+        segment, branch = self._segment, self.model.events
+        events = torch.from_numpy(np.stack([x, y, t - segment.origin_us, p], axis=1)).to(self.device, self.dtype)
+        spec = self.model.graph_spec
+        pos = spec.positions(events)  # (M, 3)
+        edges = segment.graph.insert(spec.positions(events.double())).to(self.device)  # (2, E) global ids
+        old, m = segment.events.n, len(events)
+        first_id = segment.base + old
+        segment.events.extend(events)
+        segment.t_abs.extend(t)
+        segment.pos.extend(pos)
+        segment.in_degree.extend(torch.bincount(edges[1] - first_id, minlength=m))
+        local = edges - segment.base
+        rows = torch.arange(old, old + m, device=self.device)
+        batch = torch.zeros(m, dtype=torch.int64, device=self.device)
+        segment.h[0].extend(branch.level_input(0, branch.node_features(events), pos, batch, self._sampler()))
+        op = GraphOperator(local, old + m, in_degree=segment.in_degree.view, rows=rows)
+        for b, block in enumerate(branch.stages[0]):
+            segment.h[b + 1].extend(block(segment.h[b].view, op))
+        if segment.cells is not None:
+            segment.cell.extend(segment.cells.cell_of(pos))
+            cell = segment.cell.view
+            segment.cells.add(segment.h[-1].view[old:], pos, cell[old:], cell[local])
+        else:
+            segment.edges.extend(edges.T)
+        for latest, stride, (h, w) in zip(segment.latest, self.model.strides, self.map_sizes):
+            key = recency_cells(events, batch, stride=stride, height=h, width=w)
+            latest.scatter_reduce_(0, key, events[:, 2], reduce="amax")
+
+    def _expire(self, t_start: float) -> None:
+        """Forget the events-only segment's rows older than the window once they are half of it."""
+        segment = self._segment
+        first = int(np.searchsorted(segment.t_abs.view, t_start, side="left"))
+        if first < max(1024, segment.events.n // 2):
+            return
+        for rows in (segment.events, segment.t_abs, segment.pos, segment.in_degree, *segment.h):
+            rows.drop_front(first)
+        segment.base += first
+        edges = segment.edges.view
+        segment.edges.drop_front(int(torch.searchsorted(edges[:, 1].contiguous(), segment.base)))
+
+    def _window_maps(self, t_query: float) -> tuple[list[torch.Tensor], float]:
+        """An events-only model's dense maps over ``[t_query - window_us, t_query]``: the nodes of
+        the first ``reach_us`` of the window recomputed from the window's events, the rest cached."""
+        segment, branch, spec = self._segment, self.model.events, self.model.graph_spec
+        t_start = t_query - self.window_us
+        t = segment.t_abs.view
+        first = int(np.searchsorted(t, t_start, side="left"))
+        stable = int(np.searchsorted(t, t_start + self.reach_us * (1 + 1e-9) + 1.0, side="left"))
+        stable = max(stable, first)
+        zone = segment.events.view[first:stable]
+        zone_batch = torch.zeros(len(zone), dtype=torch.int64, device=self.device)
+        zone_edges = spec.edges(zone, zone_batch, workers=1).to(self.device)
+        x_zone, _, _ = branch.event_nodes(zone, zone_batch, None, zone_edges)
+        edges = segment.edges.view
+        from_id = int(torch.searchsorted(edges[:, 1].contiguous(), segment.base + stable))
+        stable_edges = edges[from_id:].T - (segment.base + first)
+        x = torch.cat([x_zone, segment.h[-1].view[stable:]])
+        pos = segment.pos.view[first:]
+        batch = torch.zeros(len(x), dtype=torch.int64, device=self.device)
+        edge_index = torch.cat([zone_edges, stable_edges], dim=1)
+        return branch.pooled_maps(x, pos, batch, edge_index, 1), t_start

@@ -1,0 +1,217 @@
+"""The streaming detector equals the batch model on the same sample, at any moment."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from dagr_lite.data.collate import collate
+from dagr_lite.data.dataset import Sample
+from dagr_lite.nn.detector import Detector
+from dagr_lite.nn.head import postprocess
+from dagr_lite.stream import REORIGIN_US, StreamingDetector
+from tests.models import small_detector_config
+
+H, W = 48, 64
+CONTEXT_US, WINDOW_US = 10_000, 33_333
+
+
+def small_model(variant: str, seed: int = 0) -> Detector:
+    torch.manual_seed(seed)
+    cfg = small_detector_config(H, W, variant=variant, image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16)
+    model = Detector(cfg).double()
+    for module in model.modules():  # batch-norm statistics away from the identity
+        if isinstance(module, torch.nn.BatchNorm2d):
+            module.running_mean.uniform_(-0.2, 0.2)
+            module.running_var.uniform_(0.5, 2.0)
+    return model.eval()
+
+
+def sample_of(image, events, origin_us: float, t_query: float) -> Sample:
+    """The batch sample: events ``(x, y, t, p)`` with times counted from ``origin_us``."""
+    x, y, t, p = events
+    ev = torch.from_numpy(np.stack([x, y, t - origin_us, p], axis=1).astype(np.float64)).reshape(-1, 4)
+    pixels = (torch.zeros((3, H, W), dtype=torch.uint8) if image is None
+              else torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))))
+    return Sample(events=ev, image=pixels, boxes=torch.tensor([[10.0, 8.0, 30.0, 26.0]]),
+                  labels=torch.zeros(1, dtype=torch.int64), video="v", frame=0, image_frame=0, t_start_us=0,
+                  t_end_us=int(t_query), t_image_us=int(origin_us))
+
+
+def trained(model: Detector, seed: int = 1) -> Detector:
+    """``model`` after a few optimiser steps on random samples (weights away from their initialisation)."""
+    rng = np.random.default_rng(seed)
+    optimiser = torch.optim.AdamW(model.parameters(), lr=3e-3)
+    model.train()
+    for _ in range(4):
+        stream = random_stream(rng, 800, 60_000)
+        image = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+        batch = collate([sample_of(image, tuple(stream.values()), 20_000, 60_000)])
+        batch.events = batch.events.double()
+        losses = model(batch)
+        optimiser.zero_grad()
+        losses["loss"].backward()
+        optimiser.step()
+    return model.eval()
+
+
+def random_stream(rng, n: int, duration_us: int, gap_at: float | None = None, gap_us: int = 0) -> dict:
+    t = np.sort(rng.integers(0, duration_us, n)).astype(np.int64)
+    if gap_at is not None:
+        t[int(gap_at * n):] += gap_us
+    return {"x": rng.integers(0, W, n), "y": rng.integers(0, H, n), "t": t, "p": rng.integers(0, 2, n)}
+
+
+def check_against_batch(stream: StreamingDetector, model: Detector, events: dict, upto: int, image, t_image,
+                        t_query: float) -> int:
+    """Compare one answer with the batch model; returns the number of events the sample held."""
+    t = events["t"][:upto]
+    if model.image is not None:
+        keep, origin = t >= t_image - CONTEXT_US, t_image
+    else:
+        keep, origin = t >= t_query - WINDOW_US, stream.origin_us
+    sample = sample_of(image, tuple(v[:upto][keep] for v in events.values()), origin, t_query)
+    with torch.no_grad():
+        raw, shapes = stream.head_outputs(t_query)
+        expected_raw, _ = model.head(model.features(collate([sample])))
+    assert raw.dtype == torch.float64
+    torch.testing.assert_close(raw, expected_raw, rtol=0, atol=1e-9)
+    answer = stream.detect(t_query)
+    expected = postprocess(expected_raw, shapes, model.strides, conf_threshold=stream.conf_threshold,
+                           nms_threshold=stream.nms_threshold, image_size=(H, W))[0]
+    assert answer["t_us"] == t_query
+    np.testing.assert_allclose(answer["boxes"], expected["boxes"].numpy(), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(answer["scores"], expected["scores"].numpy(), rtol=0, atol=1e-9)
+    return int(keep.sum())
+
+
+def replay(model: Detector, events: dict, images: list, seed: int, *, detect_prob: float = 0.4,
+           sizes=(0, 1, 1, 2, 5, 40, 300)) -> tuple[int, int, StreamingDetector]:
+    """Push ``events`` in random sizes (0, 1 and more), images at their times, and check random
+    detect calls (at the latest event or a little later) against the batch model."""
+    rng = np.random.default_rng(seed)
+    stream = StreamingDetector(model, context_us=CONTEXT_US, window_us=WINDOW_US, conf_threshold=0.0)
+    n, i, checks, largest = len(events["t"]), 0, 0, 0
+    pending = sorted(images, key=lambda item: item[1])
+    image, t_image = None, None
+    while i < n:
+        size = min(int(rng.choice(sizes)), n - i)
+        batch = {key: values[i:i + size] for key, values in events.items()}
+        # An image may come before events older than it (a camera's latency): up to 5 ms early.
+        while size and pending and pending[0][1] <= batch["t"][-1] + 5_000:
+            image, t_image = pending.pop(0)
+            stream.push_image(image, t_image)
+        stream.push_events(**batch)
+        i += size
+        ready = model.image is None or image is not None
+        if i and ready and rng.random() < detect_prob:
+            t_query = float(events["t"][i - 1]) + float(rng.choice([0, 0, 7, 2_500]))
+            t_query = max(t_query, t_image if t_image is not None else -np.inf)
+            largest = max(largest, check_against_batch(stream, model, events, i, image, t_image, t_query))
+            checks += 1
+    return checks, largest, stream
+
+
+@pytest.mark.parametrize("variant", ["hybrid", "events_only"])
+@pytest.mark.parametrize("weights", ["untrained", "trained"])
+def test_streaming_equals_the_batch_model_at_any_moment(variant, weights):
+    model = small_model(variant)
+    if weights == "trained":
+        model = trained(model)
+    rng = np.random.default_rng(5)
+    events = random_stream(rng, 2500, 250_000)
+    images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 96_000, 190_000)]
+    checks, largest, _ = replay(model, events, images, seed=7)
+    assert checks >= 20 and largest >= 300  # many answers, some over large samples
+
+
+@pytest.mark.parametrize("variant", ["hybrid", "events_only"])
+def test_streaming_stays_exact_across_long_gaps(variant):
+    """Gaps longer than the window (everything leaves it) and than the float32 re-origin span."""
+    model = small_model(variant, seed=3)
+    rng = np.random.default_rng(11)
+    events = random_stream(rng, 1500, 120_000, gap_at=0.3, gap_us=150_000)
+    events["t"][int(0.7 * 1500):] += REORIGIN_US + 500_000
+    images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (10_000, 200_000,
+                                                                             REORIGIN_US + 600_000)]
+    checks, _, stream = replay(model, events, images, seed=2, detect_prob=0.8, sizes=(0, 1, 2, 5, 40))
+    assert checks >= 20 and stream.origin_us > REORIGIN_US  # the events-only origin moved forward
+
+
+def test_events_only_window_empties_and_refills():
+    model = small_model("events_only")
+    stream = StreamingDetector(model, context_us=CONTEXT_US, window_us=WINDOW_US, conf_threshold=0.0)
+    empty = stream.detect(5_000.0)  # nothing pushed yet
+    assert empty["boxes"].shape[1] == 4
+    rng = np.random.default_rng(0)
+    events = random_stream(rng, 400, 20_000)
+    stream.push_events(**events)
+    check_against_batch(stream, model, events, 400, None, None, 20_000.0)
+    check_against_batch(stream, model, events, 400, None, None, 20_000.0 + WINDOW_US + 1)  # all left the window
+
+
+def test_bad_input_is_refused_and_leaves_the_state_valid():
+    model = small_model("hybrid")
+    stream = StreamingDetector(model, context_us=CONTEXT_US, window_us=WINDOW_US, conf_threshold=0.0)
+    rng = np.random.default_rng(1)
+    events = random_stream(rng, 600, 40_000)
+    image = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    stream.push_events(**{k: v[:10] for k, v in events.items()})
+    with pytest.raises(ValueError, match="needs an image"):
+        stream.detect()
+    stream.push_image(image, 5_000)
+    stream.push_events(**{k: v[10:300] for k, v in events.items()})
+    before = stream.detect(events["t"][299] + 1.0)
+    bad = [
+        ({"x": [1, 2], "y": [1, 1], "t": [50_000, 49_000], "p": [0, 1]}, "sorted by t"),
+        ({"x": [1], "y": [1], "t": [events["t"][299] - 1], "p": [0]}, "older than"),
+        ({"x": [W], "y": [1], "t": [60_000], "p": [0]}, r"x must lie in \[0, 64\)"),
+        ({"x": [1], "y": [-1], "t": [60_000], "p": [0]}, r"y must lie in \[0, 48\)"),
+        ({"x": [1], "y": [1], "t": [60_000], "p": [2]}, "p must be 0 or 1"),
+        ({"x": [1, 2], "y": [1], "t": [60_000], "p": [0]}, "same length"),
+    ]
+    for arrays, message in bad:
+        with pytest.raises(ValueError, match=message):
+            stream.push_events(**arrays)
+    with pytest.raises(ValueError, match=r"image must be \(48, 64, 3\) uint8"):
+        stream.push_image(np.zeros((H, W + 1, 3), np.uint8), 40_000)
+    with pytest.raises(ValueError, match="older than the previous image"):
+        stream.push_image(image, 4_000)
+    with pytest.raises(ValueError, match="earlier than the latest event"):
+        stream.detect(float(events["t"][299] - 5))
+    after = stream.detect(events["t"][299] + 1.0)  # nothing above changed the state
+    np.testing.assert_array_equal(before["boxes"], after["boxes"])
+    stream.push_events(**{k: v[300:] for k, v in events.items()})
+    check_against_batch(stream, model, events, 600, image, 5_000, float(events["t"][-1]))
+    with pytest.raises(ValueError, match="event branch"):
+        StreamingDetector(Detector(small_detector_config(H, W, variant="image_only")))
+
+
+def test_from_checkpoint_matches_the_batch_model_in_float32(tmp_path):
+    """A trained checkpoint, float32: equal to the batch model to 1e-5 (relative)."""
+    from tests.engine.test_train import small, train
+
+    train(small(tmp_path / "run", "model=hybrid", "trainer.max_steps=2"))
+    stream = StreamingDetector.from_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt", conf_threshold=0.0)
+    model = stream.model
+    assert stream.context_us == 10_000 and next(model.parameters()).dtype == torch.float32
+    height, width = model.cfg.height, model.cfg.width
+    rng = np.random.default_rng(4)
+    n = 4000
+    events = {"x": rng.integers(0, width, n), "y": rng.integers(0, height, n),
+              "t": np.sort(rng.integers(0, 60_000, n)), "p": rng.integers(0, 2, n)}
+    image = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
+    stream.push_image(image, 20_000)
+    for part in np.array_split(np.arange(n), 9):
+        stream.push_events(**{k: v[part] for k, v in events.items()})
+        t_query = float(events["t"][part[-1]])
+        keep = (events["t"] >= 10_000) & (np.arange(n) <= part[-1])
+        x, y, t, p = (v[keep] for v in events.values())
+        sample = Sample(events=torch.from_numpy(np.stack([x, y, t - 20_000, p], 1).astype(np.float32)),
+                        image=torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))),
+                        boxes=torch.zeros((0, 4)), labels=torch.zeros(0, dtype=torch.int64), video="v", frame=0,
+                        image_frame=0, t_start_us=0, t_end_us=int(t_query), t_image_us=20_000)
+        with torch.no_grad():
+            raw, _ = stream.head_outputs(t_query)
+            expected, _ = model.head(model.features(collate([sample])))
+        torch.testing.assert_close(raw, expected, rtol=1e-5, atol=1e-5)
