@@ -68,7 +68,7 @@ def baseline_knn(pos: np.ndarray) -> None:
 
 def stream(pos: np.ndarray, batch_us: float = 1000.0, times: list | None = None) -> int:
     """Insert ``pos`` in batches of ``batch_us``; returns the edge count, appends (t, seconds, events)."""
-    graph = StreamingGraph(RADIUS, K, window=BETA * WINDOW_US)
+    graph = StreamingGraph(RADIUS, K)
     duration = pos[-1, 2] / BETA
     bounds = np.searchsorted(pos[:, 2], BETA * np.arange(0, duration + 2 * batch_us, batch_us))
     edges = 0

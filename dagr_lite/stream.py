@@ -22,6 +22,8 @@ from the window's nodes.
 from __future__ import annotations
 
 import math
+import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -131,8 +133,7 @@ class _Segment:
         spec = model.graph_spec
         self.origin_us, self.base = origin_us, 0
         self.first_us = origin_us  # the earliest event time of the segment's sample
-        window = math.inf if detector.hybrid else max(spec.radius, spec.beta * detector.window_us)
-        self.graph = StreamingGraph(spec.radius, spec.max_neighbors, window, workers=1)
+        self.graph = StreamingGraph(spec.radius, spec.max_neighbors, workers=1)
         like = torch.zeros(0, dtype=detector.dtype, device=detector.device)
         self.events = _Rows(like.new_zeros((0, 4)))  # x, y, t - origin, p
         self.t_abs = _Rows(np.zeros(0))
@@ -146,6 +147,7 @@ class _Segment:
         self.cells = (_Cells(model.cfg.height, model.cfg.width, model.strides[0], branch.stages[0][-1].conv.out_channels,
                              detector.dtype, detector.device) if detector.hybrid else None)
         self.latest = [like.new_full((2 * h * w,), -math.inf) for h, w in detector.map_sizes]
+        self.maps: tuple[int, list[torch.Tensor]] | None = None  # a hybrid's event maps, with the node count they saw
 
 
 class StreamingDetector:
@@ -180,6 +182,7 @@ class StreamingDetector:
         spec = model.graph_spec
         # Nodes whose features can reach an event that left the window (events-only).
         self.reach_us = (len(model.events.stages[0]) + 1) * spec.radius / spec.beta
+        self.timings: dict[str, float] | None = None  # a dict: seconds spent in each part, summed (profiling)
         self.reset()
 
     @classmethod
@@ -234,7 +237,7 @@ class StreamingDetector:
                              f"{MAX_IMAGE_DELAY_US} us older than the latest event)")
         if not self.hybrid:
             return
-        with torch.no_grad():
+        with torch.no_grad(), self._part("image features"):
             pixels = torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1)))[None].to(self.device)
             image_maps = self.model.image(pixels)
             self._image = (image_maps, self.model.node_maps(image_maps))
@@ -296,6 +299,7 @@ class StreamingDetector:
             raise ValueError(f"detect time {t_us:g} us is earlier than the image ({self._t_image:g} us)")
         with torch.no_grad():
             raw, shapes = self._head_outputs(t_us)
+        with torch.no_grad(), self._part("decode + NMS"):
             result = postprocess(raw, shapes, self.model.strides, conf_threshold=self.conf_threshold,
                                  nms_threshold=self.nms_threshold, image_size=(self.height, self.width))[0]
         return {"boxes": result["boxes"].cpu().numpy(), "scores": result["scores"].cpu().numpy(),
@@ -311,14 +315,23 @@ class StreamingDetector:
             self._ingest()
             if self._segment is None:  # no event yet
                 self._start_segment(t_us - self.window_us, t_us - self.window_us)
-            event_maps, t_start = self._window_maps(t_us)
+            with self._part("window start + pooled stages"):
+                event_maps, t_start = self._window_maps(t_us)
             origin = self._segment.origin_us
         else:
             self._ingest()
             segment = self._segment
-            first = segment.cells.graph()
-            event_maps = self.model.events.pooled_maps(None, None, None, None, 1, self._sampler(), first=first)
+            if segment.maps is None or segment.maps[0] != segment.events.n:  # the pooled stages saw new nodes
+                with self._part("pooled stages"):
+                    first = segment.cells.graph()
+                    maps = self.model.events.pooled_maps(None, None, None, None, 1, self._sampler(), first=first)
+                segment.maps = (segment.events.n, maps)
+            event_maps = segment.maps[1]
             t_start, origin = -math.inf, segment.origin_us
+        with self._part("recency + fusion + head"):
+            return self._head(event_maps, t_us, t_start, origin)
+
+    def _head(self, event_maps: list[torch.Tensor], t_us: float, t_start: float, origin: float):
         t_query = torch.tensor([t_us - origin], dtype=torch.float64, device=self.device)
         recency = []
         for latest, (h, w) in zip(self._segment.latest, self.map_sizes):
@@ -331,6 +344,16 @@ class StreamingDetector:
         return self.model.head(self.model.combine(image_maps, event_maps, recency, age))
 
     # ---------------------------------------------------------------- internals
+    @contextmanager
+    def _part(self, name: str):
+        """Adds the time spent inside to ``timings[name]`` when profiling."""
+        if self.timings is None:
+            yield
+            return
+        start = time.perf_counter()
+        yield
+        self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - start
+
     def _sampler(self):
         return self.model.node_sampler(self._image[1]) if self.hybrid else None
 
@@ -380,7 +403,8 @@ class StreamingDetector:
         events = torch.from_numpy(np.stack([x, y, t - segment.origin_us, p], axis=1)).to(self.device, self.dtype)
         spec = self.model.graph_spec
         pos = spec.positions(events)  # (M, 3)
-        edges = segment.graph.insert(spec.positions(events.double())).to(self.device)  # (2, E) global ids
+        with self._part("graph"):
+            edges = segment.graph.insert(spec.positions(events.double())).to(self.device)  # (2, E) global ids
         old, m = segment.events.n, len(events)
         first_id = segment.base + old
         segment.events.extend(events)
@@ -390,14 +414,22 @@ class StreamingDetector:
         local = edges - segment.base
         rows = torch.arange(old, old + m, device=self.device)
         batch = torch.zeros(m, dtype=torch.int64, device=self.device)
-        segment.h[0].extend(branch.level_input(0, branch.node_features(events), pos, batch, self._sampler()))
-        op = GraphOperator(local, old + m, in_degree=segment.in_degree.view, rows=rows)
-        for b, block in enumerate(branch.stages[0]):
-            segment.h[b + 1].extend(block(segment.h[b].view, op))
+        with self._part("first stage (new nodes)"):
+            segment.h[0].extend(branch.level_input(0, branch.node_features(events), pos, batch, self._sampler()))
+            op = GraphOperator(local, old + m, in_degree=segment.in_degree.view, rows=rows)
+            for b, block in enumerate(branch.stages[0]):
+                segment.h[b + 1].extend(block(segment.h[b].view, op))
+        with self._part("cells + recency times"):
+            self._update_cells(segment, events, pos, batch, edges, old)
+
+    def _update_cells(self, segment: _Segment, events: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor,
+                      edges: torch.Tensor, old: int) -> None:
+        """A hybrid's first pooled cells take the new nodes (rows from ``old``) in; an events-only
+        segment keeps their edges. The latest event time of every recency cell."""
         if segment.cells is not None:
             segment.cell.extend(segment.cells.cell_of(pos))
             cell = segment.cell.view
-            segment.cells.add(segment.h[-1].view[old:], pos, cell[old:], cell[local])
+            segment.cells.add(segment.h[-1].view[old:], pos, cell[old:], cell[edges - segment.base])
         else:
             segment.edges.extend(edges.T)
         for latest, stride, (h, w) in zip(segment.latest, self.model.strides, self.map_sizes):

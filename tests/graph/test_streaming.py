@@ -12,7 +12,7 @@ def test_any_sequence_of_insertions_gives_the_batch_graph(grid):
     for _ in range(20):
         pos = time_sorted_cloud(rng, int(rng.integers(0, 400)), extent=12.0, grid=grid)
         r, k = float(rng.uniform(0.5, 3.0)), int(rng.integers(1, 9))
-        graph = StreamingGraph(r, k, window=r * float(rng.uniform(1.0, 3.0)))
+        graph = StreamingGraph(r, k)
         parts, i = [], 0
         while i < len(pos):
             size = int(rng.choice([0, 1, 1, 2, 3, 8, 30, 120]))  # empty batches and single events too
@@ -25,27 +25,27 @@ def test_any_sequence_of_insertions_gives_the_batch_graph(grid):
 
 
 def test_old_events_expire_and_ids_keep_counting():
-    graph = StreamingGraph(1.0, 4, window=2.0)
+    graph = StreamingGraph(1.0, 4)
     for step in range(200):
         graph.insert(np.array([[0.0, 0.0, 0.1 * step]]))
     assert graph.num_inserted == 200
-    assert graph.num_nodes < 60  # only about the last 2.0 / 0.1 events, plus one partly expired chunk
+    assert graph.num_nodes == 11  # the events within r = 1.0 of the latest (z 18.9 to 19.9)
     edges = graph.insert(np.array([[0.0, 0.0, 20.0]]))
     assert edges[1].tolist() == [200] * 4 and edges[0].tolist() == [196, 197, 198, 199]
 
 
 def test_bad_use_is_refused():
-    with pytest.raises(ValueError, match="window"):
-        StreamingGraph(2.0, 4, window=1.0)
-    graph = StreamingGraph(1.0, 4, window=2.0)
+    with pytest.raises(ValueError, match="r and k must be positive"):
+        StreamingGraph(0.0, 4)
+    graph = StreamingGraph(1.0, 4)
     graph.insert(np.array([[0.0, 0.0, 5.0]]))
     with pytest.raises(ValueError, match="time order"):
         graph.insert(np.array([[0.0, 0.0, 4.0]]))
 
 
-def test_events_exactly_r_apart_with_window_equal_to_r():
+def test_events_exactly_r_apart():
     pos = np.array([[0.0, 0.0, 0.62], [0.0, 0.0, 4.04], [0.0, 0.0, 4.04]])
-    graph = StreamingGraph(3.42, 4, window=3.42)
+    graph = StreamingGraph(3.42, 4)
     got = torch.cat([graph.insert(pos[i:i + 1]) for i in range(3)], dim=1)
     assert torch.equal(got, radius_graph(torch.from_numpy(pos), 3.42, 4))
     assert got.shape[1] == 3  # 0 -> 1, 0 -> 2, 1 -> 2
@@ -53,4 +53,4 @@ def test_events_exactly_r_apart_with_window_equal_to_r():
 
 def test_positions_must_have_three_columns():
     with pytest.raises(ValueError, match=r"\(M, 3\)"):
-        StreamingGraph(1.0, 2, window=1.0).insert(np.zeros((3, 2)))
+        StreamingGraph(1.0, 2).insert(np.zeros((3, 2)))

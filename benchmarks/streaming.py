@@ -1,0 +1,239 @@
+"""Streaming detector speed: one update plus ``detect()`` against a full batch pass on the same samples.
+
+    python benchmarks/streaming.py --ckpt runs/train/<run>/checkpoints/best.pt [--seconds 0.5]
+                                   [--sizes 320x180 640x360] [--updates-ms 0.1 1 5] [--threads 2]
+
+Scenes: the stub's first test video (320x180), and a hand scene of the stub's generator rendered
+and emulated at 640x360 (made once into a temporary folder). Images arrive at 30 Hz and are part of
+the update they arrive in. For each update size it prints:
+  * the median and p95 latency of one update (push_events, any push_image, detect) against the
+    median of full batch passes (graph build, model, decoding) on the samples of the same moments;
+  * the real-time factor: seconds of recording per second of compute, detecting after every update;
+  * the multiply-adds per event of the GCN layers (all stages), streaming against a full pass;
+  * where an update's time goes.
+The last line reads ``1 ms update: <ratio>x faster than a full pass`` (the stub scene).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dagr_lite.data import format as fmt
+from dagr_lite.data.collate import collate
+from dagr_lite.data.dataset import Sample
+from dagr_lite.data.reader import EventFile, list_frames, list_videos, read_frame
+from dagr_lite.data.writer import VideoWriter
+from dagr_lite.engine.common import load_checkpoint
+from dagr_lite.nn.detector import Detector, DetectorConfig
+from dagr_lite.nn.gcn import GCNConv, GraphOperator
+from dagr_lite.stream import StreamingDetector
+from dagr_lite.synth.dvs import preset
+from dagr_lite.synth.stub import STUB_DVS_MODEL, STUB_UPSAMPLE, HandScene, stub_root
+from dagr_lite.synth.video import emulate_video
+
+FIRST_FRAME = 3  # streams start at this frame (earlier events are the first image's context)
+
+
+@dataclasses.dataclass
+class Recording:
+    name: str
+    events: dict[str, np.ndarray]
+    frames: list[np.ndarray]
+    frame_times: np.ndarray  # (K,) us
+
+    @property
+    def height(self) -> int:
+        return self.frames[0].shape[0]
+
+    @property
+    def width(self) -> int:
+        return self.frames[0].shape[1]
+
+
+def read_recording(root: Path, split: str, video: str, name: str) -> Recording:
+    frames_dir = fmt.frames_dir(root, split, video)
+    count = len(list_frames(frames_dir))
+    file = EventFile(fmt.events_path(root, split, video), num_frames=count)
+    events = file.window(0, int(file.frame_times[-1]) + 1)
+    frames = [read_frame(fmt.frame_path(root, split, video, k)) for k in range(count)]
+    return Recording(name, {k: np.asarray(events[k]) for k in ("x", "y", "t", "p")}, frames,
+                     np.asarray(file.frame_times, dtype=np.int64))
+
+
+def recording(size: tuple[int, int], seconds: float, workdir: Path) -> Recording:
+    """The stub's first test video at 320x180; a scene of the same generator at any other size."""
+    height, width = size
+    if size == (180, 320):
+        root = stub_root()
+        video = list_videos(root, "test")[0]
+        return read_recording(root, "test", video, f"stub test video {video}")
+    scene = HandScene(7, height=height, width=width, seconds=seconds + 0.3)
+    with VideoWriter(workdir, "test", "scene", num_frames=scene.num_frames, height=height, width=width,
+                     compression=None) as writer:
+        emulate_video(scene, writer, params=preset(STUB_DVS_MODEL), upsample=STUB_UPSAMPLE, seed=7)
+    return read_recording(workdir, "test", "scene", f"hand scene {width}x{height}")
+
+
+def model_at(state: dict, height: int, width: int) -> Detector:
+    """The checkpoint's EMA weights in its architecture at ``height x width`` (the weights do not depend on it)."""
+    cfg = dataclasses.replace(DetectorConfig.from_dict(state["detector"]), height=height, width=width)
+    model = Detector(cfg)
+    model.load_state_dict(state["ema"]["module"])
+    return model.eval()
+
+
+class MacCounter:
+    """Multiply-adds of every GCN layer call: the sparse product on the narrower side plus the weight."""
+
+    def __init__(self, model: Detector):
+        self.total = 0
+        self.handles = [m.register_forward_hook(self.hook) for m in model.modules() if isinstance(m, GCNConv)]
+
+    def hook(self, module: GCNConv, args, output) -> None:
+        x, graph = args
+        nnz = len(graph._triplets[0]) if isinstance(graph, GraphOperator) else graph.shape[1] + len(x)
+        self.total += nnz * min(module.in_channels, module.out_channels)
+        self.total += output.shape[0] * module.in_channels * module.out_channels
+
+    def close(self) -> None:
+        for handle in self.handles:
+            handle.remove()
+
+
+def frame_at(rec: Recording, t_us: float) -> int:
+    return int(np.searchsorted(rec.frame_times, t_us, side="right")) - 1
+
+
+def stream_run(model: Detector, rec: Recording, update_us: float, t0: float, t1: float, *, context_us: int,
+               window_us: int) -> dict:
+    """Updates of ``update_us`` over ``[t0, t1)``: latencies, the time spent per part, GCN multiply-adds."""
+    stream = StreamingDetector(model, context_us=context_us, window_us=window_us)
+    t, ev = rec.events["t"], rec.events
+    k = frame_at(rec, t0)
+    begin = int(np.searchsorted(t, rec.frame_times[k] - context_us - window_us))
+    start = int(np.searchsorted(t, t0))
+    if stream.hybrid:
+        stream.push_image(rec.frames[k], rec.frame_times[k])
+    stream.push_events(**{key: v[begin:start] for key, v in ev.items()})  # warm-up, not timed
+    stream.detect(t0)
+    stream.timings = {}
+    counter = MacCounter(model)
+    latencies, events_in, next_frame = [], 0, k + 1
+    now = t0
+    while now < t1:
+        end_t = now + update_us
+        stop = int(np.searchsorted(t, end_t))
+        tic = time.perf_counter()
+        while stream.hybrid and next_frame < len(rec.frames) and rec.frame_times[next_frame] < end_t:
+            stream.push_image(rec.frames[next_frame], rec.frame_times[next_frame])
+            next_frame += 1
+        stream.push_events(**{key: v[start:stop] for key, v in ev.items()})
+        stream.detect(end_t)
+        latencies.append(time.perf_counter() - tic)
+        events_in += stop - start
+        start, now = stop, end_t
+    counter.close()
+    return {"latency": np.array(latencies), "events": events_in, "macs": counter.total, "timings": stream.timings,
+            "seconds": (t1 - t0) * 1e-6}
+
+
+def full_pass(model: Detector, rec: Recording, t_query: float, *, context_us: int, window_us: int,
+              repeats: int = 2) -> tuple[float, int, int]:
+    """Seconds (best of ``repeats``) of one batch pass on the sample at ``t_query``, its GCN
+    multiply-adds and its event count."""
+    k = frame_at(rec, t_query)
+    t_image = rec.frame_times[k]
+    t = rec.events["t"]
+    begin = t_image - context_us if model.image is not None else t_query - window_us
+    keep = slice(int(np.searchsorted(t, begin)), int(np.searchsorted(t, t_query, side="right")))
+    x, y, tt, p = (rec.events[key][keep] for key in ("x", "y", "t", "p"))
+    events = torch.from_numpy(np.stack([x, y, tt - t_image, p], 1).astype(np.float32)).reshape(-1, 4)
+    sample = Sample(events=events, image=torch.from_numpy(np.ascontiguousarray(rec.frames[k].transpose(2, 0, 1))),
+                    boxes=torch.zeros((0, 4)), labels=torch.zeros(0, dtype=torch.int64), video=rec.name, frame=k,
+                    image_frame=k, t_start_us=int(begin), t_end_us=int(t_query), t_image_us=int(t_image))
+    best, macs = np.inf, 0
+    for _ in range(repeats):
+        batch = collate([sample])
+        counter = MacCounter(model)
+        tic = time.perf_counter()
+        with torch.no_grad():
+            batch.edge_index = model.graph_spec.edges(batch.events, batch.batch_index)
+            model(batch, conf_threshold=0.25)
+        best = min(best, time.perf_counter() - tic)
+        counter.close()
+        macs = counter.total
+    return best, macs, len(events)
+
+
+def bench_scene(state: dict, rec: Recording, args) -> float | None:
+    model = model_at(state, rec.height, rec.width)
+    data = state["config"]["data"]
+    context_us, window_us = data["context_us"], data["window_us"]
+    t0 = float(rec.frame_times[FIRST_FRAME])
+    t1 = min(t0 + args.seconds * 1e6, float(rec.events["t"][-1]))
+    rate = np.count_nonzero((rec.events["t"] >= t0) & (rec.events["t"] < t1)) / ((t1 - t0) * 1e-6)
+    print(f"\n{rec.name}: {rec.width}x{rec.height}, {(t1 - t0) / 1e6:.2f} s streamed from frame {FIRST_FRAME}, "
+          f"{rate / 1e3:.0f}k events/s; {state['config']['model']['name']} model, images at 30 Hz")
+    moments = np.linspace(t0 + 2_000, t1 - 1, args.full_passes)
+    passes = [full_pass(model, rec, m, context_us=context_us, window_us=window_us) for m in moments]
+    full_s = float(np.median([p[0] for p in passes]))
+    full_macs = sum(p[1] for p in passes) / max(1, sum(p[2] for p in passes))
+    print(f"full batch pass (graph, model, decoding), median of {len(passes)} moments: {1e3 * full_s:.1f} ms, "
+          f"{np.median([p[2] for p in passes]):.0f} events per sample")
+    header = (f"{'update':>8} {'events':>7} {'median ms':>10} {'p95 ms':>8} {'speed-up':>9} {'real-time':>10} "
+              f"{'GCN MACs/event':>22}")
+    print(header + "\n" + "-" * len(header))
+    result, parts = None, {}
+    for update_ms in args.updates_ms:
+        seconds = min(t1 - t0, args.seconds * 1e6 * min(1.0, update_ms / 1.0)) if update_ms < 1 else t1 - t0
+        run = stream_run(model, rec, update_ms * 1e3, t0, t0 + seconds, context_us=context_us, window_us=window_us)
+        latency = run["latency"]
+        median, p95 = float(np.median(latency)), float(np.percentile(latency, 95))
+        speedup = full_s / median
+        rtf = run["seconds"] / latency.sum()
+        macs = run["macs"] / max(1, run["events"])
+        print(f"{update_ms:>6g}ms {run['events'] / len(latency):>7.0f} {1e3 * median:>10.2f} {1e3 * p95:>8.2f} "
+              f"{speedup:>8.1f}x {rtf:>10.2f} {macs:>10.0f} / {full_macs:<9.0f}")
+        parts[update_ms] = {name: 1e3 * value / len(latency) for name, value in run["timings"].items()}
+        if update_ms == 1:
+            result = speedup
+    print("where an update's time goes (ms per update):")
+    names = sorted({name for p in parts.values() for name in p}, key=lambda n: -max(p.get(n, 0) for p in parts.values()))
+    print("  " + f"{'part':<30}" + "".join(f"{f'{u:g} ms':>10}" for u in parts))
+    for name in names:
+        print("  " + f"{name:<30}" + "".join(f"{p.get(name, 0.0):>10.2f}" for p in parts.values()))
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--ckpt", required=True, help="a trained checkpoint (hybrid or events-only)")
+    parser.add_argument("--seconds", type=float, default=0.5, help="recording streamed per update size "
+                        "(updates under 1 ms stream proportionally less)")
+    parser.add_argument("--sizes", nargs="+", default=["320x180", "640x360"])
+    parser.add_argument("--updates-ms", nargs="+", type=float, default=[0.1, 1.0, 5.0])
+    parser.add_argument("--full-passes", type=int, default=8, help="moments at which a full pass is timed")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    state = load_checkpoint(args.ckpt)
+    print(f"torch {torch.__version__}, {args.threads} threads, checkpoint {args.ckpt}")
+    stub_ratio = None
+    with tempfile.TemporaryDirectory() as workdir:
+        for text in args.sizes:
+            width, height = (int(v) for v in text.lower().split("x"))
+            ratio = bench_scene(state, recording((height, width), args.seconds, Path(workdir)), args)
+            if (height, width) == (180, 320) or stub_ratio is None:
+                stub_ratio = ratio if (height, width) == (180, 320) or stub_ratio is None else stub_ratio
+    if stub_ratio is not None:
+        print(f"1 ms update: {stub_ratio:.1f}x faster than a full pass")
+
+
+if __name__ == "__main__":
+    main()
