@@ -1,6 +1,8 @@
 """The streaming detector equals the batch model on the same sample, at any moment."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -187,12 +189,19 @@ def test_bad_input_is_refused_and_leaves_the_state_valid():
         StreamingDetector(Detector(small_detector_config(H, W, variant="image_only")))
 
 
-def test_from_checkpoint_matches_the_batch_model_in_float32(tmp_path):
-    """A trained checkpoint, float32: equal to the batch model to 1e-5 (relative)."""
+@pytest.fixture(scope="module")
+def hybrid_checkpoint(tmp_path_factory) -> Path:
+    """A hybrid trained for two steps on the stub by the training loop."""
     from tests.engine.test_train import small, train
 
-    train(small(tmp_path / "run", "model=hybrid", "trainer.max_steps=2"))
-    stream = StreamingDetector.from_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt", conf_threshold=0.0)
+    run = tmp_path_factory.mktemp("stream") / "run"
+    train(small(run, "model=hybrid", "trainer.max_steps=2"))
+    return run / "checkpoints" / "last.pt"
+
+
+def test_from_checkpoint_matches_the_batch_model_in_float32(hybrid_checkpoint):
+    """A trained checkpoint, float32: equal to the batch model to 1e-5 (relative)."""
+    stream = StreamingDetector.from_checkpoint(hybrid_checkpoint, conf_threshold=0.0)
     model = stream.model
     assert stream.context_us == 10_000 and next(model.parameters()).dtype == torch.float32
     height, width = model.cfg.height, model.cfg.width
@@ -215,3 +224,25 @@ def test_from_checkpoint_matches_the_batch_model_in_float32(tmp_path):
             raw, _ = stream.head_outputs(t_query)
             expected, _ = model.head(model.features(collate([sample])))
         torch.testing.assert_close(raw, expected, rtol=1e-5, atol=1e-5)
+
+
+def test_demo_writes_a_playable_animation_and_a_strip(hybrid_checkpoint, tmp_path):
+    from PIL import Image
+
+    from dagr_lite.config import ConfigError
+    from dagr_lite.demo import demo
+    from tests.engine.test_train import config
+
+    out = tmp_path / "demo.webp"
+    cfg = config("demo", f"ckpt={hybrid_checkpoint}", f"out={out}", "rate_hz=100", "seconds=0.2", "strip_frame=2",
+                 "strip_moments=3", "device=cpu")
+    result = demo(cfg)
+    with Image.open(out) as animation:
+        assert animation.n_frames == len(result["latencies"]) - 3  # 20 updates of 10 ms, the strip's 3 apart
+        assert animation.size == (2 * 320, 180 + 14)
+    with Image.open(result["strip"]) as strip:
+        assert strip.size == (2 * 320, 3 * (180 + 14))
+    with pytest.raises(ConfigError, match="already exists"):
+        demo(cfg)  # nothing is overwritten
+    with pytest.raises(ConfigError, match="not in"):
+        demo(config("demo", f"ckpt={hybrid_checkpoint}", f"out={tmp_path / 'b.gif'}", "video=nope"))

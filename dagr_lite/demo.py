@@ -1,0 +1,161 @@
+"""Run the streaming detector over one recording and write a video a person can play.
+
+    python -m dagr_lite.demo ckpt=runs/train/<run>/checkpoints/best.pt [video=<name>] [split=test]
+        [rate_hz=300] [out=runs/demo/<video>.webp] [seconds=null] [dataset=...]
+
+Images reach the detector at the camera's rate, events in updates of ``1 / rate_hz`` seconds,
+and the detector answers after every update. Each frame of the animation (WebP or GIF, by the
+file's suffix) shows the latest image with the current boxes beside the last ``events_ms`` of
+events with the same boxes, and the time, the image's age and the update's latency. A PNG strip
+beside it (``<out>.strip.png``) shows ``strip_moments`` moments between two frames.
+"""
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import hydra
+import numpy as np
+from omegaconf import DictConfig
+from PIL import Image, ImageDraw
+from tqdm import tqdm
+
+from dagr_lite.config import ConfigError, dataset_root
+from dagr_lite.data import format as fmt
+from dagr_lite.data.reader import EventFile, list_frames, list_videos, read_frame
+from dagr_lite.data.writer import temporary_name
+from dagr_lite.engine.common import resolve_device
+from dagr_lite.stream import StreamingDetector
+
+FORMATS = {".webp": "WEBP", ".gif": "GIF"}
+TEXT_HEIGHT = 14  # pixels of the caption bar above each frame
+
+
+def render_moment(image: np.ndarray, events: dict[str, np.ndarray], boxes: np.ndarray, scores: np.ndarray,
+                  caption: str) -> np.ndarray:
+    """``(14 + H, 2W, 3)`` uint8: the image with the boxes, beside the events (ON red, OFF blue on
+    white) with the same boxes, under a caption."""
+    height, width = image.shape[:2]
+    canvas = np.full((height, width, 3), 255, np.uint8)
+    if len(events["x"]):
+        on = (events["p"] > 0)[:, None]
+        canvas[events["y"].astype(int), events["x"].astype(int)] = np.where(on, [220, 30, 30], [30, 60, 220])
+    frame = Image.new("RGB", (2 * width, height + TEXT_HEIGHT), (0, 0, 0))
+    for i, array in enumerate((image, canvas)):
+        panel = Image.fromarray(np.ascontiguousarray(array))
+        draw = ImageDraw.Draw(panel)
+        for box, score in zip(boxes.tolist(), scores.tolist()):
+            draw.rectangle(box, outline=(0, 230, 0) if i == 0 else (0, 150, 0), width=2)
+            draw.text((box[0] + 2, box[1] + 1), f"{score:.2f}", fill=(0, 230, 0) if i == 0 else (0, 120, 0))
+        frame.paste(panel, (i * width, TEXT_HEIGHT))
+    ImageDraw.Draw(frame).text((4, 1), caption, fill=(255, 255, 255))
+    return np.asarray(frame)
+
+
+class Recording:
+    """One video of a dataset split: its events, frames and frame times."""
+
+    def __init__(self, root: Path, split: str, video: str | None):
+        videos = list_videos(root, split)
+        if not videos:
+            raise ConfigError(f"{root / split}: no videos in this split")
+        self.video = video or videos[0]
+        if self.video not in videos:
+            raise ConfigError(f"video={self.video!r} is not in {root / split} (it holds {videos})")
+        frames_dir = fmt.frames_dir(root, split, self.video)
+        count = len(list_frames(frames_dir))
+        file = EventFile(fmt.events_path(root, split, self.video), num_frames=count)
+        try:
+            self.frame_times = np.asarray(file.frame_times, dtype=np.int64)
+            raw = file.window(0, int(self.frame_times[-1]) + 1)
+        finally:
+            file.close()
+        self.events = {key: np.asarray(raw[key]) for key in ("x", "y", "t", "p")}
+        self.frames = [read_frame(fmt.frame_path(root, split, self.video, k)) for k in range(count)]
+
+    def events_between(self, t_a: float, t_b: float) -> dict[str, np.ndarray]:
+        t = self.events["t"]
+        part = slice(int(np.searchsorted(t, t_a)), int(np.searchsorted(t, t_b)))
+        return {key: values[part] for key, values in self.events.items()}
+
+
+def check_output(out: Path) -> None:
+    if out.suffix.lower() not in FORMATS:
+        raise ConfigError(f"out={out}: the animation is written as {' or '.join(FORMATS)} (by its suffix)")
+    for path in (out, strip_path(out)):
+        if path.exists():
+            raise ConfigError(f"{path} already exists; choose another out= (nothing is overwritten)")
+
+
+def strip_path(out: Path) -> Path:
+    return out.with_name(out.stem + ".strip.png")
+
+
+def demo(cfg: DictConfig) -> dict:
+    """Stream one recording through the detector; write the animation and the strip. Returns their
+    paths and the update latencies (seconds)."""
+    if cfg.rate_hz <= 0:
+        raise ConfigError(f"rate_hz must be positive, got {cfg.rate_hz}")
+    rec = Recording(dataset_root(cfg.dataset), cfg.split, cfg.video)
+    out = Path(cfg.out if cfg.out is not None else f"runs/demo/{rec.video}.webp")
+    check_output(out)
+    stream = StreamingDetector.from_checkpoint(cfg.ckpt, device=resolve_device(cfg.device),
+                                               conf_threshold=cfg.conf_threshold)
+    if rec.frames[0].shape[:2] != (stream.height, stream.width):
+        raise ConfigError(f"{cfg.ckpt}: the model takes {stream.width}x{stream.height} frames, the video "
+                          f"{rec.video} has {rec.frames[0].shape[1]}x{rec.frames[0].shape[0]}")
+    step_us = 1e6 / cfg.rate_hz
+    t_first = float(rec.frame_times[0])
+    t_last = float(rec.frame_times[-1]) if cfg.seconds is None else min(float(rec.frame_times[-1]),
+                                                                          t_first + 1e6 * cfg.seconds)
+    k_strip = int(cfg.strip_frame) if cfg.strip_frame is not None else len(rec.frames) // 2
+    if not 0 <= k_strip < len(rec.frames) - 1:
+        raise ConfigError(f"strip_frame must be in [0, {len(rec.frames) - 2}], got {k_strip}")
+    t_a, t_b = rec.frame_times[k_strip], rec.frame_times[k_strip + 1]
+    strip_times = [t_a + (t_b - t_a) * j / cfg.strip_moments for j in range(cfg.strip_moments)]
+    stops = sorted(set(np.arange(t_first + step_us, t_last + 1e-6, step_us).tolist()) | set(strip_times))
+    frames, strip, latencies = [], [], []
+    pushed_until, image_k = t_first, -1
+    for now in tqdm(stops, desc=f"streaming {rec.video} at {cfg.rate_hz:g} Hz", unit="update"):
+        tic = time.perf_counter()
+        while image_k + 1 < len(rec.frames) and rec.frame_times[image_k + 1] <= now:
+            image_k += 1
+            stream.push_image(rec.frames[image_k], rec.frame_times[image_k])
+        stream.push_events(**rec.events_between(pushed_until, now))
+        answer = stream.detect(now)
+        latency = time.perf_counter() - tic
+        pushed_until = now
+        latencies.append(latency)
+        age_ms = (now - rec.frame_times[image_k]) / 1e3
+        caption = (f"t {(now - t_first) / 1e6:6.3f} s  image age {age_ms:5.1f} ms  "
+                   f"update {1e3 * latency:5.1f} ms  {len(answer['boxes'])} hands")
+        picture = render_moment(rec.frames[image_k], rec.events_between(now - 1e3 * cfg.events_ms, now),
+                                answer["boxes"], answer["scores"], caption)
+        if now in strip_times:
+            strip.append(picture)
+        else:
+            frames.append(Image.fromarray(picture))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_name(out)
+    frames[0].save(tmp, format=FORMATS[out.suffix.lower()], save_all=True, append_images=frames[1:],
+                   duration=round(1000 / cfg.playback_fps), loop=0)
+    os.replace(tmp, out)
+    strip_file = strip_path(out)
+    tmp = temporary_name(strip_file)
+    Image.fromarray(np.concatenate(strip, axis=0)).save(tmp, format="PNG")
+    os.replace(tmp, strip_file)
+    latency = np.array(latencies)
+    print(f"{len(frames)} frames -> {out}; strip of frame {k_strip} to {k_strip + 1} -> {strip_file}\n"
+          f"update latency: median {1e3 * np.median(latency):.1f} ms, p95 {1e3 * np.percentile(latency, 95):.1f} ms",
+          flush=True)
+    return {"out": out, "strip": strip_file, "latencies": latency}
+
+
+@hydra.main(config_path="../conf", config_name="demo", version_base=None)
+def main(cfg: DictConfig) -> None:
+    demo(cfg)
+
+
+if __name__ == "__main__":
+    main()
