@@ -40,8 +40,19 @@ def _eventegohands_root(version: str) -> str:
 
 OmegaConf.register_new_resolver("eventegohands_root", _eventegohands_root, replace=True)
 # hydra.run.dir: the run's own run_dir when one is given, else a new dated folder.
-OmegaConf.register_new_resolver("run_folder", lambda run_dir, default: default if run_dir is None else run_dir,
-                                replace=True)
+OmegaConf.register_new_resolver("run_folder", lambda run_dir, default: run_dir if run_dir is not None
+                                else torchrun_folder(default), replace=True)
+
+
+def torchrun_folder(default: str) -> str:
+    """Hydra's run folder: under torchrun, one name every process (and every restart of the group)
+    agrees on, ``<runs/kind>/torchrun-<rendezvous id>``, instead of each process's own clock."""
+    run_id = os.environ.get("TORCHELASTIC_RUN_ID", "")
+    if int(os.environ.get("WORLD_SIZE", "1") or 1) <= 1 or not run_id:
+        return default
+    if run_id == "none":  # a static rendezvous: name it by its address
+        run_id = f"{os.environ.get('MASTER_ADDR', 'local')}-{os.environ.get('MASTER_PORT', '0')}"
+    return str(Path(*Path(default).parts[:2]) / f"torchrun-{run_id}")
 
 
 def compose_config(name: str = "train", overrides: Sequence[str] = ()) -> DictConfig:
@@ -106,6 +117,8 @@ _RULES = {
     "trainer.val_every": ("an integer >= 0 (0: every epoch)", lambda v: _integer(v) and v >= 0),
     "trainer.log_every": ("a positive integer", lambda v: _integer(v) and v > 0),
     "trainer.image_every": ("an integer >= 0 (0: never)", lambda v: _integer(v) and v >= 0),
+    "trainer.checkpoint_every": ("an integer >= 0 (0: only at validation)", lambda v: _integer(v) and v >= 0),
+    "trainer.checkpoint_minutes": ("a positive number or null", lambda v: v is None or (_number(v) and v > 0)),
     "trainer.warmup_steps": ("an integer >= 0", lambda v: _integer(v) and v >= 0),
     "trainer.min_lr_ratio": ("a number in [0, 1]", lambda v: _number(v) and 0 <= v <= 1),
     "trainer.grad_clip": ("a positive number", lambda v: _number(v) and v > 0),

@@ -138,11 +138,16 @@ def warmup_cosine(step: int, *, warmup: int, total: int, min_ratio: float) -> fl
 class EpochSampler(Sampler[int]):
     """Shuffled indices, a fixed permutation per (seed, epoch), optionally starting part-way.
 
-    Resuming at step ``s`` of an epoch skips its first ``s`` batches without loading them.
+    ``start`` counts samples of the epoch's order: resuming skips them without loading them.
+    With ``world_size`` > 1 the order is cut into global batches of ``batch_size * world_size``
+    samples and rank ``rank`` takes its slice of each, so the ranks together see exactly the
+    batches one process would with the global batch size (an incomplete last global batch is dropped).
     """
 
-    def __init__(self, size: int, *, seed: int, shuffle: bool = True):
+    def __init__(self, size: int, *, seed: int, shuffle: bool = True, rank: int = 0, world_size: int = 1,
+                 batch_size: int = 1):
         self.size, self.seed, self.shuffle = size, seed, shuffle
+        self.rank, self.world_size, self.batch_size = rank, world_size, batch_size
         self.epoch, self.start = 0, 0
 
     def set_epoch(self, epoch: int, start: int = 0) -> None:
@@ -154,10 +159,31 @@ class EpochSampler(Sampler[int]):
         return np.random.default_rng([self.seed, self.epoch]).permutation(self.size).tolist()
 
     def __iter__(self):
-        return iter(self.order()[self.start:])
+        order = self.order()[self.start:]
+        if self.world_size == 1:
+            return iter(order)
+        step, b = self.batch_size * self.world_size, self.batch_size
+        return iter([i for g in range(0, len(order) - step + 1, step)
+                     for i in order[g + self.rank * b: g + (self.rank + 1) * b]])
 
     def __len__(self) -> int:
-        return self.size - self.start
+        remaining = self.size - self.start
+        if self.world_size == 1:
+            return remaining
+        return remaining // (self.batch_size * self.world_size) * self.batch_size
+
+
+class ShardSampler(Sampler[int]):
+    """Indices ``rank, rank + world_size, ...`` of ``size``, in order: one evaluation shard per rank."""
+
+    def __init__(self, size: int, *, rank: int, world_size: int):
+        self.size, self.rank, self.world_size = size, rank, world_size
+
+    def __iter__(self):
+        return iter(range(self.rank, self.size, self.world_size))
+
+    def __len__(self) -> int:
+        return len(range(self.rank, self.size, self.world_size))
 
 
 def make_loader(dataset: EventEgoHands, *, batch_size: int, num_workers: int, sampler: Sampler | None = None,

@@ -9,13 +9,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
+from torch import nn
 from torch.utils.data import DataLoader
 
 from dagr_lite.data.collate import Batch
 from dagr_lite.engine.common import ModelEMA, warmup_cosine
-from dagr_lite.eval.score import score_model
+from dagr_lite.eval.score import detections_of, score_entries
 from dagr_lite.nn.detector import Detector
 
 STATE_KEYS = ("model", "ema", "optimizer", "scheduler", "scaler", "step", "best_metric")
@@ -40,6 +42,7 @@ class TrainState:
     grad_clip: float
     step: int = 0
     best_metric: float = -math.inf
+    forward: nn.Module | None = None  # what a training step calls instead of ``model`` (its DDP wrapper)
 
     @classmethod
     def create(cls, model: Detector, optimizer: torch.optim.Optimizer, *, total_steps: int, warmup_steps: int,
@@ -92,7 +95,7 @@ def train_step(state: TrainState, batch: Batch) -> dict[str, torch.Tensor]:
     model = state.model
     model.train()
     with torch.autocast(state.device.type, enabled=state.amp):
-        out = model(batch)
+        out = (state.forward or model)(batch)
     loss = out["loss"]
     if not torch.isfinite(loss):
         parts = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in out.items())
@@ -110,8 +113,17 @@ def train_step(state: TrainState, batch: Batch) -> dict[str, torch.Tensor]:
 
 
 def validate(state: TrainState, loader: DataLoader, *, backend: str = "pycocotools", conf_threshold: float = 0.001,
-             nms_threshold: float = 0.65, progress: bool = True) -> dict[str, float]:
-    """COCO metrics of the EMA weights over every sample of ``loader``."""
-    metrics, _ = score_model(state.ema.module, loader, state.device, backend=backend, conf_threshold=conf_threshold,
-                             nms_threshold=nms_threshold, progress=progress, desc=f"validating at step {state.step}")
+             nms_threshold: float = 0.65, progress: bool = True,
+             gather: Callable[[list], list] | None = None) -> dict[str, float]:
+    """COCO metrics of the EMA weights over every sample of ``loader``.
+
+    ``gather``: with several processes, each ``loader`` holds one shard; ``gather`` turns this
+    rank's detections into those of every shard in the dataset's order, so every rank scores the
+    whole split exactly as one process would.
+    """
+    entries = detections_of(state.ema.module, loader, state.device, conf_threshold=conf_threshold,
+                            nms_threshold=nms_threshold, progress=progress, desc=f"validating at step {state.step}")
+    if gather is not None:
+        entries = gather(entries)
+    metrics, _ = score_entries(entries, backend=backend)
     return metrics

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 import time
 from dataclasses import dataclass
@@ -16,14 +17,17 @@ from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from dagr_lite.config import build_dataset, build_model, build_optimizer, check_values, resolve_config
 from dagr_lite.data.dataset import EventEgoHands
-from dagr_lite.engine.common import (EpochSampler, load_checkpoint, make_loader, resolve_device, run_folder,
-                                     save_checkpoint, seed_everything)
+from dagr_lite.engine.common import (EpochSampler, ShardSampler, load_checkpoint, make_loader, resolve_device,
+                                     run_folder, save_checkpoint, seed_everything)
+from dagr_lite.engine.distributed import (Distributed, broadcast_object, cleanup, gather_objects, global_normaliser,
+                                          mean_over_ranks, setup, synchronise_batch_norm)
 from dagr_lite.engine.state import TrainState, train_step, validate
 from dagr_lite.eval.coco import METRIC_KEYS, format_metrics
 from dagr_lite.eval.score import render_sample
@@ -54,7 +58,12 @@ class TrainData:
     sampler: EpochSampler
     train_loader: DataLoader
     valid_loaders: dict[int, DataLoader]
-    batch_size: int
+    batch_size: int  # per process
+    place: Distributed
+
+    @property
+    def global_batch_size(self) -> int:
+        return self.batch_size * self.place.world_size
 
 
 def validation_ages(cfg: DictConfig) -> list[int]:
@@ -65,23 +74,29 @@ def validation_ages(cfg: DictConfig) -> list[int]:
     return sorted(ages)
 
 
-def make_data(cfg: DictConfig, train_set: EventEgoHands, model) -> TrainData:
-    """The training loader, and one validation loader per validation age."""
+def make_data(cfg: DictConfig, train_set: EventEgoHands, model, place: Distributed) -> TrainData:
+    """The training loader (this rank's slice of each global batch), and one validation loader
+    per validation age (this rank's shard)."""
     with_image = cfg.model.use_image
     valid_sets = {age: build_dataset(cfg, "valid", train=False, with_image=with_image, image_age=age)
                   for age in validation_ages(cfg)}
-    for dataset in (train_set, *valid_sets.values()):
-        print(describe_dataset(dataset), flush=True)
+    if place.is_main:
+        for dataset in (train_set, *valid_sets.values()):
+            print(describe_dataset(dataset), flush=True)
     batch_size, workers = cfg.loader.batch_size, cfg.loader.num_workers
-    if len(train_set) < batch_size:
-        raise ValueError(f"loader.batch_size={batch_size}, but the train split has {len(train_set)} samples: "
-                         "no batch can be made")
-    sampler = EpochSampler(len(train_set), seed=cfg.seed)
+    global_batch = batch_size * place.world_size
+    if len(train_set) < global_batch:
+        raise ValueError(f"loader.batch_size={batch_size} x {place.world_size} processes, but the train split has "
+                         f"{len(train_set)} samples: no batch can be made")
+    sampler = EpochSampler(len(train_set), seed=cfg.seed, rank=place.rank, world_size=place.world_size,
+                           batch_size=batch_size)
     train_loader = make_loader(train_set, batch_size=batch_size, num_workers=workers, sampler=sampler,
                                graph=model.graph_spec, drop_last=True)
-    valid_loaders = {age: make_loader(dataset, batch_size=batch_size, num_workers=workers, graph=model.graph_spec)
+    valid_loaders = {age: make_loader(dataset, batch_size=batch_size, num_workers=workers, graph=model.graph_spec,
+                                      sampler=ShardSampler(len(dataset), rank=place.rank, world_size=place.world_size)
+                                      if place.enabled else None)
                      for age, dataset in valid_sets.items()}
-    return TrainData(train_set, sampler, train_loader, valid_loaders, batch_size)
+    return TrainData(train_set, sampler, train_loader, valid_loaders, batch_size, place)
 
 
 def make_state(cfg: DictConfig, model, steps_per_epoch: int, device: torch.device) -> TrainState:
@@ -93,9 +108,10 @@ def make_state(cfg: DictConfig, model, steps_per_epoch: int, device: torch.devic
                              amp=bool(trainer.amp) and device.type == "cuda")
 
 
-def resume(state: TrainState, path: str | Path, checkpoints: Path) -> None:
-    """Continue from checkpoint ``path``; its run's ``best.pt`` is carried into ``checkpoints``, so
-    the new run holds its best weights even when it never beats them."""
+def resume(state: TrainState, path: str | Path, checkpoints: Path, place: Distributed) -> dict:
+    """Continue from checkpoint ``path``; its run's ``best.pt`` is carried into ``checkpoints`` (by
+    rank 0), so the new run holds its best weights even when it never beats them. Returns the
+    checkpoint (its ``position`` says where in the data it stopped)."""
     saved = load_checkpoint(path)
     ours = state.model.cfg.as_dict()
     if saved["detector"] != ours:
@@ -105,19 +121,38 @@ def resume(state: TrainState, path: str | Path, checkpoints: Path) -> None:
     state.load_state_dict(saved)
     best = Path(path).parent / "best.pt"
     if best.is_file():
-        checkpoints.mkdir(parents=True, exist_ok=True)
-        shutil.copy2(best, checkpoints / "best.pt")
+        if place.is_main and best.resolve() != (checkpoints / "best.pt").resolve():
+            checkpoints.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(best, checkpoints / "best.pt")
     else:
         state.best_metric = -math.inf  # nothing to carry: the first validation writes best.pt
-    print(f"resumed from {path} at step {state.step}", flush=True)
+    if place.is_main:
+        print(f"resumed from {path} at step {state.step} (it ran on {saved.get('world_size', 1)} processes)",
+              flush=True)
+    return saved
+
+
+class NullWriter:
+    """What ranks other than 0 log to: nothing."""
+
+    def add_scalar(self, *args, **kwargs) -> None:
+        pass
+
+    def add_image(self, *args, **kwargs) -> None:
+        pass
 
 
 class TrainLoop:
-    """The epochs of one run: steps, logging, pictures, checkpoints and validation."""
+    """The epochs of one run: steps, logging, pictures, checkpoints and validation.
 
-    def __init__(self, cfg: DictConfig, state: TrainState, data: TrainData, run_dir: Path, writer: SummaryWriter):
+    Where it is in the data is ``(epoch, offset)``, the offset counting samples of the epoch's
+    global order, so a run resumed on another number of processes goes on from the same sample.
+    """
+
+    def __init__(self, cfg: DictConfig, state: TrainState, data: TrainData, run_dir: Path, writer,
+                 position: dict | None = None):
         self.cfg, self.state, self.data, self.writer = cfg, state, data, writer
-        self.trainer = cfg.trainer
+        self.trainer, self.place = cfg.trainer, data.place
         self.checkpoints = run_dir / "checkpoints"
         self.steps_per_epoch = len(data.train_loader)
         self.total = make_total(cfg, self.steps_per_epoch)
@@ -125,17 +160,22 @@ class TrainLoop:
         self.config = OmegaConf.to_container(cfg, resolve=True)
         self.losses: list[float] = []
         self.metrics: dict | None = None
+        if position is None:  # a fresh run, or a checkpoint from before positions were saved
+            epoch, start = divmod(state.step, self.steps_per_epoch)
+            position = {"epoch": epoch, "offset": start * data.global_batch_size}
+        self.epoch, self.offset = int(position["epoch"]), int(position["offset"])
+        self.saved_at = time.monotonic()
 
     def run(self) -> dict:
         started, state = time.monotonic(), self.state
-        bar = tqdm(total=self.total, initial=state.step, desc="training", unit="step")
+        bar = tqdm(total=self.total, initial=state.step, desc="training", unit="step", disable=not self.place.is_main)
         while state.step < self.total:
-            epoch, start = divmod(state.step, self.steps_per_epoch)
-            self.data.sampler.set_epoch(epoch, start * self.data.batch_size)
-            self.data.train_set.set_epoch(epoch)
+            self.data.sampler.set_epoch(self.epoch, self.offset)
+            self.data.train_set.set_epoch(self.epoch)
             for batch in self.data.train_loader:
                 batch = batch.to(state.device, non_blocking=True)
-                out = train_step(state, batch)
+                out = mean_over_ranks(train_step(state, batch), self.place)
+                self.offset += self.data.global_batch_size
                 self.losses.append(float(out["loss"]))
                 bar.update(1)
                 bar.set_postfix(loss=f"{self.losses[-1]:.3f}", lr=f"{state.lr:.2e}")
@@ -143,18 +183,30 @@ class TrainLoop:
                 out_of_time = self.out_of_time(started)
                 if state.step % self.val_every == 0 or state.step == self.total or out_of_time:
                     self.save_and_validate()
+                elif self.checkpoint_due():
+                    self.save("last.pt")
                 if state.step >= self.total or out_of_time:
                     bar.close()
                     return self.metrics
+            self.epoch, self.offset = self.epoch + 1, 0
         bar.close()
         return self.metrics if self.metrics is not None else self.save_and_validate()  # resumed at the end
 
     def out_of_time(self, started: float) -> bool:
         minutes = self.trainer.max_minutes
-        if minutes is None or time.monotonic() - started <= 60 * minutes:
-            return False
-        print(f"trainer.max_minutes={minutes} reached at step {self.state.step}", flush=True)
-        return True
+        over = minutes is not None and time.monotonic() - started > 60 * minutes
+        over = bool(broadcast_object(over, self.place))  # every rank stops at the same step
+        if over and self.place.is_main:
+            print(f"trainer.max_minutes={minutes} reached at step {self.state.step}", flush=True)
+        return over
+
+    def checkpoint_due(self) -> bool:
+        """``last.pt`` is due every ``trainer.checkpoint_every`` steps or ``trainer.checkpoint_minutes``."""
+        every, minutes = self.trainer.checkpoint_every, self.trainer.checkpoint_minutes
+        due = bool(every) and self.state.step % every == 0
+        if minutes:
+            due = due or bool(broadcast_object(time.monotonic() - self.saved_at > 60 * minutes, self.place))
+        return due
 
     def log(self, out: dict, batch) -> None:
         step = self.state.step
@@ -162,14 +214,22 @@ class TrainLoop:
             for key, value in out.items():
                 self.writer.add_scalar(f"train/{key}", float(value), step)
             self.writer.add_scalar("train/lr", self.state.lr, step)
-        if self.trainer.image_every and step % self.trainer.image_every == 0:
+        if self.place.is_main and self.trainer.image_every and step % self.trainer.image_every == 0:
             ema = self.state.ema.module.eval()
             with torch.no_grad():
                 detections = ema(batch)
             self.writer.add_image("train/sample", render_sample(batch, 0, detections[0]), step, dataformats="HWC")
 
     def checkpoint(self) -> dict:
-        return {**self.state.state_dict(), "detector": self.state.model.cfg.as_dict(), "config": self.config}
+        return {**self.state.state_dict(), "detector": self.state.model.cfg.as_dict(), "config": self.config,
+                "world_size": self.place.world_size, "global_batch_size": self.data.global_batch_size,
+                "position": {"epoch": self.epoch, "offset": self.offset}}
+
+    def save(self, name: str) -> None:
+        """Rank 0 writes ``checkpoints/<name>`` (all ranks hold the same weights)."""
+        if self.place.is_main:
+            save_checkpoint(self.checkpoints / name, self.checkpoint())
+        self.saved_at = time.monotonic()
 
     def save_and_validate(self) -> dict:
         """Save ``last.pt`` first (a failing validation loses no training), then validate at each
@@ -179,10 +239,12 @@ class TrainLoop:
         ``AP50_age<a>`` for every age and their ``mAP_mean``.
         """
         state = self.state
-        save_checkpoint(self.checkpoints / "last.pt", self.checkpoint())
+        self.save("last.pt")
         ev = self.cfg.eval
+        gather = self.gather_shards if self.place.enabled else None
         per_age = {age: validate(state, loader, backend=ev.backend, conf_threshold=ev.conf_threshold,
-                                 nms_threshold=ev.nms_threshold) for age, loader in self.data.valid_loaders.items()}
+                                 nms_threshold=ev.nms_threshold, progress=self.place.is_main, gather=gather)
+                   for age, loader in self.data.valid_loaders.items()}
         metrics = dict(per_age[self.cfg.data.image_age])
         for age, values in per_age.items():
             metrics.update({f"mAP_age{age}": values["mAP"], f"AP50_age{age}": values["AP50"]})
@@ -191,12 +253,19 @@ class TrainLoop:
             self.writer.add_scalar(f"val/{key}", metrics[key], state.step)
         if metrics["mAP_mean"] > state.best_metric or not (self.checkpoints / "best.pt").exists():
             state.best_metric = max(state.best_metric, metrics["mAP_mean"])
-            save_checkpoint(self.checkpoints / "best.pt", self.checkpoint())
-            save_checkpoint(self.checkpoints / "last.pt", self.checkpoint())  # with the new best metric
-        ages = "  ".join(f"age {a}: mAP {v['mAP']:.4f} AP50 {v['AP50']:.4f}" for a, v in per_age.items())
-        print(f"step {state.step}: val {ages}", flush=True)
+            self.save("best.pt")
+            self.save("last.pt")  # with the new best metric
+        if self.place.is_main:
+            ages = "  ".join(f"age {a}: mAP {v['mAP']:.4f} AP50 {v['AP50']:.4f}" for a, v in per_age.items())
+            print(f"step {state.step}: val {ages}", flush=True)
         self.metrics = metrics
         return metrics
+
+    def gather_shards(self, entries: list) -> list:
+        """Every rank's validation entries, back in the dataset's order (rank ``r`` holds samples
+        ``r, r + N, ...``)."""
+        shards = gather_objects(entries, self.place)
+        return [shard[i] for i in range(max(len(x) for x in shards)) for shard in shards if i < len(shard)]
 
 
 def make_total(cfg: DictConfig, steps_per_epoch: int) -> int:
@@ -206,26 +275,75 @@ def make_total(cfg: DictConfig, steps_per_epoch: int) -> int:
 
 def train(cfg: DictConfig) -> dict:
     """Train the configured detector; returns the final validation metrics, the run folder and the
-    per-step training losses."""
+    per-step training losses. Launched by ``torchrun``, every process runs this together."""
     cfg = resolve_config(cfg)
     check_values(cfg)
-    print(OmegaConf.to_yaml(cfg), flush=True)
-    run_dir = run_folder(cfg, "train")
+    place = Distributed.from_environment()
+    device = setup(place, resolve_device(cfg.device))
+    try:
+        return _train(cfg, place, device)
+    finally:
+        cleanup(place)
+
+
+def shared_run_folder(cfg: DictConfig, place: Distributed) -> tuple[Path, Path | None]:
+    """The run folder, checked and made by rank 0 and shared with every rank, and the checkpoint
+    to resume from: ``resume=``, or, when torchrun restarts a failed group, the run's own ``last.pt``."""
+    restarted = int(os.environ.get("TORCHELASTIC_RESTART_COUNT", "0") or 0) > 0
+    outcome = None
+    if place.is_main:
+        try:
+            own = own_last_checkpoint(cfg) if restarted else None
+            outcome = ("ok", str(own.parent.parent if own else run_folder(cfg, "train")), own and str(own))
+        except Exception as err:  # rank 0 refuses the run: every rank must stop, not wait
+            outcome = ("error", f"{type(err).__name__}: {err}", None)
+            broadcast_object(outcome, place)
+            raise
+    outcome = broadcast_object(outcome, place)
+    if outcome[0] == "error":
+        raise RuntimeError(f"rank 0 refused the run: {outcome[1]}")
+    resume_from = outcome[2] or cfg.resume
+    return Path(outcome[1]), Path(resume_from) if resume_from else None
+
+
+def own_last_checkpoint(cfg: DictConfig) -> Path | None:
+    """This run's ``checkpoints/last.pt`` when its folder already holds one (a restarted group)."""
+    if cfg.get("run_dir"):
+        folder = Path(cfg.run_dir)
+    else:
+        from hydra.core.hydra_config import HydraConfig
+        folder = Path(HydraConfig.get().runtime.output_dir)
+    last = folder / "checkpoints" / "last.pt"
+    return last if last.is_file() else None
+
+
+def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
+    if place.is_main:
+        print(OmegaConf.to_yaml(cfg), flush=True)
+    run_dir, resume_from = shared_run_folder(cfg, place)
     seed_everything(cfg.seed)
-    device = resolve_device(cfg.device)
     train_set = build_dataset(cfg, "train", train=True, with_image=cfg.model.use_image)
     model = build_model(cfg, height=train_set.image_size[0], width=train_set.image_size[1]).to(device)
-    data = make_data(cfg, train_set, model)
+    if place.enabled:
+        model = synchronise_batch_norm(model, device)
+        model.loss_normaliser = global_normaliser(place)
+    data = make_data(cfg, train_set, model, place)
     state = make_state(cfg, model, len(data.train_loader), device)
-    if cfg.resume:
-        resume(state, cfg.resume, run_dir / "checkpoints")
-    with SummaryWriter(str(run_dir / "tensorboard")) as writer:
-        loop = TrainLoop(cfg, state, data, run_dir, writer)
+    saved = resume(state, resume_from, run_dir / "checkpoints", place) if resume_from else None
+    if place.enabled:
+        state.forward = DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None)
+    writer = SummaryWriter(str(run_dir / "tensorboard")) if place.is_main else NullWriter()
+    try:
+        loop = TrainLoop(cfg, state, data, run_dir, writer, position=saved.get("position") if saved else None)
         metrics = loop.run()
+    finally:
+        if place.is_main:
+            writer.close()
     extra = {key: value for key, value in metrics.items() if "_age" in key or key == "mAP_mean"}
     result = {**{key: metrics[key] for key in METRIC_KEYS}, **extra, "split": "valid", "image_age": cfg.data.image_age,
-              "num_images": len(data.valid_loaders[cfg.data.image_age].dataset), "step": state.step}
-    (run_dir / "metrics.json").write_text(json.dumps(result, indent=1))
-    print(f"validation metrics after {state.step} steps ({run_dir}):\n{format_metrics(metrics)}", flush=True)
+              "num_images": len(data.valid_loaders[cfg.data.image_age].dataset), "step": state.step,
+              "world_size": place.world_size, "global_batch_size": data.global_batch_size}
+    if place.is_main:
+        (run_dir / "metrics.json").write_text(json.dumps(result, indent=1))
+        print(f"validation metrics after {state.step} steps ({run_dir}):\n{format_metrics(metrics)}", flush=True)
     return {"metrics": result, "run_dir": Path(run_dir), "losses": loop.losses, "step": state.step}
-

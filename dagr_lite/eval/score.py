@@ -15,22 +15,39 @@ from dagr_lite.data.collate import Batch
 from dagr_lite.eval.coco import CocoEvaluator
 
 
-@torch.no_grad()
 def score_model(model: nn.Module, loader: DataLoader, device: torch.device, *, backend: str = "pycocotools",
-                   conf_threshold: float = 0.001, nms_threshold: float = 0.65, progress: bool = True,
-                   desc: str = "evaluating") -> tuple[dict, CocoEvaluator]:
+                conf_threshold: float = 0.001, nms_threshold: float = 0.65, progress: bool = True,
+                desc: str = "evaluating") -> tuple[dict, CocoEvaluator]:
     """COCO metrics of ``model`` over every sample of ``loader`` (no batch is dropped)."""
+    entries = detections_of(model, loader, device, conf_threshold=conf_threshold, nms_threshold=nms_threshold,
+                            progress=progress, desc=desc)
+    return score_entries(entries, backend=backend)
+
+
+@torch.no_grad()
+def detections_of(model: nn.Module, loader: DataLoader, device: torch.device, *, conf_threshold: float = 0.001,
+                  nms_threshold: float = 0.65, progress: bool = True, desc: str = "evaluating") -> list[tuple]:
+    """``(image name, height, width, true boxes, boxes, scores)`` of every sample of ``loader``, in
+    its order (numpy arrays, xyxy): what :func:`score_entries` scores, and what ranks gather."""
     was_training = model.training
     model.eval()
-    evaluator = CocoEvaluator(backend=backend)
+    entries = []
     for batch in tqdm(loader, desc=desc, leave=False, disable=not progress):
         batch = batch.to(device)
         detections = model(batch, conf_threshold=conf_threshold, nms_threshold=nms_threshold)
         height, width = batch.images.shape[-2:]
         for b, det in enumerate(detections):
-            evaluator.add(fmt.label_key(batch.videos[b], int(batch.frames[b])), height, width, batch.boxes[b],
-                          det["boxes"], det["scores"])
+            entries.append((fmt.label_key(batch.videos[b], int(batch.frames[b])), int(height), int(width),
+                            batch.boxes[b].cpu().numpy(), det["boxes"].cpu().numpy(), det["scores"].cpu().numpy()))
     model.train(was_training)
+    return entries
+
+
+def score_entries(entries: list[tuple], *, backend: str = "pycocotools") -> tuple[dict, CocoEvaluator]:
+    """COCO metrics of the entries of :func:`detections_of`."""
+    evaluator = CocoEvaluator(backend=backend)
+    for entry in entries:
+        evaluator.add(*entry)
     return evaluator.compute(), evaluator
 
 

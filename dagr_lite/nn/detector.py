@@ -181,6 +181,8 @@ class Detector(nn.Module):
         head_in = (list(self.image.channels[1:]) if cfg.use_image
                    else [c + self.num_recency for c in self.events.out_channels])
         self.head = YOLOXHead(head_in, self.strides, hidden=cfg.head_hidden, num_classes=cfg.num_classes)
+        # Training on several processes sets this: the loss normaliser of the global batch (see yolox_losses).
+        self.loss_normaliser = None
 
     @property
     def num_recency(self) -> int:
@@ -246,6 +248,7 @@ class Detector(nn.Module):
     def forward(self, batch: Batch, *, conf_threshold: float = 0.001, nms_threshold: float = 0.65):
         raw, shapes = self.head(self.features(batch))
         if self.training:
-            return yolox_losses(raw, shapes, self.strides, batch.boxes, batch.labels)
+            return yolox_losses(raw, shapes, self.strides, batch.boxes, batch.labels,
+                                normaliser=self.loss_normaliser)
         return postprocess(raw, shapes, self.strides, conf_threshold=conf_threshold, nms_threshold=nms_threshold,
                            image_size=(self.cfg.height, self.cfg.width))

@@ -7,6 +7,7 @@ th)`` decodes to the box centre ``anchor + (tx, ty) s`` and size ``exp(tw, th) s
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 import torch.nn.functional as F
@@ -171,18 +172,22 @@ class YOLOXHead(nn.Module):
 
 
 def yolox_losses(raw: torch.Tensor, shapes: list[tuple[int, int]], strides: list[int], gt_boxes: list[torch.Tensor],
-                 gt_labels: list[torch.Tensor], *, iou_weight: float = 5.0) -> dict:
+                 gt_labels: list[torch.Tensor], *, iou_weight: float = 5.0,
+                 normaliser: Callable[[float], float] | None = None) -> dict:
     """Training losses: IoU (1 - IoU^2) on foreground boxes, BCE objectness on all anchors and BCE class
     (target = IoU) on foreground anchors, each normalised by the foreground count (at least 1).
 
-    ``loss = iou_weight * iou_loss + obj_loss + cls_loss``; also returns the parts (detached) and ``num_fg``.
+    ``normaliser``: maps this batch's foreground count to the normaliser to use instead (several
+    processes normalise by their global batch's count). ``loss = iou_weight * iou_loss + obj_loss
+    + cls_loss``; also returns the parts (detached) and ``num_fg``.
     """
     # Assignment and losses in float32 even inside a mixed-precision step (BCE is not autocast-safe).
     with torch.autocast(raw.device.type, enabled=False):
-        return _yolox_losses(raw.float(), shapes, strides, gt_boxes, gt_labels, iou_weight=iou_weight)
+        return _yolox_losses(raw.float(), shapes, strides, gt_boxes, gt_labels, iou_weight=iou_weight,
+                             normaliser=normaliser)
 
 
-def _yolox_losses(raw, shapes, strides, gt_boxes, gt_labels, *, iou_weight) -> dict:
+def _yolox_losses(raw, shapes, strides, gt_boxes, gt_labels, *, iou_weight, normaliser) -> dict:
     batch, device = raw.shape[0], raw.device
     centres, stride_of = anchors_of(shapes, strides, device)
     boxes = decode_boxes(raw[..., :4], centres, stride_of)  # (B, A, 4)
@@ -199,7 +204,7 @@ def _yolox_losses(raw, shapes, strides, gt_boxes, gt_labels, *, iou_weight) -> d
             cls_fg.append(cls_logits[b, a.fg])
             cls_targets.append(F.one_hot(gt_labels[b][a.gt_index], cls_logits.shape[-1]).float() * a.iou[:, None])
     num_fg = sum(len(t) for t in fg_targets)
-    norm = max(num_fg, 1)
+    norm = max(num_fg, 1) if normaliser is None else normaliser(num_fg)
     obj_loss = F.binary_cross_entropy_with_logits(obj_logits, obj_targets, reduction="sum") / norm
     if num_fg:
         iou = aligned_iou(torch.cat(fg_boxes), torch.cat(fg_targets))
