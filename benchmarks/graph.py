@@ -6,6 +6,8 @@ Clouds: N events in a 33 ms window at 640x360, moving blobs (events on their out
 10 % uniform noise; R = 5 px, beta = 5 px / 10 ms, K = 16. Prints:
   * batch graph build (causal, capped) vs a plain ``cKDTree`` build + ``query(k=K+1,
     distance_upper_bound=R)`` over all events (non-causal, no cap handling);
+  * the pure-torch backend (``backend="torch"``, for GPUs) against the KD-tree on this CPU, its
+    candidate pairs per event, and on paper the graph-building rate a GPU needs;
   * streaming insertion in 1 ms batches, cost per event vs the batch build, and over three
     windows of events: the cost per event while the window fills and once it slides;
   * GCN layer forward + backward, 32 -> 64 channels, vs ``torch_geometric.nn.GCNConv`` if it is
@@ -50,6 +52,42 @@ def event_cloud(n: int, seed: int = 0) -> np.ndarray:
     xy = np.clip(np.round(xy), 0, [WIDTH - 1, HEIGHT - 1])
     order = np.argsort(t, kind="stable")
     return np.concatenate([xy[order], BETA * t[order, None]], axis=1)
+
+
+def candidate_pairs(pos: torch.Tensor) -> int:
+    """Pairs (node, earlier node within the 3x3 cells around it and r in time) the torch backend examines."""
+    import dagr_lite.graph.radius as radius_module
+
+    seen = []
+    original = radius_module._nearest_in_chunk
+
+    def counting(points, order, lo, count, first_node, r, k):
+        seen.append(int(count.sum()))
+        return original(points, order, lo, count, first_node, r, k)
+
+    radius_module._nearest_in_chunk = counting
+    try:
+        radius_module.radius_graph_torch(pos, RADIUS, K)
+    finally:
+        radius_module._nearest_in_chunk = original
+    return sum(seen)
+
+
+def gpu_needed(n: int, pairs: int, edges: int, step_s: float = 0.5, batch: int = 16) -> None:
+    """On paper: the rate a GPU must build graphs at to take under a tenth of a training step.
+
+    A step of ``batch`` samples of ``n`` events taking ``step_s`` leaves ``step_s / 10`` for the
+    graphs. The torch backend's work is memory-bound: per candidate pair it gathers two float64
+    positions and two int64 ids and writes a distance and a flag (about 64 bytes), and it sorts the
+    kept pairs three times (about 3 x 24 bytes read and written, twice, per pair).
+    """
+    events_per_s = batch * n / (step_s / 10)
+    kept = pairs  # the sorts run over the pairs within r, bounded by all candidates
+    bytes_per_event = (64 * pairs + 3 * 2 * 24 * kept) / n
+    print(f"  on paper: a {step_s} s step of {batch} x {n:,} events needs {events_per_s / 1e6:.0f} M events/s of "
+          f"graph building; at {bytes_per_event / 1e3:.1f} kB of memory traffic per event that is "
+          f"{events_per_s * bytes_per_event / 1e12:.2f} TB/s, against about 3 TB/s on an H100 "
+          f"({edges / n:.1f} edges per event kept)")
 
 
 def best_of(fn, repeats: int) -> float:
@@ -148,6 +186,13 @@ def main() -> None:
         print(f"\nN = {n:,}: {edges.shape[1]:,} edges ({edges.shape[1] / n:.1f} per event)")
         print(f"  batch build       {ours:6.3f} s  {n / ours / 1e6:5.2f} M events/s   "
               f"plain cKDTree query(k={K + 1}) {baseline:6.3f} s -> ratio {baseline / ours:.2f}x")
+        torch_backend = best_of(lambda: radius_graph(pos_t, RADIUS, K, backend="torch"), args.repeats)
+        assert torch.equal(radius_graph(pos_t, RADIUS, K, backend="torch"), edges)
+        pairs = candidate_pairs(pos_t)
+        print(f"  torch backend     {torch_backend:6.3f} s  {n / torch_backend / 1e6:5.2f} M events/s   "
+              f"vs the KD-tree {ours:6.3f} s -> {torch_backend / ours:.2f}x its time (identical edges); "
+              f"{pairs / n:.0f} candidate pairs per event")
+        gpu_needed(n, pairs, edges.shape[1])
         streamed = best_of(lambda: stream(pos), 1)
         assert stream(pos) == edges.shape[1]
         print(f"  streaming, 1 ms   {streamed:6.3f} s  {streamed / n * 1e6:5.2f} us/event  "

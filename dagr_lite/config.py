@@ -117,6 +117,7 @@ _RULES = {
     "trainer.val_every": ("an integer >= 0 (0: every epoch)", lambda v: _integer(v) and v >= 0),
     "trainer.log_every": ("a positive integer", lambda v: _integer(v) and v > 0),
     "trainer.image_every": ("an integer >= 0 (0: never)", lambda v: _integer(v) and v >= 0),
+    "trainer.amp_dtype": ("one of auto, float16, bfloat16", lambda v: v in ("auto", "float16", "bfloat16")),
     "trainer.checkpoint_every": ("an integer >= 0 (0: only at validation)", lambda v: _integer(v) and v >= 0),
     "trainer.checkpoint_minutes": ("a positive number or null", lambda v: v is None or (_number(v) and v > 0)),
     "trainer.warmup_steps": ("an integer >= 0", lambda v: _integer(v) and v >= 0),

@@ -113,8 +113,8 @@ def global_normaliser(place: Distributed):
 
     def normaliser(num_fg: float) -> float:
         total = torch.tensor([float(num_fg)], dtype=torch.float64)
-        if dist.get_backend() == "nccl":
-            total = total.cuda()
+        if dist.get_backend() == "nccl":  # NCCL reduces tensors on this rank's GPU
+            total = total.to(torch.device("cuda", torch.cuda.current_device()))
         dist.all_reduce(total)
         return max(float(total.item()), 1.0) / place.world_size
 

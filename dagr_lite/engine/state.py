@@ -43,16 +43,23 @@ class TrainState:
     step: int = 0
     best_metric: float = -math.inf
     forward: nn.Module | None = None  # what a training step calls instead of ``model`` (its DDP wrapper)
+    amp_dtype: torch.dtype | None = None  # mixed precision: float16 (with the scaler) or bfloat16; None: off
 
     @classmethod
     def create(cls, model: Detector, optimizer: torch.optim.Optimizer, *, total_steps: int, warmup_steps: int,
-               min_lr_ratio: float, ema_decay: float, ema_tau: float, grad_clip: float, amp: bool) -> "TrainState":
-        """A fresh state: warm-up cosine schedule over ``total_steps``, EMA, and a scaler (on with ``amp``)."""
+               min_lr_ratio: float, ema_decay: float, ema_tau: float, grad_clip: float,
+               amp: bool | torch.dtype) -> "TrainState":
+        """A fresh state: warm-up cosine schedule over ``total_steps``, EMA, and mixed precision when
+        ``amp`` is a dtype (``True``: float16): float16 runs with a gradient scaler, bfloat16 without."""
         schedule = torch.optim.lr_scheduler.LambdaLR(
             optimizer, lambda step: warmup_cosine(step, warmup=warmup_steps, total=total_steps, min_ratio=min_lr_ratio))
         device = next(model.parameters()).device
+        amp_dtype = torch.float16 if amp is True else (amp or None)
+        if amp_dtype not in (None, torch.float16, torch.bfloat16):
+            raise ValueError(f"mixed precision runs in float16 or bfloat16, got {amp_dtype}")
         return cls(model=model, ema=ModelEMA(model, ema_decay, ema_tau), optimizer=optimizer, scheduler=schedule,
-                   scaler=torch.amp.GradScaler(device.type, enabled=amp), grad_clip=grad_clip)
+                   scaler=torch.amp.GradScaler(device.type, enabled=amp_dtype == torch.float16), grad_clip=grad_clip,
+                   amp_dtype=amp_dtype)
 
     @property
     def device(self) -> torch.device:
@@ -60,7 +67,7 @@ class TrainState:
 
     @property
     def amp(self) -> bool:
-        return self.scaler.is_enabled()
+        return self.amp_dtype is not None
 
     @property
     def lr(self) -> float:
@@ -94,7 +101,7 @@ def train_step(state: TrainState, batch: Batch) -> dict[str, torch.Tensor]:
     """
     model = state.model
     model.train()
-    with torch.autocast(state.device.type, enabled=state.amp):
+    with torch.autocast(state.device.type, dtype=state.amp_dtype, enabled=state.amp):
         out = (state.forward or model)(batch)
     loss = out["loss"]
     if not torch.isfinite(loss):

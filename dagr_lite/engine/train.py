@@ -105,7 +105,17 @@ def make_state(cfg: DictConfig, model, steps_per_epoch: int, device: torch.devic
                              total_steps=make_total(cfg, steps_per_epoch),
                              warmup_steps=trainer.warmup_steps, min_lr_ratio=trainer.min_lr_ratio,
                              ema_decay=trainer.ema_decay, ema_tau=trainer.ema_tau, grad_clip=trainer.grad_clip,
-                             amp=bool(trainer.amp) and device.type == "cuda")
+                             amp=amp_dtype(trainer, device))
+
+
+def amp_dtype(trainer: DictConfig, device: torch.device) -> torch.dtype | None:
+    """Mixed precision on CUDA when ``trainer.amp``: ``trainer.amp_dtype`` (bfloat16 where the GPU
+    supports it, else float16 with the scaler, for ``auto``); none on the CPU."""
+    if not trainer.amp or device.type != "cuda":
+        return None
+    if trainer.amp_dtype == "auto":
+        return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+    return {"float16": torch.float16, "bfloat16": torch.bfloat16}[trainer.amp_dtype]
 
 
 def resume(state: TrainState, path: str | Path, checkpoints: Path, place: Distributed) -> dict:

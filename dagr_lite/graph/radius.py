@@ -123,7 +123,10 @@ def neighbours_to_edges(idx: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return np.stack([src[valid], np.repeat(dst, valid.sum(axis=1))])
 
 
-def radius_graph(pos, r: float, k: int, batch=None, *, workers: int = -1) -> torch.Tensor:
+BACKENDS = ("auto", "kdtree", "torch")
+
+
+def radius_graph(pos, r: float, k: int, batch=None, *, workers: int = -1, backend: str = "auto") -> torch.Tensor:
     """Causal radius graph with at most ``k`` nearest earlier neighbours per node.
 
     Args:
@@ -132,16 +135,24 @@ def radius_graph(pos, r: float, k: int, batch=None, *, workers: int = -1) -> tor
         k: most incoming edges per node (the nearest earlier ones; ties by smaller index).
         batch: ``(N,)`` sample of each node, sorted; no edge crosses samples.
         workers: threads for the KD-tree queries (-1: all cores).
+        backend: ``kdtree`` (scipy, on the CPU), ``torch`` (pure torch, on ``pos``'s device; see
+            :func:`radius_graph_torch`) or ``auto`` (torch for a CUDA tensor, else kdtree). Both
+            give the identical edge set.
 
     Returns:
         ``edge_index`` ``(2, E)`` int64, sources in row 0 and destinations in row 1, sorted by
-        destination and then source; no self-loops.
+        destination and then source; no self-loops. On ``pos``'s device.
 
     Shapes:
         pos ``(N, 3)``, batch ``(N,)`` -> edge_index ``(2, E)`` with ``E <= N * k``.
     """
     if r <= 0 or k <= 0:
         raise ValueError(f"r and k must be positive, got r={r}, k={k}")
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    on_cuda = isinstance(pos, torch.Tensor) and pos.is_cuda
+    if backend == "torch" or (backend == "auto" and on_cuda):
+        return radius_graph_torch(pos, r, k, batch)
     device = pos.device if isinstance(pos, torch.Tensor) else torch.device("cpu")
     points = as_numpy_pos(pos)
     batch_np = None
@@ -159,3 +170,102 @@ def radius_graph(pos, r: float, k: int, batch=None, *, workers: int = -1) -> tor
     edges = np.concatenate(parts, axis=1) if parts else np.zeros((2, 0), dtype=np.int64)
     return torch.from_numpy(edges).to(device)
 
+
+# Candidate (node, neighbour) pairs the torch backend holds at once: bounds its memory.
+TORCH_PAIR_BUDGET = 1 << 23
+# Margins that keep every possible neighbour among the candidates whatever the rounding; the
+# distance test itself is exact.
+CELL_MARGIN, TIME_MARGIN = 1e-9, 1e-9
+
+
+def radius_graph_torch(pos, r: float, k: int, batch=None) -> torch.Tensor:
+    """:func:`radius_graph` in pure torch, on ``pos``'s device (CPU or CUDA), with the same edges.
+
+    Nodes are bucketed into ``r``-sized (x, y) cells. For node ``i``, the candidates in each of the
+    nine cells around its own are one contiguous run of that cell's nodes (kept in index order):
+    those with index in ``[first index at z >= z_i - r, i)``, found with ``searchsorted``.
+    Distances are ``sqrt(dx^2 + dy^2 + dz^2)`` in float64, as scipy computes them; the ``k``
+    nearest within ``r`` are kept, ties by index. Candidates are processed in chunks of nodes
+    holding at most :data:`TORCH_PAIR_BUDGET` pairs.
+    """
+    points = torch.as_tensor(pos).detach().to(torch.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"pos must have shape (N, 3), got {tuple(points.shape)}")
+    if not bool(torch.isfinite(points).all()):
+        raise ValueError("pos holds non-finite values")
+    device, n = points.device, len(points)
+    if batch is None:
+        bounds = [0, n]
+    else:
+        batch = torch.as_tensor(batch, device=device)
+        if batch.shape != (n,):
+            raise ValueError(f"batch must have shape ({n},), got {tuple(batch.shape)}")
+        if n and bool((batch[1:] < batch[:-1]).any()):
+            raise ValueError("batch must be sorted (the events of each sample contiguous, in sample order)")
+        change = torch.nonzero(batch[1:] != batch[:-1]).flatten() + 1 if n else batch.new_zeros(0)
+        bounds = [0, *change.tolist(), n]
+    parts = [_sample_graph_torch(points[a:b], r, k) + a for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= 2]
+    return torch.cat(parts, dim=1) if parts else torch.zeros((2, 0), dtype=torch.int64, device=device)
+
+
+def _sample_graph_torch(points: torch.Tensor, r: float, k: int) -> torch.Tensor:
+    """The causal graph of one sample's time-sorted ``points (n, 3)``: ``(2, E)`` local ids."""
+    device, n = points.device, len(points)
+    if bool((points[1:, 2] < points[:-1, 2]).any()):
+        raise ValueError("pos must be sorted by time (z) within each sample")
+    size = r * (1 + CELL_MARGIN)
+    cell_xy = torch.floor(points[:, :2] / size).to(torch.int64)  # (n, 2)
+    cell_xy -= cell_xy.min(dim=0).values - 1  # >= 1: neighbours at -1 stay >= 0
+    width = int(cell_xy[:, 0].max()) + 2
+    cell = cell_xy[:, 1] * width + cell_xy[:, 0]  # (n,)
+    ids = torch.arange(n, device=device)
+    key = cell * n + ids  # cell, then index: strictly increasing once sorted
+    sorted_key, order = torch.sort(key)
+    first = torch.searchsorted(points[:, 2].contiguous(), points[:, 2] - r * (1 + TIME_MARGIN) - TIME_MARGIN)
+    offsets = torch.tensor([dy * width + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1)], device=device)
+    neighbour_cell = cell[:, None] + offsets[None, :]  # (n, 9)
+    lo = torch.searchsorted(sorted_key, neighbour_cell * n + first[:, None])  # (n, 9)
+    hi = torch.searchsorted(sorted_key, neighbour_cell * n + ids[:, None])  # index < i
+    count = (hi - lo).clamp(min=0)
+    per_node = count.sum(dim=1)  # (n,)
+    edges, start = [], 0
+    while start < n:  # chunks of nodes with at most TORCH_PAIR_BUDGET candidate pairs
+        cum = torch.cumsum(per_node[start:], 0)
+        stop = start + max(1, int(torch.searchsorted(cum, torch.tensor(TORCH_PAIR_BUDGET, device=device))))
+        edges.append(_nearest_in_chunk(points, order, lo[start:stop], count[start:stop], start, r, k))
+        start = stop
+    return torch.cat(edges, dim=1)
+
+
+def _nearest_in_chunk(points, order, lo, count, first_node: int, r: float, k: int) -> torch.Tensor:
+    """Edges into nodes ``first_node ...`` from their candidate runs ``[lo, lo + count)`` of ``order``."""
+    device = points.device
+    flat_count = count.flatten()
+    total = int(flat_count.sum())
+    if total == 0:
+        return torch.zeros((2, 0), dtype=torch.int64, device=device)
+    run = torch.repeat_interleave(torch.arange(len(flat_count), device=device), flat_count)
+    run_start = torch.cumsum(flat_count, 0) - flat_count
+    within = torch.arange(total, device=device) - run_start[run]
+    src = order[lo.flatten()[run] + within]  # (T,)
+    dst = first_node + torch.div(run, count.shape[1], rounding_mode="floor")  # (T,)
+    diff = points[dst] - points[src]
+    dist = torch.sqrt(diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1] + diff[:, 2] * diff[:, 2])
+    keep = dist <= r
+    src, dst, dist = src[keep], dst[keep], dist[keep]
+    # Sort by (dst, dist, src): stable sorts from the last key to the first.
+    step = torch.sort(src, stable=True).indices
+    src, dst, dist = src[step], dst[step], dist[step]
+    step = torch.sort(dist, stable=True).indices
+    src, dst, dist = src[step], dst[step], dist[step]
+    step = torch.sort(dst, stable=True).indices
+    src, dst = src[step], dst[step]
+    rank = torch.arange(len(dst), device=device)
+    if len(dst):
+        new_row = torch.ones(len(dst), dtype=torch.bool, device=device)
+        new_row[1:] = dst[1:] != dst[:-1]
+        row_start = torch.cummax(torch.where(new_row, rank, torch.zeros_like(rank)), 0).values
+        rank = rank - row_start
+    src, dst = src[rank < k], dst[rank < k]
+    final = torch.sort(dst * len(points) + src).indices  # by (dst, src)
+    return torch.stack([src[final], dst[final]])

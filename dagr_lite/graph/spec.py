@@ -42,14 +42,17 @@ class EventGraphSpec:
         """Node positions ``(x, y, beta * t)`` of events ``(N, 4)`` (x, y, t in us, p), in their dtype."""
         return torch.stack([events[:, 0], events[:, 1], self.beta * events[:, 2]], dim=1)  # (N, 3)
 
-    def edges(self, events: torch.Tensor, batch: torch.Tensor | None = None, *, workers: int = -1) -> torch.Tensor:
-        """The causal event graph ``(2, E)`` of events ``(N, 4)`` of samples ``batch (N,)``.
+    def edges(self, events: torch.Tensor, batch: torch.Tensor | None = None, *, workers: int = -1,
+              backend: str = "auto") -> torch.Tensor:
+        """The causal event graph ``(2, E)`` of events ``(N, 4)`` of samples ``batch (N,)``, on the
+        events' device (``backend``: see :func:`~dagr_lite.graph.radius.radius_graph`; ``auto``
+        builds a CUDA tensor's graph on its GPU).
 
         Positions are computed in float64 whatever the events' dtype, so every caller (the
         loader's workers, the model, the streaming detector) gets the same edges.
         """
         return radius_graph(self.positions(events.detach().double()), self.radius, self.max_neighbors, batch,
-                            workers=workers)
+                            workers=workers, backend=backend)
 
     def as_dict(self) -> dict:
         return asdict(self)

@@ -115,3 +115,30 @@ def test_the_loaders_graph_is_the_models_own():
         own = model(batch)
     for x, y in zip(from_loader, own):
         assert torch.equal(x["boxes"], y["boxes"]) and torch.equal(x["scores"], y["scores"])
+
+
+def test_mixed_precision_choices_run_a_step_on_the_cpu():
+    """The CUDA path's precision choices, exercised on the CPU: bfloat16 autocast runs without a
+    scaler (the hybrid's sparse products and the losses stay float32), float16 gets the scaler."""
+    from omegaconf import OmegaConf
+
+    from dagr_lite.engine.train import amp_dtype
+
+    torch.manual_seed(0)
+    cfg = resolve_config(compose_config("train", ["model=hybrid", "optim.lr=1e-3"]))
+    model = build_model(cfg, height=180, width=320)
+    common = dict(total_steps=20, warmup_steps=4, min_lr_ratio=0.05, ema_decay=0.99, ema_tau=5.0, grad_clip=10.0)
+    bf16 = TrainState.create(model, build_optimizer(cfg, model.parameters()), amp=torch.bfloat16, **common)
+    assert bf16.amp and not bf16.scaler.is_enabled()
+    dataset = EventEgoHands(stub_root(), "train", max_events=2000, context_us=10_000)
+    out = train_step(bf16, collate([dataset[i] for i in (3, 40)]))
+    assert torch.isfinite(out["loss"]) and out["loss"].dtype == torch.float32
+    fp16 = TrainState.create(model, build_optimizer(cfg, model.parameters()), amp=True, **common)
+    assert fp16.amp_dtype == torch.float16
+    assert fp16.scaler.is_enabled()
+    with pytest.raises(ValueError, match="float16 or bfloat16"):
+        TrainState.create(model, build_optimizer(cfg, model.parameters()), amp=torch.float64, **common)
+    trainer = OmegaConf.create({"amp": True, "amp_dtype": "bfloat16"})
+    assert amp_dtype(trainer, torch.device("cpu")) is None  # the CPU trains in float32
+    assert amp_dtype(trainer, torch.device("cuda")) == torch.bfloat16
+    assert amp_dtype(OmegaConf.create({"amp": False, "amp_dtype": "auto"}), torch.device("cuda")) is None

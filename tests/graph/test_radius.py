@@ -109,3 +109,55 @@ def test_many_identical_points_keep_the_smallest_indices():
     edges = radius_graph(pos, 1.0, 4)
     assert edges.shape[1] == 4 * 2999 - 6  # node i keeps min(i, 4) earlier nodes
     assert torch.all(edges[0, edges[1] >= 4].reshape(-1, 4) == torch.arange(4))
+
+
+@pytest.mark.parametrize("grid", [None, 2, 1])
+def test_torch_backend_equals_the_kdtree_and_brute_force(grid):
+    rng = np.random.default_rng(10)
+    for _ in range(30):
+        pos = time_sorted_cloud(rng, int(rng.integers(0, 200)), extent=float(rng.uniform(3, 12)), grid=grid)
+        r, k = float(rng.choice([0.7, 1.0, 2.0, 3.3])), int(rng.integers(1, 12))
+        torch_edges = radius_graph(torch.from_numpy(pos), r, k, backend="torch")
+        assert torch.equal(torch_edges, radius_graph(torch.from_numpy(pos), r, k, backend="kdtree"))
+        assert torch.equal(torch_edges, brute_force(pos, r, k))
+
+
+def test_torch_backend_on_event_clouds_with_samples_and_exact_radius_ties():
+    """Integer pixels and microseconds (many neighbours exactly at r, e.g. 3-4-5 triangles), several samples."""
+    rng = np.random.default_rng(11)
+    for _ in range(12):
+        n = int(rng.integers(1, 1500))
+        t = np.sort(rng.integers(0, 20_000, n))
+        pos = torch.from_numpy(np.stack([rng.integers(0, 30, n), rng.integers(0, 20, n), 5e-4 * t], 1).astype(float))
+        batch = torch.from_numpy(np.sort(rng.integers(0, 3, n)))
+        for r, k in ((5.0, 16), (1.0, 2), (3.0, 40)):
+            got = radius_graph(pos, r, k, batch, backend="torch")
+            assert torch.equal(got, radius_graph(pos, r, k, batch, backend="kdtree"))
+    pos = torch.tensor([[0.0, 0, 0], [3, 4, 0], [0, 0, 5.0], [4, 3, 5.0]])  # every pair exactly 5 or farther
+    assert torch.equal(radius_graph(pos, 5.0, 8, backend="torch"), brute_force(pos, 5.0, 8))
+
+
+def test_torch_backend_in_small_chunks_of_candidates(monkeypatch):
+    """A dense cloud (every node a candidate of every later one) split into many candidate chunks."""
+    import dagr_lite.graph.radius as radius_module
+
+    monkeypatch.setattr(radius_module, "TORCH_PAIR_BUDGET", 500)
+    rng = np.random.default_rng(12)
+    pos = time_sorted_cloud(rng, 300, extent=2.0)
+    assert torch.equal(radius_graph(torch.from_numpy(pos), 3.0, 7, backend="torch"), brute_force(pos, 3.0, 7))
+
+
+def test_backend_choice_and_refusals(monkeypatch):
+    import dagr_lite.graph.radius as radius_module
+
+    pos = torch.tensor([[0.0, 0, 1], [0, 0, 0]])  # not sorted by time
+    with pytest.raises(ValueError, match="sorted by time"):
+        radius_graph(pos, 1.0, 2, backend="torch")
+    with pytest.raises(ValueError, match="backend must be one of"):
+        radius_graph(pos, 1.0, 2, backend="faiss")
+
+    def unused(*args, **kwargs):
+        raise AssertionError("auto must not pick the torch backend for a CPU tensor")
+
+    monkeypatch.setattr(radius_module, "radius_graph_torch", unused)
+    assert radius_graph(pos.flip(0), 2.0, 2).tolist() == [[0], [1]]
