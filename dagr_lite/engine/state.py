@@ -119,7 +119,7 @@ def train_step(state: TrainState, batch: Batch) -> dict[str, torch.Tensor]:
     return {key: value.detach() for key, value in out.items()}
 
 
-def validate(state: TrainState, loader: DataLoader, *, backend: str = "pycocotools", conf_threshold: float = 0.001,
+def validate(state: TrainState, loader: DataLoader, *, backend: str = "numpy", conf_threshold: float = 0.001,
              nms_threshold: float = 0.65, progress: bool = True,
              gather: Callable[[list], list] | None = None) -> dict[str, float]:
     """COCO metrics of the EMA weights over every sample of ``loader``.

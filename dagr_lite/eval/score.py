@@ -15,7 +15,7 @@ from dagr_lite.data.collate import Batch
 from dagr_lite.eval.coco import CocoEvaluator
 
 
-def score_model(model: nn.Module, loader: DataLoader, device: torch.device, *, backend: str = "pycocotools",
+def score_model(model: nn.Module, loader: DataLoader, device: torch.device, *, backend: str = "numpy",
                 conf_threshold: float = 0.001, nms_threshold: float = 0.65, progress: bool = True,
                 desc: str = "evaluating") -> tuple[dict, CocoEvaluator]:
     """COCO metrics of ``model`` over every sample of ``loader`` (no batch is dropped)."""
@@ -43,7 +43,7 @@ def detections_of(model: nn.Module, loader: DataLoader, device: torch.device, *,
     return entries
 
 
-def score_entries(entries: list[tuple], *, backend: str = "pycocotools") -> tuple[dict, CocoEvaluator]:
+def score_entries(entries: list[tuple], *, backend: str = "numpy") -> tuple[dict, CocoEvaluator]:
     """COCO metrics of the entries of :func:`detections_of`."""
     evaluator = CocoEvaluator(backend=backend)
     for entry in entries:
