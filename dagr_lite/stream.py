@@ -231,12 +231,12 @@ class StreamingDetector:
             raise ValueError(f"image time must be finite, got {t_us}")
         if self._t_image is not None and t_us < self._t_image:
             raise ValueError(f"image at t={t_us:g} us is older than the previous image ({self._t_image:g} us)")
+        if not self.hybrid:
+            return
         if t_us - self.context_us < self._kept_from:
             raise ValueError(f"image at t={t_us:g} us needs the events from {t_us - self.context_us:g} us, but "
                              f"only those since {self._kept_from:g} us are kept (an image may be at most "
                              f"{MAX_IMAGE_DELAY_US} us older than the latest event)")
-        if not self.hybrid:
-            return
         with torch.no_grad(), self._part("image features"):
             pixels = torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1)))[None].to(self.device)
             image_maps = self.model.image(pixels)

@@ -148,6 +148,7 @@ def test_events_only_window_empties_and_refills():
     rng = np.random.default_rng(0)
     events = random_stream(rng, 400, 20_000)
     stream.push_events(**events)
+    stream.push_image(np.zeros((H, W, 3), np.uint8), 0)  # an events-only model ignores images, even old ones
     check_against_batch(stream, model, events, 400, None, None, 20_000.0)
     check_against_batch(stream, model, events, 400, None, None, 20_000.0 + WINDOW_US + 1)  # all left the window
 
