@@ -4,6 +4,12 @@ From EgoHands (frame folders of the 48 videos plus ``metadata.mat``)::
 
     python -m dagr_lite.synth.build --egohands metadata.mat --frames FRAMES --out ROOT --version v6
 
+From video files (decoded by PyAV as they are emulated; the frame rate is the files' own unless
+``--fps`` is given)::
+
+    python -m dagr_lite.synth.build --video a.mp4 b.mov [DIR_OF_VIDEOS ...] --out ROOT --version v6 \\
+        [--labels bounding_boxes.json]
+
 From any folder of videos laid out as ``<video>/frame_<k>.jpg`` (optionally with labels in the
 release format, boxes in pixels of those frames)::
 
@@ -34,8 +40,8 @@ from dagr_lite.data.writer import VideoWriter, write_labels, write_text_atomical
 from dagr_lite.synth.dvs import PRESETS, DVSParams, preset
 from dagr_lite.synth.egohands import (EGOHANDS_HEIGHT, EGOHANDS_WIDTH, Labeller, default_split, interpolate_labels,
                                       load_metadata)
-from dagr_lite.synth.video import (FolderSource, choose_dvs_model, emulate_video, frame_number, list_frame_files,
-                                   scale_boxes)
+from dagr_lite.synth.video import (VIDEO_SUFFIXES, FolderSource, choose_dvs_model, emulate_video, frame_number,
+                                   list_frame_files, open_source, scale_boxes, video_fps)
 
 # The EventEgoHands versions (paper, Table I): upsampling factor, scale, DVS model.
 VERSIONS = {
@@ -175,7 +181,15 @@ def _start_build(jobs: list[VideoJob], out: Path, settings: BuildSettings) -> di
 
 def _build_video(job: VideoJob, out: Path, settings: BuildSettings, info: dict, *, progress: bool) -> None:
     """Emulate and write one video, recording it in ``info`` as built or skipped (with a warning)."""
-    source = FolderSource(job.frames, scale=settings.scale)
+    source = open_source(job.frames, scale=settings.scale)
+    try:
+        _emulate_job(job, source, out, settings, info, progress=progress)
+    finally:
+        if hasattr(source, "close"):
+            source.close()
+
+
+def _emulate_job(job: VideoJob, source, out: Path, settings: BuildSettings, info: dict, *, progress: bool) -> None:
     if source.num_frames < 2:
         warnings.warn(f"{job.frames}: {source.num_frames} frame(s); a video needs two to give events, skipped")
         info["skipped"][job.name] = "fewer than two frames"
@@ -247,6 +261,41 @@ def folder_jobs(frames: Path, *, labels: Path | None = None, splits: Path | None
     return [VideoJob(v, assignment[v], frames / v, per_video[v]) for v in videos if v in assignment]
 
 
+def video_jobs(paths: list[Path], *, labels: Path | None = None, splits: Path | None = None) -> list[VideoJob]:
+    """Jobs for video files (or folders of them), one video each, named by the file's stem; labels
+    in the release format, keyed by ``<stem>_frame_<k>``."""
+    files = []
+    for path in map(Path, paths):
+        if path.is_dir():
+            found = sorted(f for f in path.iterdir() if f.suffix.lower() in VIDEO_SUFFIXES)
+            if not found:
+                raise DatasetFormatError.at(path, f"holds no video files ({', '.join(VIDEO_SUFFIXES)})")
+            files += found
+        elif path.is_file():
+            files.append(path)
+        else:
+            raise DatasetFormatError.at(path, "video file is missing")
+    names = [f.stem for f in files]
+    if len(set(names)) != len(names):
+        raise ValueError(f"video files must have distinct names, got {sorted(n for n in set(names) if names.count(n) > 1)}")
+    per_video: dict[str, dict[int, tuple[np.ndarray, list[str]]]] = {n: {} for n in names}
+    if labels is not None:
+        for video, frame_boxes in read_label_file(labels).items():
+            if video not in per_video:
+                raise DatasetFormatError.at(labels, "key names no video given", key=fmt.label_key(video, min(frame_boxes)))
+            per_video[video] = {k: (boxes, ["given"] * len(boxes)) for k, boxes in frame_boxes.items()}
+    assignment = _read_splits(splits, names, {"train": names})
+    return [VideoJob(n, assignment[n], f, per_video[n]) for n, f in zip(names, files) if n in assignment]
+
+
+def container_fps(jobs: list[VideoJob]) -> float:
+    """The frame rate the video files state, which must be one for the whole dataset."""
+    rates = {job.name: video_fps(job.frames) for job in jobs}
+    if len({round(r, 6) for r in rates.values()}) > 1:
+        raise ValueError(f"the videos state different frame rates {rates}; a dataset has one: give --fps")
+    return next(iter(rates.values()))
+
+
 def egohands_jobs(metadata: Path, frames: Path, *, splits: Path | None = None, labeller: Labeller = interpolate_labels,
                   split_seed: int = 0) -> list[VideoJob]:
     """Jobs for EgoHands: ``frames/<video_id>/`` holds every frame of a video (frame_0001.jpg, ...)."""
@@ -293,7 +342,9 @@ def _parse_overrides(items: list[str]) -> tuple[tuple[str, float], ...]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m dagr_lite.synth.build", description=__doc__.splitlines()[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    parser.add_argument("--frames", type=Path, required=True, help="folder holding one frame folder per video")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--frames", type=Path, help="folder holding one frame folder per video")
+    source.add_argument("--video", type=Path, nargs="+", help="video files (MP4, AVI, MOV, ...) or folders of them")
     parser.add_argument("--out", type=Path, required=True, help="dataset folder to write (resumed if it exists)")
     parser.add_argument("--egohands", type=Path, help="EgoHands metadata.mat: labels from its polygons")
     parser.add_argument("--labels", type=Path, help="labels in the release format (bounding_boxes.json)")
@@ -302,7 +353,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--upsample", type=int, help="emulator steps per frame interval (U - 1 in-between frames)")
     parser.add_argument("--scale", type=int, help="downscaling factor of frames and boxes (1, 2, 4, ...)")
     parser.add_argument("--splits", type=Path, help='JSON {"train": [...], "valid": [...], "test": [...]}')
-    parser.add_argument("--fps", type=float, default=fmt.DEFAULT_FPS)
+    parser.add_argument("--fps", type=float, help=f"frame rate (default: the video files' own, else {fmt.DEFAULT_FPS:g})")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--clean-fraction", type=float, default=0.5, help="share of clean videos with --preset mixed")
     parser.add_argument("--compression", choices=["blosc", "gzip", "none"], default="blosc")
@@ -318,21 +369,26 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"give --version or all of --preset, --upsample, --scale (missing: {', '.join(missing)})")
     if args.egohands and args.labels:
         parser.error("--egohands and --labels are two sources of labels; give one")
+    if args.egohands and args.video:
+        parser.error("--egohands reads EgoHands' frame folders: give --frames")
     try:
-        settings = BuildSettings(dvs_model=chosen["dvs_model"], upsample=chosen["upsample"], scale=chosen["scale"],
-                                 fps=args.fps, seed=args.seed, clean_fraction=args.clean_fraction,
-                                 compression=None if args.compression == "none" else args.compression,
-                                 dvs_overrides=_parse_overrides(args.dvs))
         if args.egohands:
             jobs = egohands_jobs(args.egohands, args.frames, splits=args.splits)
+        elif args.video:
+            jobs = video_jobs(args.video, labels=args.labels, splits=args.splits)
         else:
             jobs = folder_jobs(args.frames, labels=args.labels, splits=args.splits)
+        fps = args.fps or (container_fps(jobs) if args.video and jobs else fmt.DEFAULT_FPS)
+        settings = BuildSettings(dvs_model=chosen["dvs_model"], upsample=chosen["upsample"], scale=chosen["scale"],
+                                 fps=fps, seed=args.seed, clean_fraction=args.clean_fraction,
+                                 compression=None if args.compression == "none" else args.compression,
+                                 dvs_overrides=_parse_overrides(args.dvs))
         info = build(jobs, args.out, settings)
     except (ValueError, DatasetFormatError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     total = sum(v["events"] for v in info["videos"].values())
-    print(f"{args.out}: {len(info['videos'])} videos, {total:,} events")
+    print(f"{args.out}: {len(info['videos'])} videos, {total:,} events, {settings.fps:g} fps")
     return 0
 
 

@@ -149,6 +149,97 @@ class FolderSource:
         return self.interpolator(self.frame(k), self.frame(k + 1), alpha)
 
 
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
+
+
+def video_fps(path: Path | str) -> float:
+    """The frame rate a video file's container states; an unreadable file is an error naming it."""
+    with _open_video(Path(path)) as container:
+        rate = container.streams.video[0].average_rate or container.streams.video[0].guessed_rate
+        if not rate:
+            raise DatasetFormatError.at(path, "the container states no frame rate; give --fps")
+        return float(rate)
+
+
+def _open_video(path: Path):
+    try:
+        import av
+    except ImportError as err:  # a dependency, so only a broken install lands here
+        raise ImportError("reading video files needs PyAV: pip install av") from err
+    try:
+        container = av.open(str(path))
+    except (av.error.FFmpegError, OSError, UnicodeDecodeError) as err:
+        raise DatasetFormatError.at(path, f"cannot open as a video ({err})") from err
+    if not container.streams.video:
+        container.close()
+        raise DatasetFormatError.at(path, "holds no video stream")
+    return container
+
+
+class VideoFileSource:
+    """Frames of a video file (MP4, AVI, MOV, ... through PyAV's FFmpeg), decoded as they are asked
+    for in order and downscaled by ``scale``; only the two frames of the current interval are held.
+
+    The frame count comes from one pass over the file's packets (no decoding) when the container
+    does not state it.
+    """
+
+    def __init__(self, path: Path | str, *, scale: int = 1, interpolator: Interpolator = linear_interpolate):
+        self.path, self.scale, self.interpolator = Path(path), int(scale), interpolator
+        with _open_video(self.path) as container:
+            stream = container.streams.video[0]
+            self.num_frames = stream.frames or sum(1 for packet in container.demux(stream) if packet.size)
+        self._container, self._frames, self._next = None, None, 0
+        self._cache: dict[int, np.ndarray] = {}
+        self.height = self.width = None
+        self.height, self.width = self.frame(0).shape[:2]
+
+    def _decoded(self, k: int) -> np.ndarray:
+        """Frame ``k``, decoding forward (from the start again if an earlier frame is asked for)."""
+        if self._frames is None or k < self._next:
+            self.close()
+            self._container = _open_video(self.path)
+            self._frames, self._next = self._container.decode(video=0), 0
+        try:
+            while True:
+                image = next(self._frames)
+                self._next += 1
+                if self._next - 1 == k:
+                    return image.to_ndarray(format="rgb24")
+        except StopIteration:
+            raise DatasetFormatError.at(self.path, f"frame {k} could not be decoded (the file gave "
+                                                   f"{self._next} of {self.num_frames} frames)") from None
+        except Exception as err:  # FFmpeg decoding errors come in many types
+            raise DatasetFormatError.at(self.path, f"decoding frame {k} failed ({err})") from err
+
+    def frame(self, k: int) -> np.ndarray:
+        if k not in self._cache:
+            frame = downscale_area(self._decoded(k), self.scale)
+            if self.height is not None and frame.shape[:2] != (self.height, self.width):
+                raise DatasetFormatError.at(self.path, f"frame {k} is {frame.shape[1]}x{frame.shape[0]}, unlike "
+                                                       "the first frame")
+            self._cache[k] = frame
+            while len(self._cache) > 2:
+                self._cache.pop(next(iter(self._cache)))
+        return self._cache[k]
+
+    def between(self, k: int, alpha: float) -> np.ndarray:
+        return self.interpolator(self.frame(k), self.frame(k + 1), alpha)
+
+    def close(self) -> None:
+        if self._container is not None:
+            self._container.close()
+        self._container, self._frames = None, None
+
+
+def open_source(path: Path | str, *, scale: int = 1) -> "FolderSource | VideoFileSource":
+    """A video file (by its suffix) or a folder of frames."""
+    path = Path(path)
+    if path.suffix.lower() in VIDEO_SUFFIXES:
+        return VideoFileSource(path, scale=scale)
+    return FolderSource(path, scale=scale)
+
+
 def choose_dvs_model(video: str, *, seed: int = 0, clean_fraction: float = 0.5) -> str:
     """``clean`` or ``noisy`` for one video of a ``mixed`` dataset.
 
