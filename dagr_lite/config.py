@@ -181,7 +181,8 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
                          event_span="since_image" if with_image else "window", window_us=data.window_us,
                          context_us=data.context_us, max_events=data.max_events, first_frame=first_frame,
                          fps=dataset.fps, image_size=image_size, transform=transform,
-                         clip_boxes=data.clip_boxes, seed=cfg.seed)
+                         clip_boxes=data.clip_boxes, labelled_only=bool(data.get("labelled_only", False)),
+                         seed=cfg.seed)
 
 
 def graph_spec(model: DictConfig) -> EventGraphSpec | None:

@@ -128,6 +128,8 @@ class EventEgoHands(Dataset):
         videos: restrict to these videos of the split (all by default).
         transform: called as ``transform(sample, rng)`` on each sample (augmentation).
         clip_boxes: clip boxes to the image and drop empty ones instead of raising.
+        labelled_only: samples only at frames with a label entry (sparse labels: an unlabelled
+            frame is unknown, not empty); by default every frame is a sample, unlabelled ones empty.
         seed: seed of the image ages, the event subsampling and ``transform``'s generator.
     """
 
@@ -136,7 +138,7 @@ class EventEgoHands(Dataset):
                  max_events: int | None = None, first_frame: int | None = None, fps: float = fmt.DEFAULT_FPS,
                  image_size: Sequence[int] | None = None, videos: Sequence[str] | None = None,
                  transform: Callable[[Sample, np.random.Generator], Sample] | None = None,
-                 clip_boxes: bool = False, seed: int = 0):
+                 clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0):
         if split not in fmt.SPLITS:
             raise ValueError(f"split must be one of {fmt.SPLITS}, got {split!r}")
         self.age_range = age_range(image_age)
@@ -172,6 +174,8 @@ class EventEgoHands(Dataset):
             self._events.append(events)
             self._boxes.append(boxes)
             ks = np.arange(self.first_frame, events.num_frames)
+            if labelled_only:
+                ks = ks[np.isin(ks, np.fromiter(boxes, dtype=np.int64, count=len(boxes)))]
             sample_video.append(np.full(len(ks), v, dtype=np.int64))
             sample_frame.append(ks)
         self._sample_video = np.concatenate(sample_video) if sample_video else np.zeros(0, np.int64)

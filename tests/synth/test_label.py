@@ -1,0 +1,45 @@
+"""Labelling every frame: interpolation by hand, held-out frames, and the whole command with a tiny budget."""
+import json
+
+import numpy as np
+
+from dagr_lite.data.reader import read_labels
+from dagr_lite.synth.label import interpolate_frame, label_dataset, split_labels
+from tests.conftest import make_dataset
+
+
+def test_interpolation_between_kept_frames_by_hand():
+    kept = {0: np.array([[10.0, 10, 20, 20]]), 4: np.array([[14.0, 12, 22, 20]])}  # xywh, IoU 0.52: a pair
+    np.testing.assert_allclose(interpolate_frame(kept, 1), [[11.0, 10.5, 20.5, 20]])  # a quarter of the way
+    np.testing.assert_allclose(interpolate_frame(kept, 6), kept[4])  # after the last: the last
+    unmatched = {0: np.array([[0.0, 0, 5, 5]]), 4: np.array([[40.0, 40, 5, 5], [50, 50, 5, 5]])}
+    np.testing.assert_allclose(interpolate_frame(unmatched, 1), unmatched[0])  # no pairing: the nearer frame
+    np.testing.assert_allclose(interpolate_frame(unmatched, 3), unmatched[4])
+    assert interpolate_frame({}, 2).shape == (0, 4)
+
+
+def test_split_labels_holds_out_a_seeded_share_of_each_video():
+    labels = {"a": {k: np.zeros((1, 4)) for k in range(20)}, "b": {k: np.zeros((0, 4)) for k in range(10)}}
+    kept, held = split_labels(labels, share=0.9, seed=3)
+    assert [len(held["a"]), len(kept["a"]), len(held["b"])] == [18, 2, 9]
+    assert set(kept["a"]) | set(held["a"]) == set(range(20)) and not set(kept["a"]) & set(held["a"])
+    assert split_labels(labels, share=0.9, seed=3)[1]["a"].keys() == held["a"].keys()
+
+
+def test_every_frame_gets_a_label_with_its_source(tmp_path):
+    written = make_dataset(tmp_path / "data", num_frames=10, events_per_video=500)
+    report = label_dataset(written.root, tmp_path / "out", hide=0.5, steps=2, seed=1)
+    labels = read_labels(tmp_path / "out")
+    sources = json.loads((tmp_path / "out" / "label_sources.json").read_text())
+    for video in written.frames:
+        assert sorted(labels[video]) == list(range(10))  # every frame has an entry
+    kept, _ = split_labels(read_labels(written.root), share=0.5, seed=1)
+    for video, frames in kept.items():
+        for k, boxes in frames.items():  # kept labels are written as given
+            np.testing.assert_allclose(labels[video][k], boxes, atol=1e-3)
+            assert sources[f"{video}_frame_{k}"] == ["given"] * len(boxes)
+    assert {s for values in sources.values() for s in values} <= {"given", "predicted"}
+    assert report["predicted"]["frames"] == report["interpolated"]["frames"] > 0
+    assert 0 < report["threshold"] < 1
+    assert json.loads((tmp_path / "out" / "label_quality.json").read_text()) == json.loads(json.dumps(report))
+    assert (written.root / "bounding_boxes.json").read_text() != (tmp_path / "out" / "bounding_boxes.json").read_text()
