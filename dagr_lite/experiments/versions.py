@@ -1,0 +1,156 @@
+"""The paper's version experiment (Table III) on one source, in one command.
+
+    python -m dagr_lite.experiments.versions --source DIR --versions v2,v3,v4,v5,v6 \\
+        --budget-minutes M --out OUT [--labels L.json] [--splits S.json] [--seed 0]
+    python -m dagr_lite.experiments.versions --stub-source 1280x720 --versions v2,v3,v4,v5,v6 \\
+        --budget-minutes M --out OUT
+
+From the same source frames (``DIR/<video>/frame_<k>.jpg`` with labels in the release format at
+the source's resolution, as ``python -m dagr_lite.synth.build --frames`` takes them) it builds each
+version (scale, upsampling, clean / noisy / mixed, as in the paper's Table I) into
+``OUT/datasets/<v>``, trains the default hybrid on each with the same wall-clock budget into
+``OUT/runs/<v>``, evaluates each model on its version's test split (the same test videos for
+every version), and prints and writes ``OUT/versions.json`` and ``OUT/versions.md``: mAP50,
+mAP75 and mAP per version. Finished builds, training runs and evaluations are reused, so an
+interrupted experiment resumes. ``--stub-source WxH`` first renders the stub's hand scenes at
+that size (12 / 2 / 2 videos of 2 s, upscaled from the stub's 320x180 so the hands keep their
+proportions) into ``OUT/source``.
+
+Training uses the stub's short recipe (AdamW lr 1e-3, 100 warm-up steps, EMA time constant
+200 steps, at most 10,000 events per sample) with ``trainer.max_minutes`` as the budget.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from dagr_lite.data import format as fmt
+from dagr_lite.data.writer import write_frame, write_text_atomically
+from dagr_lite.synth.build import VERSIONS, BuildSettings, build, folder_jobs
+
+RECIPE = ["optim.lr=1e-3", "trainer.warmup_steps=100", "trainer.ema_tau=200", "data.max_events=10000",
+          "trainer.image_every=0"]
+METRICS = ("AP50", "AP75", "mAP")
+
+
+def write_stub_source(out: Path, height: int, width: int, *, seconds: float = 2.0,
+                      splits: dict[str, int] | None = None) -> tuple[Path, Path, Path]:
+    """Frame folders, labels (xywh at ``height x width``) and a split file of the stub's scenes,
+    rendered at 320x180 and upscaled; returns ``(frames folder, labels file, splits file)``."""
+    from dagr_lite.synth.stub import STUB_SPLITS, HandScene
+
+    frames_dir, labels_file, splits_file = out / "frames", out / "labels.json", out / "splits.json"
+    if labels_file.exists():
+        return frames_dir, labels_file, splits_file
+    counts = splits or STUB_SPLITS
+    names, labels = {s: [] for s in counts}, {}
+    index = 0
+    for split, count in counts.items():
+        for _ in range(count):
+            video = f"source_{index:03d}"
+            scene = HandScene(index, seconds=seconds)
+            factor = (width / scene.width, height / scene.height)
+            for k in range(scene.num_frames):
+                image = Image.fromarray(scene.frame(k).clip(0, 255).astype(np.uint8)).resize((width, height),
+                                                                                           Image.BICUBIC)
+                write_frame(frames_dir / video / fmt.frame_name(k), np.asarray(image), overwrite=True)
+            labels[f"{video}"] = {k: (scene.boxes(k) * [*factor, *factor]).tolist() for k in range(scene.num_frames)}
+            names[split].append(video)
+            index += 1
+    write_text_atomically(splits_file, json.dumps(names))
+    write_text_atomically(labels_file, json.dumps({fmt.label_key(v, k): boxes for v, frames in labels.items()
+                                                   for k, boxes in frames.items()}))
+    return frames_dir, labels_file, splits_file
+
+
+def train_version(root: Path, run: Path, *, minutes: float, steps: int | None, seed: int,
+                  overrides: list[str] = ()) -> Path:
+    """The default hybrid trained on ``root`` for the budget; a finished run is reused."""
+    from dagr_lite.config import compose_config
+    from dagr_lite.engine.train import train
+
+    if not (run / "metrics.json").exists():
+        length = [f"trainer.max_steps={steps}"] if steps else ["trainer.max_steps=null", "trainer.max_epochs=100000"]
+        train(compose_config("train", ["dataset=custom", f"dataset.root={root}", f"run_dir={run}", f"seed={seed}",
+                                       f"trainer.max_minutes={minutes}", "trainer.val_every=200", *RECIPE, *length,
+                                       *overrides]))
+    return run / "checkpoints" / "best.pt"
+
+
+def evaluate_version(root: Path, checkpoint: Path, out: Path) -> dict:
+    """Test-split metrics of ``checkpoint`` on ``root`` (written to ``out``; reused when there)."""
+    from dagr_lite.config import compose_config
+    from dagr_lite.engine.evaluate import evaluate
+
+    if (out / "metrics.json").exists():
+        return json.loads((out / "metrics.json").read_text())
+    return evaluate(compose_config("evaluate", ["dataset=custom", f"dataset.root={root}", f"ckpt={checkpoint}",
+                                                "split=test", f"run_dir={out}"]))["metrics"]
+
+
+def run_versions(frames: Path, out: Path, versions: list[str], *, minutes: float, labels: Path | None = None,
+                 splits: Path | None = None, steps: int | None = None, seed: int = 0,
+                 train_overrides: list[str] = ()) -> list[dict]:
+    """Build, train and evaluate each version; returns the table's rows (also written to ``out``).
+    ``train_overrides``: more training settings (e.g. ``loader.batch_size=4`` for a tiny source)."""
+    unknown = [v for v in versions if v not in VERSIONS]
+    if unknown:
+        raise ValueError(f"unknown versions {unknown}; expected some of {sorted(VERSIONS)}")
+    jobs = folder_jobs(frames, labels=labels, splits=splits)
+    rows = []
+    for version in versions:
+        started = time.monotonic()
+        root = out / "datasets" / version
+        build(jobs, root, BuildSettings(seed=seed, **VERSIONS[version]))
+        built = time.monotonic()
+        checkpoint = train_version(root, out / "runs" / version, minutes=minutes, steps=steps, seed=seed,
+                                   overrides=list(train_overrides))
+        metrics = evaluate_version(root, checkpoint, out / "eval" / version)
+        rows.append({"version": version, **VERSIONS[version], **{m: metrics[m] for m in METRICS},
+                     "build_s": round(built - started, 1), "train_and_eval_s": round(time.monotonic() - built, 1)})
+        write_results(out, rows, minutes)
+    return rows
+
+
+def write_results(out: Path, rows: list[dict], minutes: float) -> str:
+    header = "| version | upsampling | scale | DVS model | mAP50 | mAP75 | mAP |\n|---|---|---|---|---|---|---|\n"
+    table = header + "".join(f"| {r['version']} | {r['upsample']} | {r['scale']} | {r['dvs_model']} | "
+                             f"{r['AP50']:.3f} | {r['AP75']:.3f} | {r['mAP']:.3f} |\n" for r in rows)
+    write_text_atomically(out / "versions.json", json.dumps({"budget_minutes": minutes, "rows": rows}, indent=1))
+    write_text_atomically(out / "versions.md", f"Test split, {minutes:g} minutes of training per version.\n\n{table}")
+    return table
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m dagr_lite.experiments.versions", description=__doc__.splitlines()[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--source", type=Path, help="folder of <video>/frame_<k>.jpg folders")
+    source.add_argument("--stub-source", metavar="WxH", help="render the stub's scenes at this size as the source")
+    parser.add_argument("--labels", type=Path, help="labels of the source frames (release format)")
+    parser.add_argument("--splits", type=Path, help='JSON {"train": [...], "valid": [...], "test": [...]}')
+    parser.add_argument("--versions", default="v2,v3,v4,v5,v6", help="comma-separated, e.g. v1,v2,v3,v4,v5,v6")
+    parser.add_argument("--budget-minutes", type=float, required=True, help="training budget per version")
+    parser.add_argument("--steps", type=int, help="train this many steps instead (still capped by the budget)")
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    frames, labels, splits = args.source, args.labels, args.splits
+    if args.stub_source:
+        width, height = (int(v) for v in args.stub_source.lower().split("x"))
+        frames, labels, splits = write_stub_source(args.out / "source", height, width)
+    started = time.monotonic()
+    rows = run_versions(frames, args.out, [v.strip() for v in args.versions.split(",") if v.strip()],
+                        minutes=args.budget_minutes, labels=labels, splits=splits, steps=args.steps, seed=args.seed)
+    print(write_results(args.out, rows, args.budget_minutes))
+    print(f"{(time.monotonic() - started) / 60:.1f} minutes; {args.out / 'versions.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,32 @@
+"""The version experiment's plumbing: source, builds, training, evaluation and the table, with tiny budgets."""
+import json
+
+import pytest
+
+from dagr_lite.experiments.versions import run_versions, write_stub_source
+
+
+def test_versions_table_from_one_source_and_reuse(tmp_path):
+    frames, labels, splits = write_stub_source(tmp_path / "source", 180, 320, seconds=0.2,
+                                               splits={"train": 2, "valid": 1, "test": 1})
+    assert json.loads(splits.read_text()) == {"train": ["source_000", "source_001"], "valid": ["source_002"],
+                                              "test": ["source_003"]}
+    tiny = ["loader.batch_size=4", "loader.num_workers=0"]
+    rows = run_versions(frames, tmp_path / "out", ["v2", "v3"], minutes=1.0, labels=labels, splits=splits, steps=1,
+                        train_overrides=tiny)
+    assert [(r["version"], r["scale"], r["upsample"], r["dvs_model"]) for r in rows] == [("v2", 4, 1, "clean"),
+                                                                                         ("v3", 2, 1, "clean")]
+    for row in rows:
+        assert all(-1 <= row[m] <= 1 for m in ("AP50", "AP75", "mAP"))
+        test_split = tmp_path / "out" / "datasets" / row["version"] / "test" / "events"
+        assert [p.stem for p in test_split.glob("*.h5")] == ["source_003"]  # the same test video for every version
+    saved = json.loads((tmp_path / "out" / "versions.json").read_text())
+    assert saved["rows"] == json.loads(json.dumps(rows))
+    assert "| v3 | 1 | 2 | clean |" in (tmp_path / "out" / "versions.md").read_text()
+    stamp = (tmp_path / "out" / "runs" / "v2" / "checkpoints" / "best.pt").stat().st_mtime
+    again = run_versions(frames, tmp_path / "out", ["v2"], minutes=1.0, labels=labels, splits=splits, steps=1,
+                         train_overrides=tiny)  # reused: no new build or training
+    assert (tmp_path / "out" / "runs" / "v2" / "checkpoints" / "best.pt").stat().st_mtime == stamp
+    assert again[0]["AP50"] == rows[0]["AP50"]
+    with pytest.raises(ValueError, match="unknown versions"):
+        run_versions(frames, tmp_path / "x", ["v9"], minutes=1.0)
