@@ -189,15 +189,12 @@ class StreamingDetector:
     def from_checkpoint(cls, path: str | Path, device: str | torch.device = "cpu", **kwargs) -> "StreamingDetector":
         """The EMA weights of a training checkpoint, with the context and window it was trained with."""
         from dagr_lite.engine.common import load_checkpoint
+        from dagr_lite.engine.evaluate import load_model
         from dagr_lite.nn.detector import DetectorConfig
 
         state = load_checkpoint(path)
         detector = DetectorConfig.from_dict(state["detector"])
-        model = Detector(detector)
-        try:
-            model.load_state_dict(state["ema"]["module"])
-        except RuntimeError as err:
-            raise ValueError(f"{path}: its weights do not fit the model its config describes ({err})") from err
+        model = load_model(state, detector, (detector.height, detector.width), str(path))
         data = state["config"]["data"]
         kwargs = {"context_us": data["context_us"], "window_us": data["window_us"], **kwargs}
         return cls(model.to(device), **kwargs)

@@ -98,12 +98,12 @@ def train_detector(work: Path, out: Path, *, minutes: float, steps: int | None, 
 def predict_all(checkpoint: Path, root: Path, videos: dict[str, str], *, batch_size: int = 16) -> dict:
     """``{video: {k: (boxes xywh, scores)}}`` of the detector on every frame."""
     from dagr_lite.engine.common import load_checkpoint
-    from dagr_lite.nn.detector import Detector, DetectorConfig
+    from dagr_lite.engine.evaluate import load_model
+    from dagr_lite.nn.detector import DetectorConfig
 
     state = load_checkpoint(checkpoint)
-    model = Detector(DetectorConfig.from_dict(state["detector"]))
-    model.load_state_dict(state["ema"]["module"])
-    model.eval()
+    detector = DetectorConfig.from_dict(state["detector"])
+    model = load_model(state, detector, (detector.height, detector.width), str(checkpoint)).eval()
     out = {}
     for video, split in tqdm(videos.items(), desc="predicting", unit="video"):
         count = len(list_frames(fmt.frames_dir(root, split, video)))
