@@ -24,11 +24,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dagr_lite.data import format as fmt
 from dagr_lite.data.collate import collate
 from dagr_lite.data.dataset import Sample
-from dagr_lite.data.reader import EventFile, list_frames, list_videos, read_frame
+from dagr_lite.data.reader import list_videos
 from dagr_lite.data.writer import VideoWriter
+from dagr_lite.demo import Recording
 from dagr_lite.engine.common import load_checkpoint
 from dagr_lite.nn.detector import Detector, DetectorConfig
 from dagr_lite.nn.gcn import GCNConv, GraphOperator
@@ -40,44 +40,18 @@ from dagr_lite.synth.video import emulate_video
 FIRST_FRAME = 3  # streams start at this frame (earlier events are the first image's context)
 
 
-@dataclasses.dataclass
-class Recording:
-    name: str
-    events: dict[str, np.ndarray]
-    frames: list[np.ndarray]
-    frame_times: np.ndarray  # (K,) us
-
-    @property
-    def height(self) -> int:
-        return self.frames[0].shape[0]
-
-    @property
-    def width(self) -> int:
-        return self.frames[0].shape[1]
-
-
-def read_recording(root: Path, split: str, video: str, name: str) -> Recording:
-    frames_dir = fmt.frames_dir(root, split, video)
-    count = len(list_frames(frames_dir))
-    file = EventFile(fmt.events_path(root, split, video), num_frames=count)
-    events = file.window(0, int(file.frame_times[-1]) + 1)
-    frames = [read_frame(fmt.frame_path(root, split, video, k)) for k in range(count)]
-    return Recording(name, {k: np.asarray(events[k]) for k in ("x", "y", "t", "p")}, frames,
-                     np.asarray(file.frame_times, dtype=np.int64))
-
-
-def recording(size: tuple[int, int], seconds: float, workdir: Path) -> Recording:
+def recording(size: tuple[int, int], seconds: float, workdir: Path) -> tuple[str, Recording]:
     """The stub's first test video at 320x180; a scene of the same generator at any other size."""
     height, width = size
     if size == (180, 320):
         root = stub_root()
         video = list_videos(root, "test")[0]
-        return read_recording(root, "test", video, f"stub test video {video}")
+        return f"stub test video {video}", Recording(root, "test", video)
     scene = HandScene(7, height=height, width=width, seconds=seconds + 0.3)
     with VideoWriter(workdir, "test", "scene", num_frames=scene.num_frames, height=height, width=width,
                      compression=None) as writer:
         emulate_video(scene, writer, params=preset(STUB_DVS_MODEL), upsample=STUB_UPSAMPLE, seed=7)
-    return read_recording(workdir, "test", "scene", f"hand scene {width}x{height}")
+    return f"hand scene {width}x{height}", Recording(workdir, "test", "scene")
 
 
 def model_at(state: dict, height: int, width: int) -> Detector:
@@ -155,7 +129,7 @@ def full_pass(model: Detector, rec: Recording, t_query: float, *, context_us: in
     x, y, tt, p = (rec.events[key][keep] for key in ("x", "y", "t", "p"))
     events = torch.from_numpy(np.stack([x, y, tt - t_image, p], 1).astype(np.float32)).reshape(-1, 4)
     sample = Sample(events=events, image=torch.from_numpy(np.ascontiguousarray(rec.frames[k].transpose(2, 0, 1))),
-                    boxes=torch.zeros((0, 4)), labels=torch.zeros(0, dtype=torch.int64), video=rec.name, frame=k,
+                    boxes=torch.zeros((0, 4)), labels=torch.zeros(0, dtype=torch.int64), video=rec.video, frame=k,
                     image_frame=k, t_start_us=int(begin), t_end_us=int(t_query), t_image_us=int(t_image))
     best, macs = np.inf, 0
     for _ in range(repeats):
@@ -171,14 +145,14 @@ def full_pass(model: Detector, rec: Recording, t_query: float, *, context_us: in
     return best, macs, len(events)
 
 
-def bench_scene(state: dict, rec: Recording, args) -> float | None:
+def bench_scene(state: dict, name: str, rec: Recording, args) -> float | None:
     model = model_at(state, rec.height, rec.width)
     data = state["config"]["data"]
     context_us, window_us = data["context_us"], data["window_us"]
     t0 = float(rec.frame_times[FIRST_FRAME])
     t1 = min(t0 + args.seconds * 1e6, float(rec.events["t"][-1]))
     rate = np.count_nonzero((rec.events["t"] >= t0) & (rec.events["t"] < t1)) / ((t1 - t0) * 1e-6)
-    print(f"\n{rec.name}: {rec.width}x{rec.height}, {(t1 - t0) / 1e6:.2f} s streamed from frame {FIRST_FRAME}, "
+    print(f"\n{name}: {rec.width}x{rec.height}, {(t1 - t0) / 1e6:.2f} s streamed from frame {FIRST_FRAME}, "
           f"{rate / 1e3:.0f}k events/s; {state['config']['model']['name']} model, images at 30 Hz")
     moments = np.linspace(t0 + 2_000, t1 - 1, args.full_passes)
     passes = [full_pass(model, rec, m, context_us=context_us, window_us=window_us) for m in moments]
@@ -228,7 +202,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as workdir:
         for text in args.sizes:
             width, height = (int(v) for v in text.lower().split("x"))
-            ratio = bench_scene(state, recording((height, width), args.seconds, Path(workdir)), args)
+            ratio = bench_scene(state, *recording((height, width), args.seconds, Path(workdir)), args)
             if (height, width) == (180, 320) or stub_ratio is None:
                 stub_ratio = ratio if (height, width) == (180, 320) or stub_ratio is None else stub_ratio
     if stub_ratio is not None:

@@ -74,6 +74,14 @@ class Recording:
         self.events = {key: np.asarray(raw[key]) for key in ("x", "y", "t", "p")}
         self.frames = [read_frame(fmt.frame_path(root, split, self.video, k)) for k in range(count)]
 
+    @property
+    def height(self) -> int:
+        return self.frames[0].shape[0]
+
+    @property
+    def width(self) -> int:
+        return self.frames[0].shape[1]
+
     def events_between(self, t_a: float, t_b: float) -> dict[str, np.ndarray]:
         t = self.events["t"]
         part = slice(int(np.searchsorted(t, t_a)), int(np.searchsorted(t, t_b)))

@@ -242,6 +242,20 @@ def _read_splits(path: Path | None, videos: list[str], default: dict[str, list[s
     return assignment
 
 
+def _given_labels(labels: Path | None, videos: list[str],
+                  unknown: str) -> dict[str, dict[int, tuple[np.ndarray, list[str]]]]:
+    """Each video's labels from a release-format file, all marked ``given``; a key naming another
+    video is an error (``unknown`` says what it names none of)."""
+    per_video: dict[str, dict[int, tuple[np.ndarray, list[str]]]] = {v: {} for v in videos}
+    if labels is not None:
+        for video, frame_boxes in read_label_file(labels).items():
+            if video not in per_video:
+                raise DatasetFormatError.at(labels, f"key names {unknown}",
+                                            key=fmt.label_key(video, min(frame_boxes)))
+            per_video[video] = {k: (boxes, ["given"] * len(boxes)) for k, boxes in frame_boxes.items()}
+    return per_video
+
+
 def folder_jobs(frames: Path, *, labels: Path | None = None, splits: Path | None = None) -> list[VideoJob]:
     """Jobs for a folder of ``<video>/`` frame folders; labels in the release format, keyed by frame order."""
     frames = Path(frames)
@@ -250,13 +264,7 @@ def folder_jobs(frames: Path, *, labels: Path | None = None, splits: Path | None
     videos = sorted(p.name for p in frames.iterdir() if p.is_dir())
     if not videos:
         raise DatasetFormatError.at(frames, "holds no video folders (expected <video>/frame_<k>.jpg)")
-    per_video: dict[str, dict[int, tuple[np.ndarray, list[str]]]] = {v: {} for v in videos}
-    if labels is not None:
-        for video, frame_boxes in read_label_file(labels).items():
-            if video not in per_video:
-                raise DatasetFormatError.at(labels, "key names no video of the frames folder",
-                                            key=fmt.label_key(video, min(frame_boxes)))
-            per_video[video] = {k: (boxes, ["given"] * len(boxes)) for k, boxes in frame_boxes.items()}
+    per_video = _given_labels(labels, videos, "no video of the frames folder")
     assignment = _read_splits(splits, videos, {"train": videos})
     return [VideoJob(v, assignment[v], frames / v, per_video[v]) for v in videos if v in assignment]
 
@@ -277,13 +285,9 @@ def video_jobs(paths: list[Path], *, labels: Path | None = None, splits: Path | 
             raise DatasetFormatError.at(path, "video file is missing")
     names = [f.stem for f in files]
     if len(set(names)) != len(names):
-        raise ValueError(f"video files must have distinct names, got {sorted(n for n in set(names) if names.count(n) > 1)}")
-    per_video: dict[str, dict[int, tuple[np.ndarray, list[str]]]] = {n: {} for n in names}
-    if labels is not None:
-        for video, frame_boxes in read_label_file(labels).items():
-            if video not in per_video:
-                raise DatasetFormatError.at(labels, "key names no video given", key=fmt.label_key(video, min(frame_boxes)))
-            per_video[video] = {k: (boxes, ["given"] * len(boxes)) for k, boxes in frame_boxes.items()}
+        repeated = sorted(n for n in set(names) if names.count(n) > 1)
+        raise ValueError(f"video files must have distinct names, got {repeated}")
+    per_video = _given_labels(labels, names, "no video given")
     assignment = _read_splits(splits, names, {"train": names})
     return [VideoJob(n, assignment[n], f, per_video[n]) for n, f in zip(names, files) if n in assignment]
 
@@ -353,7 +357,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--upsample", type=int, help="emulator steps per frame interval (U - 1 in-between frames)")
     parser.add_argument("--scale", type=int, help="downscaling factor of frames and boxes (1, 2, 4, ...)")
     parser.add_argument("--splits", type=Path, help='JSON {"train": [...], "valid": [...], "test": [...]}')
-    parser.add_argument("--fps", type=float, help=f"frame rate (default: the video files' own, else {fmt.DEFAULT_FPS:g})")
+    parser.add_argument("--fps", type=float,
+                        help=f"frame rate (default: the video files' own, else {fmt.DEFAULT_FPS:g})")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--clean-fraction", type=float, default=0.5, help="share of clean videos with --preset mixed")
     parser.add_argument("--compression", choices=["blosc", "gzip", "none"], default="blosc")

@@ -114,7 +114,28 @@ def list_frame_files(folder: Path | str) -> list[Path]:
     return [p for _, p in numbered]
 
 
-class FolderSource:
+class _TwoFrameSource:
+    """Frames loaded by ``_load(k)`` on demand, keeping the two of the current interval; in-between
+    frames by ``interpolator``."""
+
+    interpolator: Interpolator
+    _cache: dict[int, np.ndarray]
+
+    def _load(self, k: int) -> np.ndarray:
+        raise NotImplementedError
+
+    def frame(self, k: int) -> np.ndarray:
+        if k not in self._cache:
+            self._cache[k] = self._load(k)
+            while len(self._cache) > 2:
+                self._cache.pop(next(iter(self._cache)))
+        return self._cache[k]
+
+    def between(self, k: int, alpha: float) -> np.ndarray:
+        return self.interpolator(self.frame(k), self.frame(k + 1), alpha)
+
+
+class FolderSource(_TwoFrameSource):
     """Frames of a folder of images, downscaled by ``scale``, in-between frames by ``interpolator``."""
 
     def __init__(self, folder: Path | str, *, scale: int = 1, interpolator: Interpolator = linear_interpolate):
@@ -137,16 +158,6 @@ class FolderSource:
             raise DatasetFormatError.at(path, f"frame is {rgb.shape[1]}x{rgb.shape[0]} (WxH), unlike the first "
                                               f"frame of {self.folder}")
         return frame
-
-    def frame(self, k: int) -> np.ndarray:
-        if k not in self._cache:
-            self._cache[k] = self._load(k)
-            while len(self._cache) > 2:
-                self._cache.pop(next(iter(self._cache)))
-        return self._cache[k]
-
-    def between(self, k: int, alpha: float) -> np.ndarray:
-        return self.interpolator(self.frame(k), self.frame(k + 1), alpha)
 
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
@@ -176,7 +187,7 @@ def _open_video(path: Path):
     return container
 
 
-class VideoFileSource:
+class VideoFileSource(_TwoFrameSource):
     """Frames of a video file (MP4, AVI, MOV, ... through PyAV's FFmpeg), decoded as they are asked
     for in order and downscaled by ``scale``; only the two frames of the current interval are held.
 
@@ -212,19 +223,12 @@ class VideoFileSource:
         except Exception as err:  # FFmpeg decoding errors come in many types
             raise DatasetFormatError.at(self.path, f"decoding frame {k} failed ({err})") from err
 
-    def frame(self, k: int) -> np.ndarray:
-        if k not in self._cache:
-            frame = downscale_area(self._decoded(k), self.scale)
-            if self.height is not None and frame.shape[:2] != (self.height, self.width):
-                raise DatasetFormatError.at(self.path, f"frame {k} is {frame.shape[1]}x{frame.shape[0]}, unlike "
-                                                       "the first frame")
-            self._cache[k] = frame
-            while len(self._cache) > 2:
-                self._cache.pop(next(iter(self._cache)))
-        return self._cache[k]
-
-    def between(self, k: int, alpha: float) -> np.ndarray:
-        return self.interpolator(self.frame(k), self.frame(k + 1), alpha)
+    def _load(self, k: int) -> np.ndarray:
+        frame = downscale_area(self._decoded(k), self.scale)
+        if self.height is not None and frame.shape[:2] != (self.height, self.width):
+            raise DatasetFormatError.at(self.path, f"frame {k} is {frame.shape[1]}x{frame.shape[0]}, unlike "
+                                                   "the first frame")
+        return frame
 
     def close(self) -> None:
         if self._container is not None:
