@@ -13,7 +13,8 @@ version (scale, upsampling, clean / noisy / mixed, as in the paper's Table I) in
 every version), and prints and writes ``OUT/versions.json`` and ``OUT/versions.md``: mAP50,
 mAP75 and mAP per version. Finished builds, training runs and evaluations are reused, so an
 interrupted experiment resumes. ``--stub-source WxH`` first renders the stub's hand scenes at
-that size (12 / 2 / 2 videos of 2 s, upscaled from the stub's 320x180 so the hands keep their
+that size (by default 12 / 2 / 2 train / valid / test videos of 2 s, ``--stub-videos`` and
+``--stub-seconds`` to change it; upscaled from the stub's 320x180 so the hands keep their
 proportions) into ``OUT/source``.
 
 Training uses the stub's short recipe (AdamW lr 1e-3, 100 warm-up steps, EMA time constant
@@ -45,9 +46,14 @@ def write_stub_source(out: Path, height: int, width: int, *, seconds: float = 2.
     from dagr_lite.synth.stub import STUB_SPLITS, HandScene
 
     frames_dir, labels_file, splits_file = out / "frames", out / "labels.json", out / "splits.json"
+    counts = dict(splits or STUB_SPLITS)
+    settings = {"height": height, "width": width, "seconds": seconds, "videos": counts}
+    made = out / "source.json"
     if labels_file.exists():
+        if made.exists() and json.loads(made.read_text()) != settings:
+            raise ValueError(f"{out} holds a stub source made with {made.read_text().strip()}, not {settings}; "
+                             f"choose another --out or remove {out}")
         return frames_dir, labels_file, splits_file
-    counts = splits or STUB_SPLITS
     names, labels = {s: [] for s in counts}, {}
     index = 0
     for split, count in counts.items():
@@ -62,6 +68,7 @@ def write_stub_source(out: Path, height: int, width: int, *, seconds: float = 2.
             labels[f"{video}"] = {k: (scene.boxes(k) * [*factor, *factor]).tolist() for k in range(scene.num_frames)}
             names[split].append(video)
             index += 1
+    write_text_atomically(made, json.dumps(settings))
     write_text_atomically(splits_file, json.dumps(names))
     write_text_atomically(labels_file, json.dumps({fmt.label_key(v, k): boxes for v, frames in labels.items()
                                                    for k, boxes in frames.items()}))
@@ -126,12 +133,23 @@ def write_results(out: Path, rows: list[dict], minutes: float) -> str:
     return table
 
 
+def parse_numbers(text: str, separator: str, count: int, option: str, expected: str) -> list[int]:
+    """``count`` positive integers from ``text``; a clear error naming ``option`` otherwise."""
+    parts = text.lower().split(separator)
+    if len(parts) != count or not all(p.strip().isdigit() and int(p) > 0 for p in parts):
+        raise SystemExit(f"{option}: expected {expected}, got {text!r}")
+    return [int(p) for p in parts]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m dagr_lite.experiments.versions", description=__doc__.splitlines()[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--source", type=Path, help="folder of <video>/frame_<k>.jpg folders")
     source.add_argument("--stub-source", metavar="WxH", help="render the stub's scenes at this size as the source")
+    parser.add_argument("--stub-videos", default="12,2,2", metavar="TRAIN,VALID,TEST",
+                        help="videos per split of --stub-source (default 12,2,2)")
+    parser.add_argument("--stub-seconds", type=float, default=2.0, help="length of each --stub-source video")
     parser.add_argument("--labels", type=Path, help="labels of the source frames (release format)")
     parser.add_argument("--splits", type=Path, help='JSON {"train": [...], "valid": [...], "test": [...]}')
     parser.add_argument("--versions", default="v2,v3,v4,v5,v6", help="comma-separated, e.g. v1,v2,v3,v4,v5,v6")
@@ -142,8 +160,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     frames, labels, splits = args.source, args.labels, args.splits
     if args.stub_source:
-        width, height = (int(v) for v in args.stub_source.lower().split("x"))
-        frames, labels, splits = write_stub_source(args.out / "source", height, width)
+        width, height = parse_numbers(args.stub_source, "x", 2, "--stub-source", "WxH, e.g. 1280x720")
+        counts = parse_numbers(args.stub_videos, ",", 3, "--stub-videos", "TRAIN,VALID,TEST, e.g. 12,2,2")
+        if args.stub_seconds <= 0:
+            parser.error(f"--stub-seconds must be positive, got {args.stub_seconds}")
+        frames, labels, splits = write_stub_source(args.out / "source", height, width, seconds=args.stub_seconds,
+                                                   splits=dict(zip(("train", "valid", "test"), counts)))
     started = time.monotonic()
     rows = run_versions(frames, args.out, [v.strip() for v in args.versions.split(",") if v.strip()],
                         minutes=args.budget_minutes, labels=labels, splits=splits, steps=args.steps, seed=args.seed)

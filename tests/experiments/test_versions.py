@@ -3,7 +3,7 @@ import json
 
 import pytest
 
-from dagr_lite.experiments.versions import run_versions, write_stub_source
+from dagr_lite.experiments.versions import main, run_versions, write_stub_source
 
 
 def test_versions_table_from_one_source_and_reuse(tmp_path):
@@ -30,3 +30,27 @@ def test_versions_table_from_one_source_and_reuse(tmp_path):
     assert again[0]["AP50"] == rows[0]["AP50"]
     with pytest.raises(ValueError, match="unknown versions"):
         run_versions(frames, tmp_path / "x", ["v9"], minutes=1.0)
+
+
+def test_stub_source_is_reused_only_with_its_own_settings(tmp_path):
+    few = {"train": 1, "valid": 1, "test": 1}
+    frames, labels, _ = write_stub_source(tmp_path, 36, 64, seconds=0.1, splits=few)
+    assert json.loads((tmp_path / "source.json").read_text()) == {"height": 36, "width": 64, "seconds": 0.1,
+                                                                 "videos": few}
+    assert len(list((frames / "source_000").glob("*.jpg"))) == 3  # 0.1 s at 30 fps
+    stamp = labels.stat().st_mtime
+    assert write_stub_source(tmp_path, 36, 64, seconds=0.1, splits=few)[1].stat().st_mtime == stamp  # reused
+    with pytest.raises(ValueError, match="made with .*choose another --out"):
+        write_stub_source(tmp_path, 72, 128, seconds=0.1, splits=few)
+
+
+@pytest.mark.parametrize("option, value, expected", [("--stub-source", "1280", "WxH"),
+                                                     ("--stub-source", "0x720", "WxH"),
+                                                     ("--stub-videos", "12,2", "TRAIN,VALID,TEST"),
+                                                     ("--stub-videos", "a,b,c", "TRAIN,VALID,TEST")])
+def test_bad_stub_source_options_are_named(tmp_path, option, value, expected):
+    args = {"--stub-source": "64x36", "--stub-videos": "1,1,1", option: value}
+    argv = [*(x for kv in args.items() for x in kv), "--budget-minutes", "1", "--out", str(tmp_path)]
+    with pytest.raises(SystemExit, match=f"{option}: expected {expected}"):
+        main(argv)
+    assert not (tmp_path / "source").exists()
