@@ -6,10 +6,15 @@ and ``j`` is among the ``k`` nearest such earlier nodes (ties by smaller index).
 cross samples. A node's incoming edges are fixed when it arrives, which is what makes
 streaming inference exact.
 
-Neighbours come from scipy ``cKDTree`` queries. A query returns the nearest nodes whatever
-their time, so for the causal graph it asks for more than ``k`` and keeps the earlier ones;
-rows where that was not enough to be sure of the ``k`` nearest earlier ones are asked again
-with a larger count. Distances are scipy's (float64), for the radius test and the ordering.
+Neighbours come from a scipy ``cKDTree``. When a cheap bound on the number of pairs within
+``r`` is small (:func:`pairs_bound`), the tree lists every pair within ``r`` at once
+(``query_pairs``) and each node keeps its ``k`` nearest earlier partners, one sort in all
+(:func:`knn_from_pairs`). Otherwise (dense clouds: the memory of all pairs is not bounded) it
+runs ``k``-nearest queries: a query returns the nearest nodes whatever their time, so for the
+causal graph it asks for more than ``k`` and keeps the earlier ones; rows where that was not
+enough to be sure of the ``k`` nearest earlier ones are asked again with a larger count
+(:func:`knn_within`). Both give the same edges: distances are float64, summed over the axes
+in order as scipy sums them, for the radius test and the ordering.
 """
 from __future__ import annotations
 
@@ -17,6 +22,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+PAIR_BUDGET = 1 << 23  # most pairs within r (bounded by pairs_bound) for the all-pairs path
 ROW_CHUNK = 1 << 14  # query rows per pass: bounds the (rows, ask) candidate matrices
 CANDIDATE_BUDGET = 1 << 22  # most (row, candidate) pairs per query pass, when ties force large asks
 
@@ -123,6 +129,47 @@ def neighbours_to_edges(idx: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return np.stack([src[valid], np.repeat(dst, valid.sum(axis=1))])
 
 
+def pairs_bound(points: np.ndarray, r: float) -> float:
+    """An upper bound on the ordered pairs (self-pairs included) of ``points`` within ``r``.
+
+    In cells of side ``r`` a point's partners lie in the ``3^D`` cells around its own (27 in 3-D),
+    so the pairs number at most ``sum_c n_c * sum_{c' near c} n_c' <= 3^D * sum_c n_c^2``.
+    """
+    if len(points) == 0:
+        return 0.0
+    cells = np.floor((points - points.min(axis=0)) / r).astype(np.int64)  # (N, D)
+    span = cells.max(axis=0) + 1
+    if float(np.prod(span.astype(np.float64))) >= 2.0 ** 62:  # cell ids would overflow: count the rows
+        _, counts = np.unique(cells, axis=0, return_counts=True)
+    else:
+        key = cells[:, 0]
+        for axis in range(1, cells.shape[1]):
+            key = key * span[axis] + cells[:, axis]
+        _, counts = np.unique(key, return_counts=True)
+    return 3.0 ** cells.shape[1] * float(np.dot(counts.astype(np.float64), counts))
+
+
+def knn_from_pairs(tree: cKDTree, points: np.ndarray, k: int, r: float) -> np.ndarray:
+    """Causal edges ``(2, E)`` sorted by (dst, src): per node its ``k`` nearest earlier nodes
+    within ``r`` by (distance, index), from every pair within ``r`` of the tree of ``points``."""
+    # scipy keeps pairs at most its bound: search a hair beyond r, keep d <= r.
+    pairs = tree.query_pairs(r * (1 + 1e-9), output_type="ndarray")  # (P, 2), first < second
+    src, dst = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
+    diff = points[src] - points[dst]  # (P, D)
+    squared = diff[:, 0] * diff[:, 0]
+    for axis in range(1, points.shape[1]):
+        squared = squared + diff[:, axis] * diff[:, axis]
+    dist = np.sqrt(squared)
+    within = dist <= r
+    src, dst, dist = src[within], dst[within], dist[within]
+    order = np.lexsort((src, dist, dst))  # by destination, then distance, then index
+    src, dst = src[order], dst[order]
+    rank = np.arange(len(dst)) - np.searchsorted(dst, dst, side="left")
+    src, dst = src[rank < k], dst[rank < k]
+    order = np.lexsort((src, dst))
+    return np.stack([src[order], dst[order]])
+
+
 BACKENDS = ("auto", "kdtree", "torch")
 
 
@@ -163,10 +210,13 @@ def radius_graph(pos, r: float, k: int, batch=None, *, workers: int = -1, backen
         sample = points[part]
         if len(sample) < 2:
             continue
-        ids = np.arange(len(sample))
         tree = cKDTree(sample, balanced_tree=False, compact_nodes=False)
-        idx, _ = knn_within(tree, sample, ids, k, r, workers=workers)
-        parts.append(neighbours_to_edges(idx, ids) + part.start)
+        if pairs_bound(sample, r) <= PAIR_BUDGET:
+            parts.append(knn_from_pairs(tree, sample, k, r) + part.start)
+        else:
+            ids = np.arange(len(sample))
+            idx, _ = knn_within(tree, sample, ids, k, r, workers=workers)
+            parts.append(neighbours_to_edges(idx, ids) + part.start)
     edges = np.concatenate(parts, axis=1) if parts else np.zeros((2, 0), dtype=np.int64)
     return torch.from_numpy(edges).to(device)
 

@@ -161,3 +161,43 @@ def test_backend_choice_and_refusals(monkeypatch):
 
     monkeypatch.setattr(radius_module, "radius_graph_torch", unused)
     assert radius_graph(pos.flip(0), 2.0, 2).tolist() == [[0], [1]]
+
+
+def test_all_pairs_path_equals_the_nearest_query_path(monkeypatch):
+    """The two kdtree paths (all pairs within r, or k-nearest queries) give identical edges, on
+    random clouds, grids with many equal distances, and event clouds with exact radius ties."""
+    import dagr_lite.graph.radius as radius_module
+
+    rng = np.random.default_rng(13)
+    clouds = []
+    for grid in (None, 2, 1):
+        clouds += [(time_sorted_cloud(rng, int(rng.integers(2, 400)), extent=float(rng.uniform(3, 12)), grid=grid),
+                    None) for _ in range(8)]
+    for _ in range(6):
+        n = int(rng.integers(2, 3000))
+        t = np.sort(rng.integers(0, 20_000, n))
+        clouds.append((np.stack([rng.integers(0, 30, n), rng.integers(0, 20, n), 5e-4 * t], 1).astype(float),
+                       torch.from_numpy(np.sort(rng.integers(0, 3, n)))))
+    clouds.append((rng.uniform(0, 5, (300, 2)), None))  # two-dimensional positions
+    for pos, batch in clouds:
+        for r, k in ((5.0, 16), (1.0, 2), (2.5, 40)):
+            pos_t = torch.from_numpy(pos)
+            monkeypatch.setattr(radius_module, "PAIR_BUDGET", 1 << 23)
+            assert radius_module.pairs_bound(pos, r) <= 1 << 23  # the all-pairs path is the one taken
+            pairs = radius_graph(pos_t, r, k, batch)
+            monkeypatch.setattr(radius_module, "PAIR_BUDGET", -1)  # force the query path
+            assert torch.equal(pairs, radius_graph(pos_t, r, k, batch))
+
+
+@pytest.mark.parametrize("grid", [None, 1])
+def test_pairs_bound_is_an_upper_bound(grid):
+    from dagr_lite.graph.radius import pairs_bound
+
+    rng = np.random.default_rng(14)
+    for _ in range(20):
+        pos = time_sorted_cloud(rng, int(rng.integers(1, 300)), extent=float(rng.uniform(1, 10)), grid=grid)
+        r = float(rng.choice([0.5, 1.0, 3.0]))
+        within = int((np.linalg.norm(pos[:, None] - pos[None], axis=2) <= r).sum())  # ordered, self included
+        assert within <= pairs_bound(pos, r)
+    assert pairs_bound(np.zeros((0, 3)), 1.0) == 0
+    assert pairs_bound(np.zeros((100, 3)), 1.0) == 27 * 100 ** 2  # one cell: the bound is 27 n^2
