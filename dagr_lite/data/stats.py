@@ -103,7 +103,7 @@ def rate_picture(path: Path, video: str, counts: dict) -> None:
     ax.set_ylim(bottom=0)
     ax.legend(loc="upper right")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 
@@ -138,7 +138,7 @@ def frame_pictures(root: Path, split: str, video: str, k: int, boxes: np.ndarray
                xlabel="x (px)", ylabel="y (px)")
         _colour_legend(ax, with_box=background is not None)
         fig.tight_layout()
-        fig.savefig(out / name, dpi=110)
+        fig.savefig(out / name, dpi=110, bbox_inches="tight")
         plt.close(fig)
     presets_picture(root, split, video, k, fps, out / names[2])
     return names
@@ -149,8 +149,10 @@ def _colour_legend(ax, *, with_box: bool) -> None:
                plt.Line2D([], [], marker="s", ls="", color=OFF_COLOUR, label="OFF")]
     if with_box:
         handles.append(plt.Line2D([], [], color=(0.1, 0.9, 0.1), label="hand box"))
-    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=len(handles), fontsize=8,
-              frameon=False)  # below the picture, where it hides nothing
+    # Below the picture (clear of the tick labels and the axis label, whatever the axes' height),
+    # where it hides nothing.
+    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, 0.0), borderaxespad=4.2,
+              ncol=len(handles), fontsize=8, frameon=False)
 
 
 def presets_picture(root: Path, split: str, video: str, k: int, fps: float, path: Path, upsample: int = 6) -> None:
@@ -181,7 +183,7 @@ def presets_picture(root: Path, split: str, video: str, k: int, fps: float, path
     fig.suptitle(f"{video}: the same moment emulated with the clean and the noisy DVS presets "
                  f"(from its frames {first}-{k}, {upsample} steps per frame interval)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 
