@@ -278,6 +278,13 @@ class TrainLoop:
         return [shard[i] for i in range(max(len(x) for x in shards)) for shard in shards if i < len(shard)]
 
 
+def budget_overrides(minutes: float, steps: int | None = None) -> list[str]:
+    """Config overrides that train for ``minutes`` of wall time, or ``steps`` steps if given
+    (still capped by the minutes): what the tools that train to a time budget pass."""
+    length = [f"trainer.max_steps={steps}"] if steps else ["trainer.max_steps=null", "trainer.max_epochs=100000"]
+    return [f"trainer.max_minutes={minutes}", *length]
+
+
 def make_total(cfg: DictConfig, steps_per_epoch: int) -> int:
     trainer = cfg.trainer
     return int(trainer.max_steps) if trainer.max_steps is not None else int(trainer.max_epochs) * steps_per_epoch

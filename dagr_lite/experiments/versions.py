@@ -79,12 +79,11 @@ def train_version(root: Path, run: Path, *, minutes: float, steps: int | None, s
                   overrides: list[str] = ()) -> Path:
     """The default hybrid trained on ``root`` for the budget; a finished run is reused."""
     from dagr_lite.config import compose_config
-    from dagr_lite.engine.train import train
+    from dagr_lite.engine.train import budget_overrides, train
 
     if not (run / "metrics.json").exists():
-        length = [f"trainer.max_steps={steps}"] if steps else ["trainer.max_steps=null", "trainer.max_epochs=100000"]
         train(compose_config("train", ["dataset=custom", f"dataset.root={root}", f"run_dir={run}", f"seed={seed}",
-                                       f"trainer.max_minutes={minutes}", "trainer.val_every=200", *RECIPE, *length,
+                                       "trainer.val_every=200", *RECIPE, *budget_overrides(minutes, steps),
                                        *overrides]))
     return run / "checkpoints" / "best.pt"
 

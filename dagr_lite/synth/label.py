@@ -81,15 +81,14 @@ def train_detector(work: Path, out: Path, *, minutes: float, steps: int | None, 
     """``model=image_only`` on the kept labels of ``work``'s training videos (``samples`` frames),
     each frame with its own image; returns its checkpoint."""
     from dagr_lite.config import compose_config
-    from dagr_lite.engine.train import train
+    from dagr_lite.engine.train import budget_overrides, train
 
-    length = [f"trainer.max_steps={steps}"] if steps else ["trainer.max_steps=null", "trainer.max_epochs=100000"]
     cfg = compose_config("train", ["dataset=custom", f"dataset.root={work}", "model=image_only",
                                    f"run_dir={out / 'train'}", "data.labelled_only=true", f"seed={seed}",
                                    "data.image_age=0", "data.train_image_age=[0,0]",
                                    f"loader.batch_size={max(1, min(16, samples))}",
                                    "optim.lr=1e-3", "trainer.warmup_steps=20", "trainer.val_every=200",
-                                   "trainer.image_every=0", f"trainer.max_minutes={minutes}", *length])
+                                   "trainer.image_every=0", *budget_overrides(minutes, steps)])
     train(cfg)
     return out / "train" / "checkpoints" / "best.pt"
 
