@@ -151,7 +151,12 @@ def pairs_bound(points: np.ndarray, r: float) -> float:
 
 def knn_from_pairs(tree: cKDTree, points: np.ndarray, k: int, r: float) -> np.ndarray:
     """Causal edges ``(2, E)`` sorted by (dst, src): per node its ``k`` nearest earlier nodes
-    within ``r`` by (distance, index), from every pair within ``r`` of the tree of ``points``."""
+    within ``r`` by (distance, index), from every pair within ``r`` of the tree of ``points``.
+
+    Most nodes have at most ``k`` earlier nodes within ``r`` and keep them all: only the pairs of
+    the others are ranked by distance. Edges are ordered by one sort of ``dst * n + src`` keys.
+    """
+    n = len(points)
     # scipy keeps pairs at most its bound: search a hair beyond r, keep d <= r.
     pairs = tree.query_pairs(r * (1 + 1e-9), output_type="ndarray")  # (P, 2), first < second
     src, dst = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
@@ -159,15 +164,19 @@ def knn_from_pairs(tree: cKDTree, points: np.ndarray, k: int, r: float) -> np.nd
     squared = diff[:, 0] * diff[:, 0]
     for axis in range(1, points.shape[1]):
         squared = squared + diff[:, axis] * diff[:, axis]
-    dist = np.sqrt(squared)
-    within = dist <= r
-    src, dst, dist = src[within], dst[within], dist[within]
-    order = np.lexsort((src, dist, dst))  # by destination, then distance, then index
-    src, dst = src[order], dst[order]
-    rank = np.arange(len(dst)) - np.searchsorted(dst, dst, side="left")
-    src, dst = src[rank < k], dst[rank < k]
-    order = np.lexsort((src, dst))
-    return np.stack([src[order], dst[order]])
+    within = np.sqrt(squared) <= r
+    src, dst, squared = src[within], dst[within], squared[within]
+    crowded = np.bincount(dst, minlength=n) > k  # (n,) nodes with more candidates than k
+    keys = dst * n + src
+    heavy = crowded[dst]
+    if heavy.any():
+        h_src, h_dst, h_dist = src[heavy], dst[heavy], np.sqrt(squared[heavy])
+        order = np.lexsort((h_src, h_dist, h_dst))  # by destination, then distance, then index
+        h_dst = h_dst[order]
+        rank = np.arange(len(h_dst)) - np.searchsorted(h_dst, h_dst, side="left")
+        keys = np.concatenate([keys[~heavy], h_dst[rank < k] * n + h_src[order][rank < k]])
+    keys = np.sort(keys)
+    return np.stack([keys % n, keys // n])
 
 
 BACKENDS = ("auto", "kdtree", "torch")
