@@ -164,13 +164,14 @@ def knn_from_pairs(tree: cKDTree, points: np.ndarray, k: int, r: float) -> np.nd
     squared = diff[:, 0] * diff[:, 0]
     for axis in range(1, points.shape[1]):
         squared = squared + diff[:, axis] * diff[:, axis]
-    within = np.sqrt(squared) <= r
-    src, dst, squared = src[within], dst[within], squared[within]
+    dist = np.sqrt(squared)
+    within = dist <= r
+    src, dst, dist = src[within], dst[within], dist[within]
     crowded = np.bincount(dst, minlength=n) > k  # (n,) nodes with more candidates than k
     keys = dst * n + src
     heavy = crowded[dst]
     if heavy.any():
-        h_src, h_dst, h_dist = src[heavy], dst[heavy], np.sqrt(squared[heavy])
+        h_src, h_dst, h_dist = src[heavy], dst[heavy], dist[heavy]
         order = np.lexsort((h_src, h_dist, h_dst))  # by destination, then distance, then index
         h_dst = h_dst[order]
         rank = np.arange(len(h_dst)) - np.searchsorted(h_dst, h_dst, side="left")
