@@ -8,8 +8,8 @@ streaming inference exact.
 
 Neighbours come from a scipy ``cKDTree``. When a cheap bound on the number of pairs within
 ``r`` is small (:func:`pairs_bound`), the tree lists every pair within ``r`` at once
-(``query_pairs``) and each node keeps its ``k`` nearest earlier partners, one sort in all
-(:func:`knn_from_pairs`). Otherwise (dense clouds: the memory of all pairs is not bounded) it
+(``query_pairs``) and each node keeps its ``k`` nearest earlier partners; only nodes with
+more than ``k`` partners are ranked by distance (:func:`knn_from_pairs`). Otherwise (dense clouds: the memory of all pairs is not bounded) it
 runs ``k``-nearest queries: a query returns the nearest nodes whatever their time, so for the
 causal graph it asks for more than ``k`` and keeps the earlier ones; rows where that was not
 enough to be sure of the ``k`` nearest earlier ones are asked again with a larger count
