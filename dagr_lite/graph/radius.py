@@ -9,9 +9,9 @@ streaming inference exact.
 Neighbours come from a scipy ``cKDTree``. When a cheap bound on the number of pairs within
 ``r`` is small (:func:`pairs_bound`), the tree lists every pair within ``r`` at once
 (``query_pairs``) and each node keeps its ``k`` nearest earlier partners; only nodes with
-more than ``k`` partners are ranked by distance (:func:`knn_from_pairs`). Otherwise (dense clouds: the memory of all pairs is not bounded) it
-runs ``k``-nearest queries: a query returns the nearest nodes whatever their time, so for the
-causal graph it asks for more than ``k`` and keeps the earlier ones; rows where that was not
+more than ``k`` partners are ranked by distance (:func:`knn_from_pairs`). Otherwise (dense
+clouds: the memory of all pairs is not bounded) it runs ``k``-nearest queries: a query returns
+the nearest nodes whatever their time, so for the causal graph it asks for more than ``k`` and keeps the earlier ones; rows where that was not
 enough to be sure of the ``k`` nearest earlier ones are asked again with a larger count
 (:func:`knn_within`). Both give the same edges: distances are float64, summed over the axes
 in order as scipy sums them, for the radius test and the ordering.
