@@ -236,12 +236,17 @@ class EventEgoHands(Dataset):
         """``(video, label frame k)`` of sample ``index``, without reading it."""
         return self.videos[self._sample_video[index]], int(self._sample_frame[index])
 
-    def __getitem__(self, index: int) -> Sample:
+    def __getitem__(self, index: int | tuple[int, int]) -> Sample:
+        """Sample ``index`` as drawn in the current epoch (:meth:`set_epoch`), or with an
+        ``(epoch, index)`` pair as drawn in that epoch (its image age, thinning and augmentation)."""
+        epoch = self.epoch
+        if isinstance(index, tuple):
+            epoch, index = index
         if not -len(self) <= index < len(self):
             raise IndexError(f"sample index {index} out of range for {len(self)} samples")
         index = int(index) % len(self)
         v, k = int(self._sample_video[index]), int(self._sample_frame[index])
-        rng = np.random.default_rng([self.seed, self.epoch, index])
+        rng = np.random.default_rng([self.seed, int(epoch), index])
         low, high = self.age_range
         age = int(rng.integers(low, min(high, k) + 1)) if high > low else low
         t_end = self.frame_time_us(v, k)

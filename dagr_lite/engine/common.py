@@ -173,6 +173,35 @@ class EpochSampler(Sampler[int]):
         return remaining // (self.batch_size * self.world_size) * self.batch_size
 
 
+class RunSampler(Sampler[tuple[int, int]]):
+    """``(epoch, index)`` pairs for a whole run: the orders of an :class:`EpochSampler`, epoch
+    after epoch, from a position on, without end.
+
+    One loader iterator (and its workers) then serves every epoch: nothing restarts at an
+    epoch's end and the workers prepare the next epoch's first batches while the last ones
+    train. Each epoch gives whole batches of ``batch_size`` only, so no batch mixes two
+    epochs, and the dataset reads each sample's epoch from its pair (its image age, thinning
+    and augmentation), not from a shared ``set_epoch``.
+    """
+
+    def __init__(self, epochs: EpochSampler, batch_size: int):
+        self.epochs, self.batch_size = epochs, batch_size
+        self.first, self.start = 0, 0
+
+    def start_at(self, epoch: int, start: int = 0) -> None:
+        """Begin at ``epoch``, ``start`` samples into its global order (a resumed run's position)."""
+        self.first, self.start = int(epoch), int(start)
+
+    def __iter__(self):
+        epoch, start = self.first, self.start
+        while True:
+            self.epochs.set_epoch(epoch, start)
+            order = list(self.epochs)
+            for index in order[:len(order) // self.batch_size * self.batch_size]:
+                yield epoch, index
+            epoch, start = epoch + 1, 0
+
+
 class ShardSampler(Sampler[int]):
     """Indices ``rank, rank + world_size, ...`` of ``size``, in order: one evaluation shard per rank."""
 
@@ -189,7 +218,8 @@ class ShardSampler(Sampler[int]):
 def make_loader(dataset: EventEgoHands, *, batch_size: int, num_workers: int, sampler: Sampler | None = None,
                 graph: EventGraphSpec | None = None, drop_last: bool = False) -> DataLoader:
     """A loader with :func:`collate`; with ``graph`` (the model's own spec) its workers also build
-    the event graph. Workers start per epoch, so ``dataset.set_epoch`` reaches them."""
+    the event graph. Training passes a :class:`RunSampler`, whose ``(epoch, index)`` pairs carry
+    each sample's epoch to the workers."""
     collate_fn = GraphCollate(graph) if graph is not None else collate
     return DataLoader(dataset, batch_size=batch_size, sampler=sampler, shuffle=False, num_workers=num_workers,
                       collate_fn=collate_fn, drop_last=drop_last, pin_memory=torch.cuda.is_available(),

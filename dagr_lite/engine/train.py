@@ -24,8 +24,8 @@ from tqdm import tqdm
 
 from dagr_lite.config import build_dataset, build_model, build_optimizer, check_values, resolve_config
 from dagr_lite.data.dataset import EventEgoHands
-from dagr_lite.engine.common import (EpochSampler, ShardSampler, load_checkpoint, make_loader, resolve_device,
-                                     run_folder, save_checkpoint, seed_everything)
+from dagr_lite.engine.common import (EpochSampler, RunSampler, ShardSampler, load_checkpoint, make_loader,
+                                     resolve_device, run_folder, save_checkpoint, seed_everything)
 from dagr_lite.engine.distributed import (Distributed, broadcast_object, cleanup, gather_objects, global_normaliser,
                                           mean_over_ranks, setup, synchronise_batch_norm)
 from dagr_lite.engine.state import TrainState, train_step, validate
@@ -55,8 +55,8 @@ class TrainData:
     with an image also the largest training age)."""
 
     train_set: EventEgoHands
-    sampler: EpochSampler
-    train_loader: DataLoader
+    sampler: RunSampler
+    train_loader: DataLoader  # one iterator serves the whole run (see RunSampler)
     valid_loaders: dict[int, DataLoader]
     batch_size: int  # per process
     place: Distributed
@@ -64,6 +64,11 @@ class TrainData:
     @property
     def global_batch_size(self) -> int:
         return self.batch_size * self.place.world_size
+
+    @property
+    def steps_per_epoch(self) -> int:
+        """Whole global batches per epoch (an incomplete last one is dropped)."""
+        return len(self.train_set) // self.global_batch_size
 
 
 def validation_ages(cfg: DictConfig) -> list[int]:
@@ -88,10 +93,10 @@ def make_data(cfg: DictConfig, train_set: EventEgoHands, model, place: Distribut
     if len(train_set) < global_batch:
         raise ValueError(f"loader.batch_size={batch_size} x {place.world_size} processes, but the train split has "
                          f"{len(train_set)} samples: no batch can be made")
-    sampler = EpochSampler(len(train_set), seed=cfg.seed, rank=place.rank, world_size=place.world_size,
-                           batch_size=batch_size)
+    sampler = RunSampler(EpochSampler(len(train_set), seed=cfg.seed, rank=place.rank, world_size=place.world_size,
+                                      batch_size=batch_size), batch_size)
     train_loader = make_loader(train_set, batch_size=batch_size, num_workers=workers, sampler=sampler,
-                               graph=model.graph_spec, drop_last=True)
+                               graph=model.graph_spec)
     valid_loaders = {age: make_loader(dataset, batch_size=batch_size, num_workers=workers, graph=model.graph_spec,
                                       sampler=ShardSampler(len(dataset), rank=place.rank, world_size=place.world_size)
                                       if place.enabled else None)
@@ -164,7 +169,7 @@ class TrainLoop:
         self.cfg, self.state, self.data, self.writer = cfg, state, data, writer
         self.trainer, self.place = cfg.trainer, data.place
         self.checkpoints = run_dir / "checkpoints"
-        self.steps_per_epoch = len(data.train_loader)
+        self.steps_per_epoch = data.steps_per_epoch
         self.total = make_total(cfg, self.steps_per_epoch)
         self.val_every = self.trainer.val_every or self.steps_per_epoch
         self.config = OmegaConf.to_container(cfg, resolve=True)
@@ -174,33 +179,37 @@ class TrainLoop:
             epoch, start = divmod(state.step, self.steps_per_epoch)
             position = {"epoch": epoch, "offset": start * data.global_batch_size}
         self.epoch, self.offset = int(position["epoch"]), int(position["offset"])
+        if self.offset >= self.steps_per_epoch * data.global_batch_size:  # saved after an epoch's last batch
+            self.epoch, self.offset = self.epoch + 1, 0
         self.saved_at = time.monotonic()
 
     def run(self) -> dict:
         started, state = time.monotonic(), self.state
         bar = tqdm(total=self.total, initial=state.step, desc="training", unit="step", disable=not self.place.is_main)
-        while state.step < self.total:
-            self.data.sampler.set_epoch(self.epoch, self.offset)
-            self.data.train_set.set_epoch(self.epoch)
-            for batch in self.data.train_loader:
-                batch = batch.to(state.device, non_blocking=True)
-                out = mean_over_ranks(train_step(state, batch), self.place)
-                self.offset += self.data.global_batch_size
-                self.losses.append(float(out["loss"]))
-                bar.update(1)
-                bar.set_postfix(loss=f"{self.losses[-1]:.3f}", lr=f"{state.lr:.2e}")
-                self.log(out, batch)
-                out_of_time = self.out_of_time(started)
-                if state.step % self.val_every == 0 or state.step == self.total or out_of_time:
-                    self.save_and_validate()
-                elif self.checkpoint_due():
-                    self.save("last.pt")
-                if state.step >= self.total or out_of_time:
-                    bar.close()
-                    return self.metrics
-            self.epoch, self.offset = self.epoch + 1, 0
+        if state.step >= self.total:  # resumed at the end
+            bar.close()
+            return self.metrics if self.metrics is not None else self.save_and_validate()
+        epoch_samples = self.steps_per_epoch * self.data.global_batch_size
+        self.data.sampler.start_at(self.epoch, self.offset)
+        for batch in self.data.train_loader:  # every epoch from here on, one iterator
+            batch = batch.to(state.device, non_blocking=True)
+            out = mean_over_ranks(train_step(state, batch), self.place)
+            self.offset += self.data.global_batch_size
+            if self.offset >= epoch_samples:
+                self.epoch, self.offset = self.epoch + 1, 0
+            self.losses.append(float(out["loss"]))
+            bar.update(1)
+            bar.set_postfix(loss=f"{self.losses[-1]:.3f}", lr=f"{state.lr:.2e}")
+            self.log(out, batch)
+            out_of_time = self.out_of_time(started)
+            if state.step % self.val_every == 0 or state.step == self.total or out_of_time:
+                self.save_and_validate()
+            elif self.checkpoint_due():
+                self.save("last.pt")
+            if state.step >= self.total or out_of_time:
+                break
         bar.close()
-        return self.metrics if self.metrics is not None else self.save_and_validate()  # resumed at the end
+        return self.metrics
 
     def out_of_time(self, started: float) -> bool:
         minutes = self.trainer.max_minutes
@@ -345,7 +354,7 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
         model = synchronise_batch_norm(model, device)
         model.loss_normaliser = global_normaliser(place)
     data = make_data(cfg, train_set, model, place)
-    state = make_state(cfg, model, len(data.train_loader), device)
+    state = make_state(cfg, model, data.steps_per_epoch, device)
     saved = resume(state, resume_from, run_dir / "checkpoints", place) if resume_from else None
     if place.enabled:
         state.forward = DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None)

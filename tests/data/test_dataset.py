@@ -100,6 +100,25 @@ def test_new_epochs_reach_loader_workers(dataset):
     assert not torch.equal(next(iter(loader)).events, first)
 
 
+def test_epoch_index_pairs_draw_as_that_epoch(dataset):
+    """``ds[(epoch, i)]`` is ``ds[i]`` after ``set_epoch(epoch)``, through loader workers too."""
+    from dagr_lite.engine.common import make_loader
+    ds = EventEgoHands(dataset.root, "train", image_age=(1, 4), max_events=20, seed=0)
+    for epoch in (0, 3):
+        for i in range(len(ds)):
+            ds.set_epoch(epoch)
+            by_epoch = ds[i]
+            ds.set_epoch(5)  # the pair's epoch wins over the shared one
+            by_pair = ds[(epoch, i)]
+            assert by_pair.image_frame == by_epoch.image_frame
+            assert np.array_equal(by_pair.events, by_epoch.events)
+    pairs = [(epoch, i) for epoch in (0, 3) for i in range(4)]
+    loaded = list(make_loader(ds, batch_size=4, num_workers=2, sampler=pairs))
+    for b, epoch in enumerate((0, 3)):
+        assert torch.equal(loaded[b].events, collate([ds[(epoch, i)] for i in range(4)]).events)
+    assert not torch.equal(loaded[0].events, loaded[1].events)
+
+
 def test_missing_split_folder(dataset):
     with pytest.raises(DatasetFormatError, match=r"valid: split folder is missing"):
         EventEgoHands(dataset.root / "nowhere", "valid")

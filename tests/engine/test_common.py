@@ -4,7 +4,7 @@ import pytest
 import torch
 from torch import nn
 
-from dagr_lite.engine.common import EpochSampler, ModelEMA, warmup_cosine
+from dagr_lite.engine.common import EpochSampler, ModelEMA, RunSampler, warmup_cosine
 
 
 def test_warmup_cosine_by_hand():
@@ -112,3 +112,28 @@ def test_epoch_sampler_without_shuffle_is_in_range_order():
         assert list(sampler) == list(range(10))
     sampler.set_epoch(5, start=4)
     assert list(sampler) == list(range(4, 10)) and len(sampler) == 6
+
+
+@pytest.mark.parametrize("world_size", [1, 2])
+def test_run_sampler_chains_whole_batches_of_each_epoch(world_size):
+    """Epoch after epoch, the epoch sampler's order cut to whole batches, each index with its epoch."""
+    size, batch = 23, 3  # 7 batches of 3 on one process (2 samples dropped); 3 global batches of 6 on two
+
+    def epoch_order(epoch, start=0, rank=0):
+        sampler = EpochSampler(size, seed=4, rank=rank, world_size=world_size, batch_size=batch)
+        sampler.set_epoch(epoch, start)
+        order = list(sampler)
+        return order[:len(order) // batch * batch]
+
+    for rank in range(world_size):
+        run = RunSampler(EpochSampler(size, seed=4, rank=rank, world_size=world_size, batch_size=batch), batch)
+        per_epoch = len(epoch_order(0, rank=rank))
+        assert per_epoch == (21 if world_size == 1 else 9)
+        pairs = [pair for _, pair in zip(range(3 * per_epoch), run)]
+        expected = [(e, i) for e in range(3) for i in epoch_order(e, rank=rank)]
+        assert pairs == expected
+        run.start_at(2, 6)  # a resumed run: epoch 2, six samples of the global order done
+        pairs = [pair for _, pair in zip(range(per_epoch), run)]
+        first = epoch_order(2, 6, rank=rank)
+        assert pairs[:len(first)] == [(2, i) for i in first]
+        assert pairs[len(first):] == [(3, i) for i in epoch_order(3, rank=rank)][:per_epoch - len(first)]

@@ -77,6 +77,37 @@ def test_resume_continues_exactly(tmp_path, monkeypatch):
     assert torch.allclose(torch.tensor(resumed["losses"]), torch.tensor(whole["losses"][3:]), rtol=1e-4)
 
 
+def test_resume_continues_exactly_across_epoch_ends(tmp_path, monkeypatch):
+    """22 training samples in batches of 4: 5 steps an epoch. One loader iterator serves every
+    epoch; runs resumed mid-epoch and right after an epoch's last step see the same batches."""
+    from tests.conftest import make_dataset
+    written = make_dataset(tmp_path / "ds", num_frames=12, compression=None)
+    saved = {}
+    original = train_module.save_checkpoint
+
+    def keep_copies(path, state):
+        original(path, state)
+        if path.name == "last.pt":
+            copy = path.with_name(f"step{state['step']}.pt")
+            original(copy, state)
+            saved[state["step"]] = copy
+
+    monkeypatch.setattr(train_module, "save_checkpoint", keep_copies)
+
+    def run(name, *overrides):
+        return train(config("train", f"run_dir={tmp_path / name}", "dataset=custom", f"dataset.root={written.root}",
+                            "loader.batch_size=4", "trainer.max_steps=12", "trainer.val_every=100",
+                            "trainer.checkpoint_every=1", "trainer.image_every=0", "trainer.warmup_steps=2",
+                            *overrides))
+
+    whole = run("whole", "loader.num_workers=2")
+    assert whole["step"] == 12
+    for start in (3, 5, 10):  # mid-epoch, after the first epoch's last step, after the second's
+        resumed = run(f"from{start}", "loader.num_workers=0", f"resume={saved[start]}")
+        assert resumed["step"] == 12 and len(resumed["losses"]) == 12 - start
+        assert torch.allclose(torch.tensor(resumed["losses"]), torch.tensor(whole["losses"][start:]), rtol=1e-4)
+
+
 def test_non_finite_loss_stops_with_the_step(tmp_path, monkeypatch):
     import dagr_lite.nn.detector as detector_module
     real = detector_module.yolox_losses
