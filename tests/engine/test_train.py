@@ -59,7 +59,8 @@ def test_smoke_training_lowers_the_loss_then_evaluate_scores_the_checkpoint(tmp_
     assert json.loads((tmp_path / "cli" / "metrics.json").read_text())["split"] == "valid"
 
 
-def test_resume_continues_exactly(tmp_path, monkeypatch):
+def keep_last_copies(monkeypatch) -> dict:
+    """``{step: path}`` of a copy of every ``last.pt`` the run saves."""
     saved = {}
     original = train_module.save_checkpoint
 
@@ -71,6 +72,11 @@ def test_resume_continues_exactly(tmp_path, monkeypatch):
             saved[state["step"]] = copy
 
     monkeypatch.setattr(train_module, "save_checkpoint", keep_copies)
+    return saved
+
+
+def test_resume_continues_exactly(tmp_path, monkeypatch):
+    saved = keep_last_copies(monkeypatch)
     whole = train(small(tmp_path / "a", "trainer.max_steps=5", "trainer.val_every=3"))
     resumed = train(small(tmp_path / "b", "trainer.max_steps=5", "trainer.val_every=3", f"resume={saved[3]}"))
     assert resumed["step"] == 5 and len(resumed["losses"]) == 2
@@ -82,17 +88,7 @@ def test_resume_continues_exactly_across_epoch_ends(tmp_path, monkeypatch):
     epoch; runs resumed mid-epoch and right after an epoch's last step see the same batches."""
     from tests.conftest import make_dataset
     written = make_dataset(tmp_path / "ds", num_frames=12, compression=None)
-    saved = {}
-    original = train_module.save_checkpoint
-
-    def keep_copies(path, state):
-        original(path, state)
-        if path.name == "last.pt":
-            copy = path.with_name(f"step{state['step']}.pt")
-            original(copy, state)
-            saved[state["step"]] = copy
-
-    monkeypatch.setattr(train_module, "save_checkpoint", keep_copies)
+    saved = keep_last_copies(monkeypatch)
 
     def run(name, *overrides):
         return train(config("train", f"run_dir={tmp_path / name}", "dataset=custom", f"dataset.root={written.root}",
