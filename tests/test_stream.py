@@ -127,6 +127,19 @@ def test_streaming_equals_the_batch_model_at_any_moment(variant, weights):
     assert checks >= 20 and largest >= 300  # many answers, some over large samples
 
 
+def test_streaming_equals_the_batch_model_with_head_strides_from_16():
+    """A hybrid that reads strides 16 and 32 only (its image branch still passes stride 8)."""
+    torch.manual_seed(4)
+    cfg = small_detector_config(H, W, variant="hybrid", image_width=8, event_channels=(8, 8, 8), head_hidden=16,
+                                strides=(16, 32))
+    model = trained(Detector(cfg).double())
+    rng = np.random.default_rng(6)
+    events = random_stream(rng, 2500, 250_000)
+    images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 190_000)]
+    checks, largest, _ = replay(model, events, images, seed=8)
+    assert checks >= 20 and largest >= 300
+
+
 @pytest.mark.parametrize("variant", ["hybrid", "events_only"])
 def test_streaming_stays_exact_across_long_gaps(variant):
     """Gaps longer than the window (everything leaves it) and than the float32 re-origin span."""

@@ -12,6 +12,7 @@ variants); nothing else changes.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 from typing import Sequence
 
@@ -37,29 +38,35 @@ class _Residual(nn.Module):
 
 
 class ImageBranch(nn.Module):
-    """A small CNN from scratch: a stride-4 stem, then one downsampling stage per head stride.
+    """A small CNN from scratch: a stride-4 stem, then one downsampling stage per doubling of
+    the stride up to the largest head stride.
 
     Args:
-        width: ``w``, the stem's channels; stage ``i`` has ``2^(i+1) w``.
-        strides: the head's strides, each twice the one before, starting at 8.
+        width: ``w``, the stem's channels; the stage at stride ``4 * 2^(i + 1)`` has ``2^(i + 2) w``.
+        strides: the head's strides, each twice the one before, starting at 8 or above.
 
     Shapes:
-        images ``(B, 3, H, W)`` uint8 -> maps at strides ``(4, *strides)`` with
-        ``channels = (2w, 4w, 8w, ...)``.
+        images ``(B, 3, H, W)`` uint8 -> maps at strides ``(4, *strides)`` (the stride-4 map is
+        what event nodes sample at the input level), with ``channels = (2w, ...)``.
     """
 
     def __init__(self, width: int, strides: Sequence[int]):
         super().__init__()
-        expected = [8 * 2 ** i for i in range(len(strides))]
-        if list(strides) != expected:
-            raise ValueError(f"the image branch needs strides {expected} (each twice the one before, "
-                             f"starting at 8), got {list(strides)}")
+        strides = [int(s) for s in strides]
+        first = strides[0] if strides else 0
+        if (not strides or first < 8 or first & (first - 1)
+                or strides != [first * 2 ** i for i in range(len(strides))]):
+            raise ValueError(f"the image branch needs strides that double, starting at a power of two >= 8 "
+                             f"(e.g. [8, 16, 32] or [16, 32]), got {list(strides)}")
         self.strides = (4, *strides)
-        self.channels = tuple(2 ** (i + 1) * width for i in range(len(self.strides)))
+        stage_strides = [8 * 2 ** i for i in range(int(math.log2(strides[-1] // 4)))]  # 8, 16, ..., largest
+        stage_channels = [2 * width] + [4 * width * 2 ** i for i in range(len(stage_strides))]
+        self.read = [0] + [1 + stage_strides.index(s) for s in strides]  # which maps are given out
+        self.channels = tuple(stage_channels[i] for i in self.read)
         self.stem = nn.Sequential(conv_bn_act(3, width, stride=2), conv_bn_act(width, 2 * width, stride=2),
                                   _Residual(2 * width))
         self.stages = nn.ModuleList(nn.Sequential(conv_bn_act(c_in, c_out, stride=2), _Residual(c_out))
-                                    for c_in, c_out in zip(self.channels[:-1], self.channels[1:]))
+                                    for c_in, c_out in zip(stage_channels[:-1], stage_channels[1:]))
 
     def forward(self, images: torch.Tensor) -> list[torch.Tensor]:
         x = self.stem(images.to(self.stem[0][0].weight.dtype) / 255.0 - 0.5)  # (B, 2w, H/4, W/4)
@@ -67,7 +74,7 @@ class ImageBranch(nn.Module):
         for stage in self.stages:
             x = stage(x)
             maps.append(x)
-        return maps
+        return [maps[i] for i in self.read]
 
 
 def sample_at(feature: torch.Tensor, xy: torch.Tensor, batch: torch.Tensor, stride: int) -> torch.Tensor:

@@ -1,5 +1,6 @@
 import math
 
+import pytest
 import torch
 import torch.nn.functional as F
 
@@ -112,6 +113,23 @@ def test_branch_and_head_shapes():
     dets = postprocess(raw, shapes, [8, 16, 32], image_size=(180, 320))
     assert len(dets) == 2 and dets[0]["boxes"].shape[1] == 4 and len(dets[0]["boxes"]) <= 100
     assert torch.all(dets[0]["boxes"][:, 2] <= 320) and torch.all(dets[0]["boxes"][:, 3] <= 180)
+
+
+def test_image_branch_gives_out_the_head_strides_only():
+    """Strides from 16 keep the stride-8 stage (it leads to 16) but give out only the stride-4
+    map and the head's; the layers, and so the weights, are those of [8, 16, 32]."""
+    torch.manual_seed(0)
+    full = ImageBranch(width=8, strides=(8, 16, 32))
+    coarse = ImageBranch(width=8, strides=(16, 32))
+    assert coarse.strides == (4, 16, 32) and coarse.channels == (16, 64, 128)
+    coarse.load_state_dict(full.state_dict())  # same layers
+    images = torch.randint(0, 255, (2, 3, 180, 320), dtype=torch.uint8)
+    full.eval(), coarse.eval()
+    every, given = full(images), coarse(images)
+    assert len(given) == 3 and all(torch.equal(a, b) for a, b in zip(given, [every[0], every[2], every[3]]))
+    for bad in ((4, 8), (8, 32), (12, 24), (16,) * 2, ()):
+        with pytest.raises(ValueError, match="strides that double"):
+            ImageBranch(width=8, strides=bad)
 
 
 def sigmoid(x: float) -> float:
