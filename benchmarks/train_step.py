@@ -10,6 +10,11 @@ worker processes that also build the event graph). Prints per step: time waiting
 samples per second, and the peak resident memory of the training process; and, for reference,
 the graph building time of one batch in a single process. The check: waiting for data must
 stay below a third of a step.
+
+Then the same steps again on batches loaded beforehand (no workers running): the step's own
+compute. Its ratio to the step with the workers is what the loader costs when it shares the
+cores with the step (on few cores the workers' graph building slows the step's own threads,
+even while no time is spent waiting for data).
 """
 from __future__ import annotations
 
@@ -83,8 +88,10 @@ def run(variant: str, height: int, width: int, args) -> None:
         waits.append(loaded - start)
         forwards.append(forwarded - loaded)
         backwards.append(done - forwarded)
+    del iterator  # the workers stop
     wait, fwd, bwd = (float(np.mean(x)) for x in (waits, forwards, backwards))
     step = wait + fwd + bwd
+    alone = step_alone(model, optimizer, dataset, args)
     graph_note = ""
     if graph is not None:
         samples = [dataset[i] for i in range(args.batch)]
@@ -96,6 +103,23 @@ def run(variant: str, height: int, width: int, args) -> None:
     print(f"{variant:11s} {width}x{height}: step {step:6.2f} s = wait for data {wait:5.2f} + forward {fwd:5.2f} "
           f"+ backward {bwd:5.2f}; {args.batch / step:5.1f} samples/s; data {wait / step:4.0%} of a step [{verdict}]"
           f"{graph_note}; peak RSS {peak:.0f} MiB", flush=True)
+    print(f"{'':11s} {width}x{height}: the same steps on batches loaded beforehand {alone:6.2f} s: the step with "
+          f"the loader's workers running takes {step / alone:4.2f}x the step alone", flush=True)
+
+
+def step_alone(model, optimizer, dataset, args) -> float:
+    """Mean time of ``args.steps`` training steps on batches loaded beforehand (no loader running)."""
+    loader = make_loader(dataset, batch_size=args.batch, num_workers=0, graph=model.graph_spec)
+    batches = [batch for _, batch in zip(range(args.steps + 1), loader)]
+    times = []
+    for batch in batches:
+        start = time.perf_counter()
+        out = model(batch)
+        optimizer.zero_grad()
+        out["loss"].backward()
+        optimizer.step()
+        times.append(time.perf_counter() - start)
+    return float(np.mean(times[1:]))  # the first is a warm-up
 
 
 def main() -> None:
