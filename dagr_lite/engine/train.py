@@ -170,6 +170,7 @@ class TrainLoop:
         self.trainer, self.place = cfg.trainer, data.place
         self.checkpoints = run_dir / "checkpoints"
         self.steps_per_epoch = data.steps_per_epoch
+        self.epoch_samples = self.steps_per_epoch * data.global_batch_size  # of the global order, per epoch
         self.total = make_total(cfg, self.steps_per_epoch)
         self.val_every = self.trainer.val_every or self.steps_per_epoch
         self.config = OmegaConf.to_container(cfg, resolve=True)
@@ -179,7 +180,7 @@ class TrainLoop:
             epoch, start = divmod(state.step, self.steps_per_epoch)
             position = {"epoch": epoch, "offset": start * data.global_batch_size}
         self.epoch, self.offset = int(position["epoch"]), int(position["offset"])
-        if self.offset >= self.steps_per_epoch * data.global_batch_size:  # saved after an epoch's last batch
+        if self.offset >= self.epoch_samples:  # saved after an epoch's last batch
             self.epoch, self.offset = self.epoch + 1, 0
         self.saved_at = time.monotonic()
 
@@ -189,13 +190,12 @@ class TrainLoop:
         if state.step >= self.total:  # resumed at the end
             bar.close()
             return self.metrics if self.metrics is not None else self.save_and_validate()
-        epoch_samples = self.steps_per_epoch * self.data.global_batch_size
         self.data.sampler.start_at(self.epoch, self.offset)
         for batch in self.data.train_loader:  # every epoch from here on, one iterator
             batch = batch.to(state.device, non_blocking=True)
             out = mean_over_ranks(train_step(state, batch), self.place)
             self.offset += self.data.global_batch_size
-            if self.offset >= epoch_samples:
+            if self.offset >= self.epoch_samples:
                 self.epoch, self.offset = self.epoch + 1, 0
             self.losses.append(float(out["loss"]))
             bar.update(1)
