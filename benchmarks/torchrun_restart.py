@@ -3,7 +3,7 @@
     python benchmarks/torchrun_restart.py [--steps 8] [--fail-at 5] [--out /tmp/restart_check]
 
 Launches ``torchrun --standalone --nproc_per_node=2 --max-restarts=1`` on the stub dataset with
-``trainer.checkpoint_every=2``. On the group's first attempt, rank 1 dies (``os._exit(1)``)
+``trainer.checkpoint_every=2``, on the CPU (Gloo), so it runs on any machine, one GPU or none. On the group's first attempt, rank 1 dies (``os._exit(1)``)
 right after step ``--fail-at``; torchrun restarts both processes, which find the run folder's
 ``last.pt`` and resume without ``resume=``. The check passes when the run ends at ``--steps``
 with one run folder whose ``last.pt`` says ``world_size`` 2, and the log shows the resume.
@@ -18,6 +18,11 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def python_path() -> str:
+    """The repository first, then whatever PYTHONPATH already holds (packages installed there too)."""
+    return os.pathsep.join(part for part in (str(ROOT), os.environ.get("PYTHONPATH")) if part)
 
 
 def worker(fail_at: int, overrides: list[str]) -> None:
@@ -57,14 +62,14 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=False)
     overrides = [f"trainer.max_steps={args.steps}", "trainer.checkpoint_every=2", f"trainer.val_every={args.steps}",
                  "loader.batch_size=2", "loader.num_workers=0", "data.max_events=3000", "trainer.image_every=0",
-                 "model=events_only"]
+                 "model=events_only", "device=cpu"]
     command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
                "--max-restarts=1", __file__, "--worker", f"--fail-at={args.fail_at}", *overrides]
     started = time.monotonic()
     log = out / "log.txt"
     with open(log, "w") as handle:
         code = subprocess.call(command, cwd=out, stdout=handle, stderr=subprocess.STDOUT,
-                               env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)})
+                               env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": python_path()})
     text = log.read_text()
     folders = sorted((out / "runs" / "train").glob("torchrun-*"))
     import torch

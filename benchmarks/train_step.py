@@ -1,6 +1,6 @@
 """Training-step speed and memory of each model variant, split into its parts.
 
-    python benchmarks/train_step.py [--steps 6] [--events 50000] [--batch 16] [--workers 2]
+    python benchmarks/train_step.py [--steps 6] [--events 50000] [--batch 16] [--workers 2] [--device auto]
 
 For each variant (hybrid, events_only, image_only) at 320x180 and 640x360, trains ``--steps``
 steps on synthetic samples (a rendered hand scene as the image, ``--events`` events per sample
@@ -15,6 +15,10 @@ Then the same steps again on batches loaded beforehand (no workers running): the
 compute. Its ratio to the step with the workers is what the loader costs when it shares the
 cores with the step (on few cores the workers' graph building slows the step's own threads,
 even while no time is spent waiting for data).
+
+``--device auto`` runs on CUDA when present, with the trainer's mixed precision (bfloat16 where
+the GPU has it); times are then taken after ``torch.cuda.synchronize()`` and the peak GPU memory
+is printed too.
 """
 from __future__ import annotations
 
@@ -28,7 +32,7 @@ from torch.utils.data import Dataset
 
 from dagr_lite.data.collate import GraphCollate
 from dagr_lite.data.dataset import Sample
-from dagr_lite.engine.common import make_loader
+from dagr_lite.engine.common import make_loader, resolve_device
 from dagr_lite.config import build_model, compose_config, resolve_config
 from dagr_lite.synth.stub import HandScene
 
@@ -65,9 +69,39 @@ class SyntheticSamples(Dataset):
                       video="bench", frame=index, image_frame=index, t_start_us=0, t_end_us=WINDOW_US, t_image_us=0)
 
 
+def sync(device: torch.device) -> None:
+    """Wait for the device's queued work, so a wall-clock reading covers it."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def autocast(device: torch.device):
+    """The trainer's mixed precision: bfloat16 (or float16) on CUDA, none on the CPU."""
+    if device.type != "cuda":
+        return torch.autocast("cpu", enabled=False)
+    return torch.autocast("cuda", dtype=torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16)
+
+
+def step_on(model, optimizer, batch, device: torch.device) -> tuple[float, float]:
+    """One training step on ``batch`` (moved to ``device``): (forward, backward + optimiser) seconds."""
+    start = time.perf_counter()
+    batch = batch.to(device, non_blocking=True)
+    with autocast(device):
+        out = model(batch)
+    sync(device)
+    forwarded = time.perf_counter()
+    optimizer.zero_grad()
+    out["loss"].float().backward()
+    optimizer.step()
+    sync(device)
+    return forwarded - start, time.perf_counter() - forwarded
+
+
 def run(variant: str, height: int, width: int, args) -> None:
     torch.manual_seed(0)
+    device = args.device
     model = build_model(resolve_config(compose_config("train", [f"model={variant}"])), height=height, width=width)
+    model = model.to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=2e-4)
     dataset = SyntheticSamples(height, width, args.events, size=args.batch * (args.steps + 1))
     graph = model.graph_spec
@@ -79,15 +113,10 @@ def run(variant: str, height: int, width: int, args) -> None:
         start = time.perf_counter()
         batch = next(iterator)
         loaded = time.perf_counter()
-        out = model(batch)
-        forwarded = time.perf_counter()
-        optimizer.zero_grad()
-        out["loss"].backward()
-        optimizer.step()
-        done = time.perf_counter()
+        forward, backward = step_on(model, optimizer, batch, device)
         waits.append(loaded - start)
-        forwards.append(forwarded - loaded)
-        backwards.append(done - forwarded)
+        forwards.append(forward)
+        backwards.append(backward)
     del iterator  # the workers stop
     wait, fwd, bwd = (float(np.mean(x)) for x in (waits, forwards, backwards))
     step = wait + fwd + bwd
@@ -99,6 +128,8 @@ def run(variant: str, height: int, width: int, args) -> None:
         GraphCollate(graph)(samples)
         graph_note = f", one batch's graph alone {time.perf_counter() - start:.2f} s"
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    if device.type == "cuda":
+        graph_note += f", peak GPU memory {torch.cuda.max_memory_allocated(device) / 2**20:.0f} MiB"
     verdict = "ok" if wait < step / 3 else "DATA-BOUND"
     print(f"{variant:11s} {width}x{height}: step {step:6.2f} s = wait for data {wait:5.2f} + forward {fwd:5.2f} "
           f"+ backward {bwd:5.2f}; {args.batch / step:5.1f} samples/s; data {wait / step:4.0%} of a step [{verdict}]"
@@ -113,12 +144,7 @@ def step_alone(model, optimizer, dataset, args) -> float:
     batches = [batch for _, batch in zip(range(args.steps + 1), loader)]
     times = []
     for batch in batches:
-        start = time.perf_counter()
-        out = model(batch)
-        optimizer.zero_grad()
-        out["loss"].backward()
-        optimizer.step()
-        times.append(time.perf_counter() - start)
+        times.append(sum(step_on(model, optimizer, batch, args.device)))
     return float(np.mean(times[1:]))  # the first is a warm-up
 
 
@@ -130,9 +156,12 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2, help="loader workers (the trainer's default is 2)")
     parser.add_argument("--variants", nargs="+", default=["hybrid", "events_only", "image_only"])
     parser.add_argument("--sizes", nargs="+", default=["320x180", "640x360"])
+    parser.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda, cuda:1, ...")
     args = parser.parse_args()
+    args.device = resolve_device(args.device)
+    where = torch.cuda.get_device_name(args.device) if args.device.type == "cuda" else "CPU"
     print(f"batch {args.batch}, {args.events:,} events per sample, {args.workers} workers, "
-          f"{torch.get_num_threads()} torch threads", flush=True)
+          f"{torch.get_num_threads()} torch threads, on {args.device} ({where})", flush=True)
     for size in args.sizes:
         width, height = (int(v) for v in size.split("x"))
         for variant in args.variants:

@@ -55,6 +55,11 @@ def setup(place: Distributed, device: torch.device) -> torch.device:
     if not place.enabled:
         return device
     if device.type == "cuda":
+        gpus = torch.cuda.device_count()
+        if place.local_rank >= gpus:
+            raise RuntimeError(f"rank {place.rank} has LOCAL_RANK {place.local_rank}, so it needs GPU {place.local_rank}, "
+                               f"but this machine has {gpus} GPU(s): start at most {gpus} processes per machine "
+                               f"(torchrun --nproc_per_node {gpus}), or train on the CPU with device=cpu")
         device = torch.device("cuda", place.local_rank)
         torch.cuda.set_device(device)
     if not dist.is_initialized():

@@ -155,3 +155,13 @@ def test_torchrun_restarts_a_failed_group_which_resumes_from_its_own_checkpoint(
                            str(tmp_path / "check")], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "ok   the group resumed from its own last.pt" in done.stdout
+
+
+def test_more_processes_than_gpus_is_refused_before_touching_the_gpu(monkeypatch):
+    """torchrun --nproc_per_node 2 on a one-GPU machine: rank 1 would need GPU 1."""
+    from dagr_lite.engine import distributed
+
+    monkeypatch.setattr(distributed.torch.cuda, "device_count", lambda: 1)
+    monkeypatch.setattr(distributed.torch.cuda, "set_device", lambda device: pytest.fail("set_device reached"))
+    with pytest.raises(RuntimeError, match=r"LOCAL_RANK 1, so it needs GPU 1, but this machine has 1 GPU.*device=cpu"):
+        distributed.setup(distributed.Distributed(rank=1, world_size=2, local_rank=1), torch.device("cuda"))
