@@ -114,6 +114,7 @@ _RULES = {
     "trainer.max_steps": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
     "trainer.max_epochs": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
     "trainer.max_minutes": ("a positive number or null", lambda v: v is None or (_number(v) and v > 0)),
+    "trainer.schedule_by": ("steps or time", lambda v: v in ("steps", "time")),
     "trainer.val_every": ("an integer >= 0 (0: every epoch)", lambda v: _integer(v) and v >= 0),
     "trainer.log_every": ("a positive integer", lambda v: _integer(v) and v > 0),
     "trainer.image_every": ("an integer >= 0 (0: never)", lambda v: _integer(v) and v >= 0),
@@ -141,6 +142,8 @@ def check_values(cfg: DictConfig) -> None:
     trainer = cfg.get("trainer")
     if trainer is not None and trainer.max_steps is None and trainer.max_epochs is None:
         raise ConfigError("set trainer.max_steps or trainer.max_epochs (both are null)")
+    if trainer is not None and trainer.get("schedule_by") == "time" and trainer.max_minutes is None:
+        raise ConfigError("trainer.schedule_by=time needs the time budget trainer.max_minutes (it is null)")
 
 
 def dataset_root(dataset: DictConfig) -> Path:

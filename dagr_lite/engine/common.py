@@ -127,11 +127,16 @@ class ModelEMA:
         self.updates = int(state["updates"])
 
 
-def warmup_cosine(step: int, *, warmup: int, total: int, min_ratio: float) -> float:
-    """Learning-rate factor: linear warm-up over ``warmup`` steps, then cosine down to ``min_ratio``."""
+def warmup_cosine(step: int, *, warmup: int, total: int, min_ratio: float, progress: float | None = None) -> float:
+    """Learning-rate factor: linear warm-up over ``warmup`` steps, then cosine down to ``min_ratio``.
+
+    The cosine's progress is ``(step - warmup) / (total - warmup)``; ``progress``, when given, is a
+    second measure (e.g. the fraction of a time budget spent since the warm-up), and the cosine
+    follows whichever of the two is further along."""
     if step < warmup:
         return (step + 1) / warmup
-    progress = min(1.0, (step - warmup) / max(1, total - warmup))
+    by_steps = (step - warmup) / max(1, total - warmup)
+    progress = min(1.0, max(by_steps, progress if progress is not None else 0.0))
     return min_ratio + (1 - min_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
 
 

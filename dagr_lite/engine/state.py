@@ -48,11 +48,13 @@ class TrainState:
     @classmethod
     def create(cls, model: Detector, optimizer: torch.optim.Optimizer, *, total_steps: int, warmup_steps: int,
                min_lr_ratio: float, ema_decay: float, ema_tau: float, grad_clip: float,
-               amp: bool | torch.dtype) -> "TrainState":
-        """A fresh state: warm-up cosine schedule over ``total_steps``, EMA, and mixed precision when
-        ``amp`` is a dtype (``True``: float16): float16 runs with a gradient scaler, bfloat16 without."""
+               amp: bool | torch.dtype, progress: Callable[[], float] | None = None) -> "TrainState":
+        """A fresh state: warm-up cosine schedule over ``total_steps`` (or, after the warm-up, over
+        what ``progress()`` says is spent of a time budget), EMA, and mixed precision when ``amp``
+        is a dtype (``True``: float16): float16 runs with a gradient scaler, bfloat16 without."""
         schedule = torch.optim.lr_scheduler.LambdaLR(
-            optimizer, lambda step: warmup_cosine(step, warmup=warmup_steps, total=total_steps, min_ratio=min_lr_ratio))
+            optimizer, lambda step: warmup_cosine(step, warmup=warmup_steps, total=total_steps, min_ratio=min_lr_ratio,
+                                                  progress=progress() if progress is not None else None))
         device = next(model.parameters()).device
         amp_dtype = torch.float16 if amp is True else (amp or None)
         if amp_dtype not in (None, torch.float16, torch.bfloat16):

@@ -104,13 +104,69 @@ def make_data(cfg: DictConfig, train_set: EventEgoHands, model, place: Distribut
     return TrainData(train_set, sampler, train_loader, valid_loaders, batch_size, place)
 
 
-def make_state(cfg: DictConfig, model, steps_per_epoch: int, device: torch.device) -> TrainState:
+class TrainingClock:
+    """The run's training time in seconds: the time before a resume (saved in the checkpoint's
+    ``position``) plus this process's since its loop started, as rank 0 reads it (broadcast, so
+    every rank holds the same value).
+
+    With ``trainer.schedule_by=time`` the learning rate's cosine also follows it: after the
+    warm-up, :meth:`progress` is the fraction of the ``budget_s`` left at the warm-up's end that is
+    spent since, and the run stops when the whole budget is spent, the time before a resume included.
+    """
+
+    now = staticmethod(time.monotonic)  # the reading (tests replace it)
+
+    def __init__(self, budget_s: float | None = None):
+        self.budget_s = budget_s
+        self.before_s = self.elapsed_s = 0.0
+        self.warmup_end_s: float | None = None
+        self.started = self.now()
+
+    def start(self, position: dict | None) -> None:
+        """Begin this process's count, after the time a resumed run had spent (``position``)."""
+        position = position or {}
+        self.before_s = self.elapsed_s = float(position.get("elapsed_s", 0.0))
+        warmup_end = position.get("warmup_end_s")
+        self.warmup_end_s = None if warmup_end is None else float(warmup_end)
+        self.started = self.now()
+
+    def tick(self, step: int, warmup: int, place: Distributed) -> float:
+        """Read the clock after step ``step`` (on every rank at once); returns the training time."""
+        self.elapsed_s = self.before_s + float(broadcast_object(self.now() - self.started, place))
+        if self.warmup_end_s is None and step >= warmup:
+            self.warmup_end_s = self.elapsed_s
+        return self.elapsed_s
+
+    def progress(self) -> float:
+        """Fraction of the time budget spent since the warm-up ended (0 without a budget or before)."""
+        if self.budget_s is None or self.warmup_end_s is None:
+            return 0.0
+        left = self.budget_s - self.warmup_end_s
+        return 1.0 if left <= 0 else (self.elapsed_s - self.warmup_end_s) / left
+
+    def left_s(self) -> float:
+        """Seconds of the budget left at the last reading (0 without a budget)."""
+        return max(0.0, self.budget_s - self.elapsed_s) if self.budget_s is not None else 0.0
+
+    def position(self) -> dict:
+        return {"elapsed_s": self.elapsed_s, "warmup_end_s": self.warmup_end_s}
+
+
+def make_clock(cfg: DictConfig) -> TrainingClock:
+    """The run's clock; with ``trainer.schedule_by=time`` it carries the ``trainer.max_minutes`` budget."""
+    trainer = cfg.trainer
+    return TrainingClock(60.0 * trainer.max_minutes if trainer.schedule_by == "time" else None)
+
+
+def make_state(cfg: DictConfig, model, steps_per_epoch: int, device: torch.device,
+               clock: TrainingClock | None = None) -> TrainState:
     trainer = cfg.trainer
     return TrainState.create(model, build_optimizer(cfg, model.parameters()),
                              total_steps=make_total(cfg, steps_per_epoch),
                              warmup_steps=trainer.warmup_steps, min_lr_ratio=trainer.min_lr_ratio,
                              ema_decay=trainer.ema_decay, ema_tau=trainer.ema_tau, grad_clip=trainer.grad_clip,
-                             amp=amp_dtype(trainer, device))
+                             amp=amp_dtype(trainer, device),
+                             progress=clock.progress if clock is not None and clock.budget_s is not None else None)
 
 
 def amp_dtype(trainer: DictConfig, device: torch.device) -> torch.dtype | None:
@@ -165,8 +221,10 @@ class TrainLoop:
     """
 
     def __init__(self, cfg: DictConfig, state: TrainState, data: TrainData, run_dir: Path, writer,
-                 position: dict | None = None):
+                 position: dict | None = None, clock: TrainingClock | None = None):
         self.cfg, self.state, self.data, self.writer = cfg, state, data, writer
+        self.clock = clock if clock is not None else make_clock(cfg)
+        self.resumed_position = position
         self.trainer, self.place = cfg.trainer, data.place
         self.checkpoints = run_dir / "checkpoints"
         self.steps_per_epoch = data.steps_per_epoch
@@ -185,8 +243,11 @@ class TrainLoop:
         self.saved_at = time.monotonic()
 
     def run(self) -> dict:
-        started, state = time.monotonic(), self.state
-        bar = tqdm(total=self.total, initial=state.step, desc="training", unit="step", disable=not self.place.is_main)
+        state = self.state
+        self.clock.start(self.resumed_position)
+        by_time = self.trainer.schedule_by == "time"  # then the bar counts steps and shows the time left
+        bar = tqdm(total=None if by_time else self.total, initial=state.step, desc="training", unit="step",
+                   disable=not self.place.is_main)
         if state.step >= self.total:  # resumed at the end
             bar.close()
             return self.metrics if self.metrics is not None else self.save_and_validate()
@@ -199,9 +260,10 @@ class TrainLoop:
                 self.epoch, self.offset = self.epoch + 1, 0
             self.losses.append(float(out["loss"]))
             bar.update(1)
-            bar.set_postfix(loss=f"{self.losses[-1]:.3f}", lr=f"{state.lr:.2e}")
+            bar.set_postfix(loss=f"{self.losses[-1]:.3f}", lr=f"{state.lr:.2e}",
+                            **({"left": f"{self.clock.left_s():.0f}s"} if by_time else {}))
             self.log(out, batch)
-            out_of_time = self.out_of_time(started)
+            out_of_time = self.out_of_time()
             if state.step % self.val_every == 0 or state.step == self.total or out_of_time:
                 self.save_and_validate()
             elif self.checkpoint_due():
@@ -211,10 +273,14 @@ class TrainLoop:
         bar.close()
         return self.metrics
 
-    def out_of_time(self, started: float) -> bool:
+    def out_of_time(self) -> bool:
+        """Whether ``trainer.max_minutes`` is spent: by this process (``schedule_by=steps``), or by the
+        whole run, the time before a resume included (``schedule_by=time``). Every rank reads the
+        same clock, so every rank stops at the same step."""
+        elapsed = self.clock.tick(self.state.step, self.trainer.warmup_steps, self.place)
         minutes = self.trainer.max_minutes
-        over = minutes is not None and time.monotonic() - started > 60 * minutes
-        over = bool(broadcast_object(over, self.place))  # every rank stops at the same step
+        spent = elapsed if self.trainer.schedule_by == "time" else elapsed - self.clock.before_s
+        over = minutes is not None and spent > 60 * minutes
         if over and self.place.is_main:
             print(f"trainer.max_minutes={minutes} reached at step {self.state.step}", flush=True)
         return over
@@ -242,7 +308,7 @@ class TrainLoop:
     def checkpoint(self) -> dict:
         return {**self.state.state_dict(), "detector": self.state.model.cfg.as_dict(), "config": self.config,
                 "world_size": self.place.world_size, "global_batch_size": self.data.global_batch_size,
-                "position": {"epoch": self.epoch, "offset": self.offset}}
+                "position": {"epoch": self.epoch, "offset": self.offset, **self.clock.position()}}
 
     def save(self, name: str) -> None:
         """Rank 0 writes ``checkpoints/<name>`` (all ranks hold the same weights)."""
@@ -289,9 +355,10 @@ class TrainLoop:
 
 def budget_overrides(minutes: float, steps: int | None = None) -> list[str]:
     """Config overrides that train for ``minutes`` of wall time, or ``steps`` steps if given
-    (still capped by the minutes): what the tools that train to a time budget pass."""
+    (still capped by the minutes): what the tools that train to a time budget pass. The learning
+    rate's cosine follows whichever of the two budgets is further along, so it ends decayed."""
     length = [f"trainer.max_steps={steps}"] if steps else ["trainer.max_steps=null", "trainer.max_epochs=100000"]
-    return [f"trainer.max_minutes={minutes}", *length]
+    return [f"trainer.max_minutes={minutes}", "trainer.schedule_by=time", *length]
 
 
 def make_total(cfg: DictConfig, steps_per_epoch: int) -> int:
@@ -354,13 +421,15 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
         model = synchronise_batch_norm(model, device)
         model.loss_normaliser = global_normaliser(place)
     data = make_data(cfg, train_set, model, place)
-    state = make_state(cfg, model, data.steps_per_epoch, device)
+    clock = make_clock(cfg)
+    state = make_state(cfg, model, data.steps_per_epoch, device, clock)
     saved = resume(state, resume_from, run_dir / "checkpoints", place) if resume_from else None
     if place.enabled:
         state.forward = DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None)
     writer = SummaryWriter(str(run_dir / "tensorboard")) if place.is_main else NullWriter()
     try:
-        loop = TrainLoop(cfg, state, data, run_dir, writer, position=saved.get("position") if saved else None)
+        loop = TrainLoop(cfg, state, data, run_dir, writer, position=saved.get("position") if saved else None,
+                         clock=clock)
         metrics = loop.run()
     finally:
         if place.is_main:

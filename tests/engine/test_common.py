@@ -20,6 +20,15 @@ def test_warmup_cosine_by_hand():
     assert warmup_cosine(5, warmup=0, total=10, min_ratio=0.0) == pytest.approx(0.5)
 
 
+def test_warmup_cosine_follows_the_further_of_steps_and_a_given_progress():
+    # step 6 of warmup 4, total 12: a quarter of the way by steps
+    assert warmup_cosine(6, warmup=4, total=12, min_ratio=0.1, progress=0.5) == pytest.approx(0.55)  # time is further
+    assert warmup_cosine(6, warmup=4, total=12, min_ratio=0.1, progress=0.1) == pytest.approx(
+        0.1 + 0.45 * (1 + math.sqrt(0.5)))  # the steps are further
+    assert warmup_cosine(6, warmup=4, total=10**9, min_ratio=0.1, progress=2.0) == pytest.approx(0.1)  # past the end
+    assert warmup_cosine(2, warmup=4, total=12, min_ratio=0.1, progress=0.9) == pytest.approx(0.75)  # warm-up by steps
+
+
 def test_model_ema_follows_the_ramped_recursion():
     torch.manual_seed(0)
     model = nn.Linear(3, 2)

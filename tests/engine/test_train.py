@@ -1,4 +1,5 @@
 """Training and evaluation end to end on the stub dataset, on CPU, with tiny limits."""
+import itertools
 import json
 from pathlib import Path
 
@@ -10,6 +11,7 @@ import dagr_lite.engine.train as train_module
 from dagr_lite.config import ConfigError
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.evaluate import evaluate
+from dagr_lite.engine.common import warmup_cosine
 from dagr_lite.engine.train import ResumeError, train
 from dagr_lite.synth.stub import stub_root
 
@@ -105,6 +107,64 @@ def test_resume_continues_exactly_across_epoch_ends(tmp_path, monkeypatch):
         resumed = run(f"from{start}", "loader.num_workers=0", f"resume={saved[start]}")
         assert resumed["step"] == 12 and len(resumed["losses"]) == 12 - start
         assert torch.allclose(torch.tensor(resumed["losses"]), torch.tensor(whole["losses"][start:]), rtol=1e-4)
+
+
+def six_seconds_a_step(monkeypatch) -> list[float]:
+    """A training clock that advances 6 s at each reading (one reading per step, one at the loop's
+    start); returns the learning rate after every step the runs take."""
+    readings = itertools.count()
+    monkeypatch.setattr(train_module.TrainingClock, "now", staticmethod(lambda: 6.0 * next(readings)))
+    lrs, original = [], train_module.train_step
+
+    def recording_step(state, batch):
+        out = original(state, batch)
+        lrs.append(state.lr)
+        return out
+
+    monkeypatch.setattr(train_module, "train_step", recording_step)
+    return lrs
+
+
+def test_a_time_budget_schedule_decays_by_the_budget_and_stops_there(tmp_path, monkeypatch):
+    """max_minutes=1 at 6 s a step: the warm-up ends after step 2 (12 s), the cosine then spans the
+    48 s left, and the run stops after step 11 (66 s > 60 s). The step count alone (max_epochs
+    100000) would keep the rate at its top."""
+    lrs = six_seconds_a_step(monkeypatch)
+    result = train(small(tmp_path / "run", "trainer.max_steps=null", "trainer.max_epochs=100000",
+                         "trainer.max_minutes=1", "trainer.schedule_by=time", "trainer.warmup_steps=2",
+                         "trainer.val_every=1000", "optim.lr=1e-3", "trainer.min_lr_ratio=0.05"))
+    assert result["step"] == 11 and len(lrs) == 11
+    # after step k the rate is set for step k + 1 from the clock read after step k - 1: 6 (k - 1) s
+    expected = [1e-3 * warmup_cosine(k, warmup=2, total=10**9, min_ratio=0.05, progress=max(0.0, (6 * (k - 1) - 12) / 48))
+                for k in range(1, 12)]
+    assert lrs == pytest.approx(expected)
+    assert lrs[6] == pytest.approx(1e-3 * 0.525)  # halfway through the time left: cos(pi / 2)
+    assert lrs[-1] == pytest.approx(1e-3 * 0.05)  # the budget spent: the floor
+    saved = torch.load(tmp_path / "run" / "checkpoints" / "last.pt", weights_only=False)
+    assert saved["position"]["elapsed_s"] == 66.0 and saved["position"]["warmup_end_s"] == 12.0
+
+
+def test_a_time_budget_run_resumes_on_its_own_clock(tmp_path, monkeypatch):
+    """Resumed after step 5 (30 s spent), the run's rate and its stop follow the whole run's."""
+    saved = keep_last_copies(monkeypatch)
+    lrs = six_seconds_a_step(monkeypatch)
+    budget = ["trainer.max_steps=null", "trainer.max_epochs=100000", "trainer.max_minutes=1",
+              "trainer.schedule_by=time", "trainer.warmup_steps=2", "trainer.val_every=1000",
+              "trainer.checkpoint_every=1"]
+    whole = train(small(tmp_path / "whole", *budget))
+    whole_lrs = list(lrs)
+    lrs.clear()
+    resumed = train(small(tmp_path / "resumed", *budget, f"resume={saved[5]}"))
+    assert whole["step"] == resumed["step"] == 11
+    assert lrs == pytest.approx(whole_lrs[5:])
+    assert torch.allclose(torch.tensor(resumed["losses"]), torch.tensor(whole["losses"][5:]), rtol=1e-4)
+
+
+def test_a_time_schedule_needs_a_time_budget(tmp_path):
+    with pytest.raises(ConfigError, match=r"trainer\.schedule_by=time needs .*trainer\.max_minutes"):
+        train(small(tmp_path / "run", "trainer.schedule_by=time", "trainer.max_minutes=null"))
+    with pytest.raises(ConfigError, match=r"trainer\.schedule_by must be steps or time, got 'epochs'"):
+        train(small(tmp_path / "run", "trainer.schedule_by=epochs"))
 
 
 def test_non_finite_loss_stops_with_the_step(tmp_path, monkeypatch):
