@@ -17,8 +17,9 @@ cores with the step (on few cores the workers' graph building slows the step's o
 even while no time is spent waiting for data).
 
 ``--device auto`` runs on CUDA when present, with the trainer's mixed precision (bfloat16 where
-the GPU has it); times are then taken after ``torch.cuda.synchronize()`` and the peak GPU memory
-is printed too.
+the GPU has it; float16 elsewhere, here without the trainer's gradient scaler, which barely
+changes the time); times are then taken after ``torch.cuda.synchronize()`` and the peak GPU
+memory of each variant is printed too.
 """
 from __future__ import annotations
 
@@ -107,8 +108,10 @@ def run(variant: str, height: int, width: int, args) -> None:
     graph = model.graph_spec
     loader = make_loader(dataset, batch_size=args.batch, num_workers=args.workers, graph=graph)
     waits, forwards, backwards = [], [], []
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
     iterator = iter(loader)
-    next(iterator)  # warm-up step: workers start, first batch
+    step_on(model, optimizer, next(iterator), device)  # warm-up step, untimed: workers start, first batch, kernels load
     for _ in range(args.steps):
         start = time.perf_counter()
         batch = next(iterator)

@@ -75,6 +75,13 @@ class TrainState:
     def lr(self) -> float:
         return self.optimizer.param_groups[0]["lr"]
 
+    def refresh_lr(self) -> None:
+        """Set each group's rate again from the schedule at its current step (for a schedule that
+        also reads a clock: the rate of the next step from the latest reading)."""
+        scheduler = self.scheduler
+        for group, base, factor in zip(self.optimizer.param_groups, scheduler.base_lrs, scheduler.lr_lambdas):
+            group["lr"] = base * factor(scheduler.last_epoch)
+
     def state_dict(self) -> dict:
         return {"model": self.model.state_dict(), "ema": self.ema.state_dict(),
                 "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),

@@ -110,30 +110,37 @@ class TrainingClock:
     every rank holds the same value).
 
     With ``trainer.schedule_by=time`` the learning rate's cosine also follows it: after the
-    warm-up, :meth:`progress` is the fraction of the ``budget_s`` left at the warm-up's end that is
-    spent since, and the run stops when the whole budget is spent, the time before a resume included.
+    ``warmup`` steps, :meth:`progress` is the fraction of the ``budget_s`` left at the warm-up's end
+    that is spent since, and the run stops when the whole budget is spent, the time before a
+    resume included.
     """
 
     now = staticmethod(time.monotonic)  # the reading (tests replace it)
 
-    def __init__(self, budget_s: float | None = None):
-        self.budget_s = budget_s
+    def __init__(self, budget_s: float | None = None, warmup: int = 0):
+        self.budget_s, self.warmup = budget_s, warmup
         self.before_s = self.elapsed_s = 0.0
         self.warmup_end_s: float | None = None
         self.started = self.now()
 
-    def start(self, position: dict | None) -> None:
-        """Begin this process's count, after the time a resumed run had spent (``position``)."""
+    @property
+    def by_time(self) -> bool:
+        return self.budget_s is not None
+
+    def start(self, position: dict | None, step: int) -> None:
+        """Begin this process's count at ``step``, after the time a resumed run had spent (``position``)."""
         position = position or {}
         self.before_s = self.elapsed_s = float(position.get("elapsed_s", 0.0))
         warmup_end = position.get("warmup_end_s")
         self.warmup_end_s = None if warmup_end is None else float(warmup_end)
+        if self.warmup_end_s is None and step >= self.warmup:  # no warm-up (or one finished before)
+            self.warmup_end_s = self.elapsed_s
         self.started = self.now()
 
-    def tick(self, step: int, warmup: int, place: Distributed) -> float:
+    def tick(self, step: int, place: Distributed) -> float:
         """Read the clock after step ``step`` (on every rank at once); returns the training time."""
         self.elapsed_s = self.before_s + float(broadcast_object(self.now() - self.started, place))
-        if self.warmup_end_s is None and step >= warmup:
+        if self.warmup_end_s is None and step >= self.warmup:
             self.warmup_end_s = self.elapsed_s
         return self.elapsed_s
 
@@ -143,6 +150,10 @@ class TrainingClock:
             return 0.0
         left = self.budget_s - self.warmup_end_s
         return 1.0 if left <= 0 else (self.elapsed_s - self.warmup_end_s) / left
+
+    def spent(self) -> bool:
+        """Whether the time budget is spent (never without one)."""
+        return self.budget_s is not None and self.elapsed_s > self.budget_s
 
     def left_s(self) -> float:
         """Seconds of the budget left at the last reading (0 without a budget)."""
@@ -155,18 +166,19 @@ class TrainingClock:
 def make_clock(cfg: DictConfig) -> TrainingClock:
     """The run's clock; with ``trainer.schedule_by=time`` it carries the ``trainer.max_minutes`` budget."""
     trainer = cfg.trainer
-    return TrainingClock(60.0 * trainer.max_minutes if trainer.schedule_by == "time" else None)
+    budget = 60.0 * trainer.max_minutes if trainer.schedule_by == "time" else None
+    return TrainingClock(budget, warmup=trainer.warmup_steps)
 
 
 def make_state(cfg: DictConfig, model, steps_per_epoch: int, device: torch.device,
-               clock: TrainingClock | None = None) -> TrainState:
+               clock: TrainingClock) -> TrainState:
     trainer = cfg.trainer
     return TrainState.create(model, build_optimizer(cfg, model.parameters()),
                              total_steps=make_total(cfg, steps_per_epoch),
                              warmup_steps=trainer.warmup_steps, min_lr_ratio=trainer.min_lr_ratio,
                              ema_decay=trainer.ema_decay, ema_tau=trainer.ema_tau, grad_clip=trainer.grad_clip,
                              amp=amp_dtype(trainer, device),
-                             progress=clock.progress if clock is not None and clock.budget_s is not None else None)
+                             progress=clock.progress if clock.by_time else None)
 
 
 def amp_dtype(trainer: DictConfig, device: torch.device) -> torch.dtype | None:
@@ -221,10 +233,10 @@ class TrainLoop:
     """
 
     def __init__(self, cfg: DictConfig, state: TrainState, data: TrainData, run_dir: Path, writer,
-                 position: dict | None = None, clock: TrainingClock | None = None):
+                 clock: TrainingClock, position: dict | None = None):
+        """``clock`` must be the one ``state``'s schedule reads (:func:`make_clock`, :func:`make_state`)."""
         self.cfg, self.state, self.data, self.writer = cfg, state, data, writer
-        self.clock = clock if clock is not None else make_clock(cfg)
-        self.resumed_position = position
+        self.clock, self.resumed_position = clock, position
         self.trainer, self.place = cfg.trainer, data.place
         self.checkpoints = run_dir / "checkpoints"
         self.steps_per_epoch = data.steps_per_epoch
@@ -244,11 +256,11 @@ class TrainLoop:
 
     def run(self) -> dict:
         state = self.state
-        self.clock.start(self.resumed_position)
-        by_time = self.trainer.schedule_by == "time"  # then the bar counts steps and shows the time left
+        self.clock.start(self.resumed_position, state.step)
+        by_time = self.clock.by_time  # then the bar counts steps and shows the time left
         bar = tqdm(total=None if by_time else self.total, initial=state.step, desc="training", unit="step",
                    disable=not self.place.is_main)
-        if state.step >= self.total:  # resumed at the end
+        if state.step >= self.total or self.clock.spent():  # resumed at the end
             bar.close()
             return self.metrics if self.metrics is not None else self.save_and_validate()
         self.data.sampler.start_at(self.epoch, self.offset)
@@ -277,9 +289,11 @@ class TrainLoop:
         """Whether ``trainer.max_minutes`` is spent: by this process (``schedule_by=steps``), or by the
         whole run, the time before a resume included (``schedule_by=time``). Every rank reads the
         same clock, so every rank stops at the same step."""
-        elapsed = self.clock.tick(self.state.step, self.trainer.warmup_steps, self.place)
+        elapsed = self.clock.tick(self.state.step, self.place)
+        if self.clock.by_time:
+            self.state.refresh_lr()  # the next step's rate from this reading, not the one before the step
         minutes = self.trainer.max_minutes
-        spent = elapsed if self.trainer.schedule_by == "time" else elapsed - self.clock.before_s
+        spent = elapsed if self.clock.by_time else elapsed - self.clock.before_s
         over = minutes is not None and spent > 60 * minutes
         if over and self.place.is_main:
             print(f"trainer.max_minutes={minutes} reached at step {self.state.step}", flush=True)
@@ -428,8 +442,7 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
         state.forward = DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None)
     writer = SummaryWriter(str(run_dir / "tensorboard")) if place.is_main else NullWriter()
     try:
-        loop = TrainLoop(cfg, state, data, run_dir, writer, position=saved.get("position") if saved else None,
-                         clock=clock)
+        loop = TrainLoop(cfg, state, data, run_dir, writer, clock, position=saved.get("position") if saved else None)
         metrics = loop.run()
     finally:
         if place.is_main:

@@ -110,16 +110,16 @@ def test_resume_continues_exactly_across_epoch_ends(tmp_path, monkeypatch):
 
 
 def six_seconds_a_step(monkeypatch) -> list[float]:
-    """A training clock that advances 6 s at each reading (one reading per step, one at the loop's
-    start); returns the learning rate after every step the runs take."""
+    """A training clock that advances 6 s at each reading (one when it is made, one at the loop's
+    start, then one after each step; only differences count); returns the learning rate each
+    step of the runs uses."""
     readings = itertools.count()
     monkeypatch.setattr(train_module.TrainingClock, "now", staticmethod(lambda: 6.0 * next(readings)))
     lrs, original = [], train_module.train_step
 
     def recording_step(state, batch):
-        out = original(state, batch)
         lrs.append(state.lr)
-        return out
+        return original(state, batch)
 
     monkeypatch.setattr(train_module, "train_step", recording_step)
     return lrs
@@ -134,18 +134,20 @@ def test_a_time_budget_schedule_decays_by_the_budget_and_stops_there(tmp_path, m
                          "trainer.max_minutes=1", "trainer.schedule_by=time", "trainer.warmup_steps=2",
                          "trainer.val_every=1000", "optim.lr=1e-3", "trainer.min_lr_ratio=0.05"))
     assert result["step"] == 11 and len(lrs) == 11
-    # after step k the rate is set for step k + 1 from the clock read after step k - 1: 6 (k - 1) s
-    expected = [1e-3 * warmup_cosine(k, warmup=2, total=10**9, min_ratio=0.05, progress=max(0.0, (6 * (k - 1) - 12) / 48))
-                for k in range(1, 12)]
+    # step k runs at the schedule's step k - 1, from the clock read after step k - 1: 6 (k - 1) s
+    expected = [1e-3 * warmup_cosine(k - 1, warmup=2, total=10**9, min_ratio=0.05,
+                                     progress=max(0.0, (6 * (k - 1) - 12) / 48)) for k in range(1, 12)]
     assert lrs == pytest.approx(expected)
-    assert lrs[6] == pytest.approx(1e-3 * 0.525)  # halfway through the time left: cos(pi / 2)
-    assert lrs[-1] == pytest.approx(1e-3 * 0.05)  # the budget spent: the floor
+    assert lrs[:3] == pytest.approx([0.5e-3, 1e-3, 1e-3])  # warm-up, then the cosine's top
+    assert lrs[6] == pytest.approx(1e-3 * 0.525)  # step 7, halfway through the time left: cos(pi / 2)
+    assert lrs[-1] == pytest.approx(1e-3 * 0.05)  # the last step, with the budget spent: the floor
     saved = torch.load(tmp_path / "run" / "checkpoints" / "last.pt", weights_only=False)
     assert saved["position"]["elapsed_s"] == 66.0 and saved["position"]["warmup_end_s"] == 12.0
 
 
 def test_a_time_budget_run_resumes_on_its_own_clock(tmp_path, monkeypatch):
-    """Resumed after step 5 (30 s spent), the run's rate and its stop follow the whole run's."""
+    """Resumed after step 5 (30 s spent), the run's rate and its stop follow the whole run's;
+    resumed with its budget spent, it takes no step."""
     saved = keep_last_copies(monkeypatch)
     lrs = six_seconds_a_step(monkeypatch)
     budget = ["trainer.max_steps=null", "trainer.max_epochs=100000", "trainer.max_minutes=1",
@@ -158,6 +160,9 @@ def test_a_time_budget_run_resumes_on_its_own_clock(tmp_path, monkeypatch):
     assert whole["step"] == resumed["step"] == 11
     assert lrs == pytest.approx(whole_lrs[5:])
     assert torch.allclose(torch.tensor(resumed["losses"]), torch.tensor(whole["losses"][5:]), rtol=1e-4)
+    lrs.clear()
+    spent = train(small(tmp_path / "spent", *budget, f"resume={saved[11]}"))  # 66 s of the 60 spent
+    assert spent["step"] == 11 and spent["losses"] == [] and lrs == []
 
 
 def test_a_time_schedule_needs_a_time_budget(tmp_path):
