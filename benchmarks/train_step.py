@@ -34,6 +34,7 @@ from torch.utils.data import Dataset
 from dagr_lite.data.collate import GraphCollate
 from dagr_lite.data.dataset import Sample
 from dagr_lite.engine.common import make_loader, resolve_device
+from dagr_lite.engine.train import amp_dtype
 from dagr_lite.config import build_model, compose_config, resolve_config
 from dagr_lite.synth.stub import HandScene
 
@@ -76,18 +77,13 @@ def sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def autocast(device: torch.device):
-    """The trainer's mixed precision: bfloat16 (or float16) on CUDA, none on the CPU."""
-    if device.type != "cuda":
-        return torch.autocast("cpu", enabled=False)
-    return torch.autocast("cuda", dtype=torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16)
-
-
-def step_on(model, optimizer, batch, device: torch.device) -> tuple[float, float]:
-    """One training step on ``batch`` (moved to ``device``): (forward, backward + optimiser) seconds."""
+def step_on(model, optimizer, batch, args) -> tuple[float, float]:
+    """One training step on ``batch``, moved to ``args.device``, in the mixed precision ``args.amp``
+    (the trainer's, or None): (forward, backward + optimiser) seconds."""
+    device, dtype = args.device, args.amp
     start = time.perf_counter()
     batch = batch.to(device, non_blocking=True)
-    with autocast(device):
+    with torch.autocast(device.type, dtype=dtype, enabled=dtype is not None):
         out = model(batch)
     sync(device)
     forwarded = time.perf_counter()
@@ -111,12 +107,12 @@ def run(variant: str, height: int, width: int, args) -> None:
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     iterator = iter(loader)
-    step_on(model, optimizer, next(iterator), device)  # warm-up step, untimed: workers start, first batch, kernels load
+    step_on(model, optimizer, next(iterator), args)  # warm-up step, untimed: workers start, first batch, kernels load
     for _ in range(args.steps):
         start = time.perf_counter()
         batch = next(iterator)
         loaded = time.perf_counter()
-        forward, backward = step_on(model, optimizer, batch, device)
+        forward, backward = step_on(model, optimizer, batch, args)
         waits.append(loaded - start)
         forwards.append(forward)
         backwards.append(backward)
@@ -147,7 +143,7 @@ def step_alone(model, optimizer, dataset, args) -> float:
     batches = [batch for _, batch in zip(range(args.steps + 1), loader)]
     times = []
     for batch in batches:
-        times.append(sum(step_on(model, optimizer, batch, args.device)))
+        times.append(sum(step_on(model, optimizer, batch, args)))
     return float(np.mean(times[1:]))  # the first is a warm-up
 
 
@@ -162,6 +158,7 @@ def main() -> None:
     parser.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda, cuda:1, ...")
     args = parser.parse_args()
     args.device = resolve_device(args.device)
+    args.amp = amp_dtype(compose_config("train", []).trainer, args.device)  # as the trainer: None on the CPU
     where = torch.cuda.get_device_name(args.device) if args.device.type == "cuda" else "CPU"
     print(f"batch {args.batch}, {args.events:,} events per sample, {args.workers} workers, "
           f"{torch.get_num_threads()} torch threads, on {args.device} ({where})", flush=True)
