@@ -8,8 +8,8 @@ streaming inference exact.
 
 Neighbours come from a scipy ``cKDTree``. When a cheap bound on the number of pairs within
 ``r`` is small (:func:`pairs_bound`), the tree lists every pair within ``r`` at once
-(``query_pairs``) and each node keeps its ``k`` nearest earlier partners; only nodes with
-more than ``k`` partners are ranked by distance (:func:`knn_from_pairs`). Otherwise (dense
+(``query_pairs``) and each node keeps its ``k`` nearest earlier partners, ranked by one
+integer sort (:func:`knn_from_pairs`). Otherwise (dense
 clouds: the memory of all pairs is not bounded) it runs ``k``-nearest queries: a query returns
 the nearest nodes whatever their time, so for the causal graph it asks for more than ``k`` and keeps the earlier ones; rows where that was not
 enough to be sure of the ``k`` nearest earlier ones are asked again with a larger count
@@ -153,31 +153,44 @@ def knn_from_pairs(tree: cKDTree, points: np.ndarray, k: int, r: float) -> np.nd
     """Causal edges ``(2, E)`` sorted by (dst, src): per node its ``k`` nearest earlier nodes
     within ``r`` by (distance, index), from every pair within ``r`` of the tree of ``points``.
 
-    Most nodes have at most ``k`` earlier nodes within ``r`` and keep them all: only the pairs of
-    the others are ranked by distance. Edges are ordered by one sort of ``dst * n + src`` keys.
+    The pairs are ranked by one integer sort (torch's radix sort) of the keys
+    ``dst | q | src``, where ``q`` is the distance quantised to the bits left over. Quantising is
+    monotone, so it can merge two distances but never swap them; the rare runs of one
+    (dst, q) holding distinct distances are reordered exactly by (distance, index). The kept
+    edges are then ordered by one sort of ``dst * n + src``. Exact for any ``n < 2^31``.
     """
     n = len(points)
     # scipy keeps pairs at most its bound: search a hair beyond r, keep d <= r.
     pairs = tree.query_pairs(r * (1 + 1e-9), output_type="ndarray")  # (P, 2), first < second
     src, dst = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
-    diff = points[src] - points[dst]  # (P, D)
-    squared = diff[:, 0] * diff[:, 0]
-    for axis in range(1, points.shape[1]):
-        squared = squared + diff[:, axis] * diff[:, axis]
+    columns = [np.ascontiguousarray(points[:, axis]) for axis in range(points.shape[1])]
+    diff = columns[0][src] - columns[0][dst]
+    squared = diff * diff
+    for column in columns[1:]:  # summed over the axes in order, as scipy sums them
+        diff = column[src] - column[dst]
+        squared += diff * diff
     dist = np.sqrt(squared)
     within = dist <= r
-    src, dst, dist = src[within], dst[within], dist[within]
-    crowded = np.bincount(dst, minlength=n) > k  # (n,) nodes with more candidates than k
-    keys = dst * n + src
-    heavy = crowded[dst]
-    if heavy.any():
-        h_src, h_dst, h_dist = src[heavy], dst[heavy], dist[heavy]
-        order = np.lexsort((h_src, h_dist, h_dst))  # by destination, then distance, then index
-        h_dst = h_dst[order]
-        rank = np.arange(len(h_dst)) - np.searchsorted(h_dst, h_dst, side="left")
-        keys = np.concatenate([keys[~heavy], h_dst[rank < k] * n + h_src[order][rank < k]])
-    keys = np.sort(keys)
-    return np.stack([keys % n, keys // n])
+    if not within.all():
+        src, dst, dist = src[within], dst[within], dist[within]
+    id_bits = max(1, (n - 1).bit_length())
+    q_bits = min(52, max(0, 62 - 2 * id_bits))  # at most float64's mantissa: 2^q_bits - 1 is exact
+    top = (1 << q_bits) - 1
+    quantised = np.minimum(np.floor(dist * (top / r)), top).astype(np.int64)  # in [0, 2^q_bits)
+    key, order = torch.sort(torch.from_numpy((dst << (q_bits + id_bits)) | (quantised << id_bits) | src))
+    key, dist = key.numpy(), dist[order.numpy()]
+    group = key >> id_bits  # (dst, q)
+    merged = (group[1:] == group[:-1]) & (dist[1:] != dist[:-1])
+    if merged.any():  # distinct distances in one quantum: order those runs by (distance, index)
+        run = np.cumsum(np.r_[True, group[1:] != group[:-1]]) - 1
+        rows = np.flatnonzero(np.isin(run, run[1:][merged]))
+        key[rows] = key[rows][np.lexsort((key[rows] & ((1 << id_bits) - 1), dist[rows], run[rows]))]
+    dst = key >> (q_bits + id_bits)
+    rank = np.arange(len(key)) - np.searchsorted(dst, dst, side="left")
+    kept = key[rank < k]
+    edge_key = torch.sort(torch.from_numpy((kept >> (q_bits + id_bits)) * n + (kept & ((1 << id_bits) - 1))))
+    edge_key = edge_key.values.numpy()
+    return np.stack([edge_key % n, edge_key // n])
 
 
 BACKENDS = ("auto", "kdtree", "torch")

@@ -111,6 +111,28 @@ def test_many_identical_points_keep_the_smallest_indices():
     assert torch.all(edges[0, edges[1] >= 4].reshape(-1, 4) == torch.arange(4))
 
 
+def test_distances_closer_than_the_sorting_quantum_keep_their_exact_order():
+    """The all-pairs path ranks by an integer key holding the distance quantised to 52 bits of
+    [0, r] (few nodes); distances closer than that share a key and are reordered exactly.
+    Here node 0 is farther from node 2 than node 1 by one float64 step: with k = 1, node 2 keeps node 1."""
+    r, k = 16.0, 1  # a quantum of r / 2^52: 16 float64 steps at 1.5
+    pos = np.zeros((3, 3))
+    pos[0, 0], pos[1, 0] = np.nextafter(1.5, 2.0), 1.5
+    top = 2 ** 52 - 1
+    assert np.floor(pos[0, 0] * (top / r)) == np.floor(pos[1, 0] * (top / r))  # one quantum
+    edges = radius_graph(torch.from_numpy(pos), r, k)
+    assert edges.tolist() == [[0, 1], [1, 2]]
+    # Many such near-ties, against the pair-by-pair reference of (distance, index).
+    rng = np.random.default_rng(21)
+    steps = rng.permutation(40)
+    pos = np.zeros((41, 3))
+    pos[:40, 0] = [1.5 + s * np.spacing(1.5) for s in steps]
+    dist = np.sqrt(pos[:40, 0] * pos[:40, 0])
+    for k in (1, 5, 17):
+        edges = radius_graph(torch.from_numpy(pos), r, k)
+        assert edges[0, edges[1] == 40].tolist() == sorted(sorted(range(40), key=lambda j: (dist[j], j))[:k])
+
+
 @pytest.mark.parametrize("grid", [None, 2, 1])
 def test_torch_backend_equals_the_kdtree_and_brute_force(grid):
     rng = np.random.default_rng(10)
