@@ -1,11 +1,13 @@
 """Training-step speed and memory of each model variant, split into its parts.
 
-    python benchmarks/train_step.py [--steps 6] [--events 50000] [--batch 16] [--workers 2] [--device auto]
+    python benchmarks/train_step.py [--steps 6] [--events 50000] [--batch 16] [--workers 2] [--worker-nice 19]
+                                    [--device auto]
 
 For each variant (hybrid, events_only, image_only) at 320x180 and 640x360, trains ``--steps``
 steps on synthetic samples (a rendered hand scene as the image, ``--events`` events per sample
 from moving blob outlines plus noise) through the same loader the trainer uses (``--workers``
-worker processes that also build the event graph). Prints per step: time waiting for data
+worker processes that also build the event graph, at the trainer's lower priority
+``loader.worker_nice`` unless ``--worker-nice`` says otherwise). Prints per step: time waiting for data
 (loading + graph building, as the training loop sees it), forward, backward + optimiser step,
 samples per second, and the peak resident memory of the training process; and, for reference,
 the graph building time of one batch in a single process. The check: waiting for data must
@@ -102,7 +104,8 @@ def run(variant: str, height: int, width: int, args) -> None:
     optimizer = torch.optim.AdamW(model.parameters(), lr=2e-4)
     dataset = SyntheticSamples(height, width, args.events, size=args.batch * (args.steps + 1))
     graph = model.graph_spec
-    loader = make_loader(dataset, batch_size=args.batch, num_workers=args.workers, graph=graph)
+    loader = make_loader(dataset, batch_size=args.batch, num_workers=args.workers, graph=graph,
+                         worker_nice=args.worker_nice)
     waits, forwards, backwards = [], [], []
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
@@ -153,14 +156,19 @@ def main() -> None:
     parser.add_argument("--events", type=int, default=50_000, help="events per sample")
     parser.add_argument("--batch", type=int, default=16)
     parser.add_argument("--workers", type=int, default=2, help="loader workers (the trainer's default is 2)")
+    parser.add_argument("--worker-nice", type=int, default=None,
+                        help="the workers' nice increment (default: the trainer's loader.worker_nice)")
     parser.add_argument("--variants", nargs="+", default=["hybrid", "events_only", "image_only"])
     parser.add_argument("--sizes", nargs="+", default=["320x180", "640x360"])
     parser.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda, cuda:1, ...")
     args = parser.parse_args()
     args.device = resolve_device(args.device)
-    args.amp = amp_dtype(compose_config("train", []).trainer, args.device)  # as the trainer: None on the CPU
+    defaults = compose_config("train", [])
+    args.amp = amp_dtype(defaults.trainer, args.device)  # as the trainer: None on the CPU
+    if args.worker_nice is None:
+        args.worker_nice = int(defaults.loader.worker_nice)
     where = torch.cuda.get_device_name(args.device) if args.device.type == "cuda" else "CPU"
-    print(f"batch {args.batch}, {args.events:,} events per sample, {args.workers} workers, "
+    print(f"batch {args.batch}, {args.events:,} events per sample, {args.workers} workers (nice {args.worker_nice}), "
           f"{torch.get_num_threads()} torch threads, on {args.device} ({where})", flush=True)
     for size in args.sizes:
         width, height = (int(v) for v in size.split("x"))

@@ -110,6 +110,7 @@ _RULES = {
     "data.max_events": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
     "loader.batch_size": ("a positive integer", lambda v: _integer(v) and v > 0),
     "loader.num_workers": ("an integer >= 0", lambda v: _integer(v) and v >= 0),
+    "loader.worker_nice": ("an integer from 0 to 19 (a Unix nice increment)", lambda v: _integer(v) and 0 <= v <= 19),
     "optim.lr": ("a positive number", lambda v: _number(v) and v > 0),
     "trainer.max_steps": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
     "trainer.max_epochs": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),

@@ -221,15 +221,24 @@ class ShardSampler(Sampler[int]):
 
 
 def make_loader(dataset: EventEgoHands, *, batch_size: int, num_workers: int, sampler: Sampler | None = None,
-                graph: EventGraphSpec | None = None, drop_last: bool = False) -> DataLoader:
+                graph: EventGraphSpec | None = None, drop_last: bool = False, worker_nice: int = 0) -> DataLoader:
     """A loader with :func:`collate`; with ``graph`` (the model's own spec) its workers also build
     the event graph. Training passes a :class:`RunSampler`, whose ``(epoch, index)`` pairs carry
-    each sample's epoch to the workers."""
+    each sample's epoch to the workers. The workers run one thread each, at ``worker_nice``
+    lower CPU priority (see :func:`prepare_worker`)."""
     collate_fn = GraphCollate(graph) if graph is not None else collate
     return DataLoader(dataset, batch_size=batch_size, sampler=sampler, shuffle=False, num_workers=num_workers,
                       collate_fn=collate_fn, drop_last=drop_last, pin_memory=torch.cuda.is_available(),
-                      worker_init_fn=partial(_limit_threads) if num_workers else None)
+                      worker_init_fn=partial(prepare_worker, nice=worker_nice) if num_workers else None)
 
 
-def _limit_threads(_worker_id: int) -> None:
-    torch.set_num_threads(1)  # workers share the machine with the training step
+def prepare_worker(_worker_id: int, nice: int = 0) -> None:
+    """A loader worker shares the machine with the step: one thread, and ``nice`` lower priority.
+
+    On few cores the step's threads wait for each other at every parallel region, so a worker
+    holding a core slows the whole step; at a lower priority (Unix ``nice``) the workers take the
+    cores while the step leaves them idle, and still get them all while it waits for data.
+    """
+    torch.set_num_threads(1)
+    if nice and hasattr(os, "nice"):  # not on Windows
+        os.nice(nice)

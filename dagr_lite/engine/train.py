@@ -95,11 +95,12 @@ def make_data(cfg: DictConfig, train_set: EventEgoHands, model, place: Distribut
                          f"{len(train_set)} samples: no batch can be made")
     sampler = RunSampler(EpochSampler(len(train_set), seed=cfg.seed, rank=place.rank, world_size=place.world_size,
                                       batch_size=batch_size), batch_size)
+    nice = cfg.loader.get("worker_nice", 0)
     train_loader = make_loader(train_set, batch_size=batch_size, num_workers=workers, sampler=sampler,
-                               graph=model.graph_spec)
+                               graph=model.graph_spec, worker_nice=nice)
     valid_loaders = {age: make_loader(dataset, batch_size=batch_size, num_workers=workers, graph=model.graph_spec,
                                       sampler=ShardSampler(len(dataset), rank=place.rank, world_size=place.world_size)
-                                      if place.enabled else None)
+                                      if place.enabled else None, worker_nice=nice)
                      for age, dataset in valid_sets.items()}
     return TrainData(train_set, sampler, train_loader, valid_loaders, batch_size, place)
 

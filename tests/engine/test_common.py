@@ -1,10 +1,13 @@
 import math
+import os
+from functools import partial
 
 import pytest
 import torch
 from torch import nn
+from torch.utils.data import DataLoader
 
-from dagr_lite.engine.common import EpochSampler, ModelEMA, RunSampler, warmup_cosine
+from dagr_lite.engine.common import EpochSampler, ModelEMA, RunSampler, prepare_worker, warmup_cosine
 
 
 def test_warmup_cosine_by_hand():
@@ -146,3 +149,24 @@ def test_run_sampler_chains_whole_batches_of_each_epoch(world_size):
         first = epoch_order(2, 6, rank=rank)
         assert pairs[:len(first)] == [(2, i) for i in first]
         assert pairs[len(first):] == [(3, i) for i in epoch_order(3, rank=rank)][:per_epoch - len(first)]
+
+
+class _WorkerView(torch.utils.data.Dataset):
+    """Each item: the worker's niceness and torch threads, as the worker sees them."""
+
+    def __len__(self):
+        return 2
+
+    def __getitem__(self, index):
+        return torch.tensor([os.nice(0), torch.get_num_threads()])
+
+
+@pytest.mark.skipif(not hasattr(os, "nice"), reason="no os.nice on this platform")
+def test_loader_workers_run_one_thread_at_a_lower_priority():
+    base = os.nice(0)
+    for nice, want in ((0, base), (3, min(19, base + 3))):
+        loader = DataLoader(_WorkerView(), batch_size=1, num_workers=1,
+                            worker_init_fn=partial(prepare_worker, nice=nice))
+        seen = torch.cat(list(loader))
+        assert seen[:, 0].tolist() == [want, want] and seen[:, 1].tolist() == [1, 1]
+    assert os.nice(0) == base  # this process keeps its own priority
