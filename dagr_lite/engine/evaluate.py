@@ -84,7 +84,7 @@ def evaluate(cfg: DictConfig) -> dict:
     print(describe_dataset(dataset), flush=True)
     model = load_model(state, detector, dataset.image_size, cfg.ckpt).to(device)
     loader = make_loader(dataset, batch_size=cfg.loader.batch_size, num_workers=cfg.loader.num_workers,
-                         graph=model.graph_spec, worker_nice=cfg.loader.get("worker_nice", 0))
+                         graph=model.graph_spec, worker_nice=cfg.loader.worker_nice)
     metrics, evaluator = score_model(model, loader, device, backend=cfg.eval.backend,
                                      conf_threshold=cfg.eval.conf_threshold, nms_threshold=cfg.eval.nms_threshold)
     result = {**{key: metrics[key] for key in METRIC_KEYS}, "split": cfg.split, "num_images": len(evaluator.images),

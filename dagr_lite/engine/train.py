@@ -95,7 +95,7 @@ def make_data(cfg: DictConfig, train_set: EventEgoHands, model, place: Distribut
                          f"{len(train_set)} samples: no batch can be made")
     sampler = RunSampler(EpochSampler(len(train_set), seed=cfg.seed, rank=place.rank, world_size=place.world_size,
                                       batch_size=batch_size), batch_size)
-    nice = cfg.loader.get("worker_nice", 0)
+    nice = cfg.loader.worker_nice
     train_loader = make_loader(train_set, batch_size=batch_size, num_workers=workers, sampler=sampler,
                                graph=model.graph_spec, worker_nice=nice)
     valid_loaders = {age: make_loader(dataset, batch_size=batch_size, num_workers=workers, graph=model.graph_spec,

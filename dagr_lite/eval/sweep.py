@@ -111,7 +111,7 @@ def score_point(cfg: DictConfig, model, dataset: EventEgoHands, frames: list[tup
     """COCO metrics of ``model`` at one sweep point."""
     samples = SweepSamples(dataset, frames, age, fraction, cfg.seed, blank_image=cfg.blank_image)
     loader = make_loader(samples, batch_size=cfg.loader.batch_size, num_workers=cfg.loader.num_workers,
-                         graph=model.graph_spec, worker_nice=cfg.loader.get("worker_nice", 0))
+                         graph=model.graph_spec, worker_nice=cfg.loader.worker_nice)
     metrics, evaluator = score_model(model, loader, device, backend=cfg.eval.backend,
                                      conf_threshold=cfg.eval.conf_threshold, nms_threshold=cfg.eval.nms_threshold,
                                      desc=f"age {age + fraction:g} frames")
