@@ -176,19 +176,20 @@ def knn_from_pairs(tree: cKDTree, points: np.ndarray, k: int, r: float) -> np.nd
     id_bits = max(1, (n - 1).bit_length())
     q_bits = min(52, max(0, 62 - 2 * id_bits))  # at most float64's mantissa: 2^q_bits - 1 is exact
     top = (1 << q_bits) - 1
+    dst_shift, src_mask = q_bits + id_bits, (1 << id_bits) - 1  # key = dst << dst_shift | q << id_bits | src
     quantised = np.minimum(np.floor(dist * (top / r)), top).astype(np.int64)  # in [0, 2^q_bits)
-    key, order = torch.sort(torch.from_numpy((dst << (q_bits + id_bits)) | (quantised << id_bits) | src))
+    key, order = torch.sort(torch.from_numpy((dst << dst_shift) | (quantised << id_bits) | src))
     key, dist = key.numpy(), dist[order.numpy()]
     group = key >> id_bits  # (dst, q)
     merged = (group[1:] == group[:-1]) & (dist[1:] != dist[:-1])
     if merged.any():  # distinct distances in one quantum: order those runs by (distance, index)
         run = np.cumsum(np.r_[True, group[1:] != group[:-1]]) - 1
         rows = np.flatnonzero(np.isin(run, run[1:][merged]))
-        key[rows] = key[rows][np.lexsort((key[rows] & ((1 << id_bits) - 1), dist[rows], run[rows]))]
-    dst = key >> (q_bits + id_bits)
+        key[rows] = key[rows][np.lexsort((key[rows] & src_mask, dist[rows], run[rows]))]
+    dst = key >> dst_shift
     rank = np.arange(len(key)) - np.searchsorted(dst, dst, side="left")
     kept = key[rank < k]
-    edge_key = torch.sort(torch.from_numpy((kept >> (q_bits + id_bits)) * n + (kept & ((1 << id_bits) - 1))))
+    edge_key = torch.sort(torch.from_numpy((kept >> dst_shift) * n + (kept & src_mask)))
     edge_key = edge_key.values.numpy()
     return np.stack([edge_key % n, edge_key // n])
 
