@@ -104,7 +104,9 @@ _RULES = {
     "data.train_image_age": ("a range [low, high] of frames, 0 <= low <= high",
                              lambda v: isinstance(v, ListConfig) and len(v) == 2 and all(_integer(a) for a in v)
                              and 0 <= v[0] <= v[1]),
+    "data.train_image_age_power": ("a number >= 0 (0: ages drawn uniformly)", lambda v: _number(v) and v >= 0),
     "data.context_us": ("an integer >= 0 (microseconds)", lambda v: _integer(v) and v >= 0),
+    "model.event_head_weight": ("a number >= 0 (0: no event head)", lambda v: _number(v) and v >= 0),
     "model.time_scale_us": ("a positive number (microseconds)", lambda v: _number(v) and v > 0),
     "data.window_us": ("a positive integer (microseconds)", lambda v: _integer(v) and v > 0),
     "data.max_events": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
@@ -186,7 +188,7 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
                          context_us=data.context_us, max_events=data.max_events, first_frame=first_frame,
                          fps=dataset.fps, image_size=image_size, transform=transform,
                          clip_boxes=data.clip_boxes, labelled_only=bool(data.get("labelled_only", False)),
-                         seed=cfg.seed)
+                         seed=cfg.seed, age_power=data.train_image_age_power if train else 0.0)
 
 
 def graph_spec(model: DictConfig) -> EventGraphSpec | None:
@@ -211,7 +213,7 @@ def detector_config(cfg: DictConfig, *, height: int, width: int) -> DetectorConf
                           event_blocks=model.event_blocks, fuse_channels=model.fuse_channels,
                           head_hidden=size.head_hidden, num_classes=model.num_classes,
                           strides=tuple(model.strides), graph=graph_spec(model), time_scale_us=model.time_scale_us,
-                          recency_us=tuple(model.recency_us))
+                          recency_us=tuple(model.recency_us), event_head_weight=float(model.event_head_weight))
 
 
 def build_model(cfg: DictConfig, *, height: int, width: int) -> Detector:

@@ -154,6 +154,8 @@ def test_model_defaults_come_from_conf_and_variants_inherit_them():
     ("data.image_age=-2", r"data\.image_age must be an integer >= 0 \(frames\), got -2"),
     ("data.max_events=0", r"data\.max_events must be a positive integer or null, got 0"),
     ("trainer.ema_decay=1.5", r"trainer\.ema_decay must be a number in \[0, 1\)"),
+    ("data.train_image_age_power=-0.5", r"data\.train_image_age_power must be a number >= 0 \(0: ages drawn uniformly\), got -0\.5"),
+    ("model.event_head_weight=-1", r"model\.event_head_weight must be a number >= 0 \(0: no event head\), got -1"),
     ("loader.worker_nice=25", r"loader\.worker_nice must be an integer from 0 to 19 \(a Unix nice increment\), got 25"),
 ])
 def test_bad_values_name_their_key(override, match):

@@ -26,6 +26,20 @@ MAX_LISTED_PROBLEMS = 10
 EVENT_SPANS = ("since_image", "window")
 
 
+def draw_age(rng: np.random.Generator, low: int, high: int, power: float = 0.0) -> int:
+    """An image age from ``[low, high]``: ``a`` with probability proportional to ``(a - low + 1) ** power``.
+
+    ``power=0`` is one uniform integer draw (the same numbers as before weighting existed).
+    """
+    if high <= low:
+        return low
+    if not power:
+        return int(rng.integers(low, high + 1))
+    ages = np.arange(low, high + 1)
+    weights = (ages - low + 1.0) ** power
+    return int(ages[np.searchsorted(np.cumsum(weights), rng.random() * weights.sum(), side="right")])
+
+
 def age_range(image_age: int | Sequence[int]) -> tuple[int, int]:
     """``(low, high)`` frames of an image age given as an int or an inclusive ``[low, high]`` range."""
     ages = list(image_age) if isinstance(image_age, Sequence) else [image_age] * 2
@@ -113,7 +127,9 @@ class EventEgoHands(Dataset):
         split: ``train``, ``valid`` or ``test``.
         image_age: how many frames older the image is than the label frame: an int (fixed, as in
             evaluation) or an inclusive ``(low, high)`` range from which each sample draws its own
-            (training; a label frame ``k`` draws from ``[low, min(high, k)]``).
+            (training; a label frame ``k`` draws from ``[low, min(high, k)]``, see :func:`draw_age`).
+        age_power: how a range is drawn: age ``a`` with probability proportional to
+            ``(a - low + 1) ** age_power`` (0: uniform; 1: ten frames ten times as often as one).
         event_span: ``"since_image"``: the events of ``[t(k - a) - context_us, t(k))``;
             ``"window"``: the fixed window ``[t(k) - window_us, t(k))`` (a model without an image).
         window_us: the fixed window's length; with ``since_image`` the most recent ``window_us``
@@ -138,10 +154,13 @@ class EventEgoHands(Dataset):
                  max_events: int | None = None, first_frame: int | None = None, fps: float = fmt.DEFAULT_FPS,
                  image_size: Sequence[int] | None = None, videos: Sequence[str] | None = None,
                  transform: Callable[[Sample, np.random.Generator], Sample] | None = None,
-                 clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0):
+                 clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0, age_power: float = 0.0):
         if split not in fmt.SPLITS:
             raise ValueError(f"split must be one of {fmt.SPLITS}, got {split!r}")
         self.age_range = age_range(image_age)
+        if not (np.isfinite(age_power) and age_power >= 0):
+            raise ValueError(f"age_power must be a number >= 0, got {age_power!r}")
+        self.age_power = float(age_power)
         if event_span not in EVENT_SPANS:
             raise ValueError(f"event_span must be one of {EVENT_SPANS}, got {event_span!r}")
         if window_us <= 0:
@@ -248,7 +267,7 @@ class EventEgoHands(Dataset):
         v, k = int(self._sample_video[index]), int(self._sample_frame[index])
         rng = np.random.default_rng([self.seed, int(epoch), index])
         low, high = self.age_range
-        age = int(rng.integers(low, min(high, k) + 1)) if high > low else low
+        age = draw_age(rng, low, min(high, k), self.age_power)
         t_end = self.frame_time_us(v, k)
         return self.sample_at(v, k, k - age, t_end, self.boxes_of(v, k), rng)
 

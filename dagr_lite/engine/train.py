@@ -40,12 +40,14 @@ class ResumeError(ValueError):
 def describe_dataset(dataset: EventEgoHands) -> str:
     height, width = dataset.image_size
     return (f"{dataset.root} [{dataset.split}]: {len(dataset.videos)} videos, {len(dataset)} samples, "
-            f"{width}x{height} px, image age {describe_age(dataset.age_range)} frames, events "
+            f"{width}x{height} px, image age {describe_age(dataset.age_range, dataset.age_power)} frames, events "
             f"{'since the image' if dataset.event_span == 'since_image' else f'of {dataset.window_us} us'}")
 
 
-def describe_age(ages: tuple[int, int]) -> str:
-    return str(ages[0]) if ages[0] == ages[1] else f"{ages[0]}-{ages[1]}"
+def describe_age(ages: tuple[int, int], power: float = 0.0) -> str:
+    if ages[0] == ages[1]:
+        return str(ages[0])
+    return f"{ages[0]}-{ages[1]}" + (f" (weights (a - {ages[0] - 1})^{power:g})" if power else "")
 
 
 @dataclass
@@ -198,9 +200,10 @@ def resume(state: TrainState, path: str | Path, checkpoints: Path, place: Distri
     checkpoint (its ``position`` says where in the data it stopped)."""
     saved = load_checkpoint(path)
     ours = state.model.cfg.as_dict()
-    if saved["detector"] != ours:
-        differ = ", ".join(f"{key}: {saved['detector'].get(key)!r} in the checkpoint, {ours[key]!r} here"
-                           for key in ours if saved["detector"].get(key) != ours[key])
+    theirs = type(state.model.cfg).from_dict(saved["detector"]).as_dict()  # keys added later at their defaults
+    if theirs != ours:
+        differ = ", ".join(f"{key}: {theirs[key]!r} in the checkpoint, {ours[key]!r} here"
+                           for key in ours if theirs[key] != ours[key])
         raise ResumeError(f"resume={path}: the checkpoint's model does not fit this run's ({differ})")
     state.load_state_dict(saved)
     best = Path(path).parent / "best.pt"

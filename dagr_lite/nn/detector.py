@@ -120,6 +120,10 @@ class DetectorConfig:
         time_scale_us: the time unit of the image's age and of the nodes' time since the image.
         recency_us: time constants of the recency maps read beside the event maps (see
             :func:`~dagr_lite.graph.pool.recency_maps`); empty for none.
+        event_head_weight: in a hybrid, > 0 adds a second head that reads the event branch and
+            the recency maps alone (as an events-only model's head does, at half its width); in training its loss,
+            times this weight, joins the fused head's, so the events learn to detect by
+            themselves. Detection always reads the fused head. 0: no such head.
     """
 
     height: int
@@ -136,10 +140,13 @@ class DetectorConfig:
     graph: EventGraphSpec | None
     time_scale_us: float
     recency_us: tuple[float, ...]
+    event_head_weight: float = 0.0
 
     def __post_init__(self):
         if not (self.use_events or self.use_image):
             raise ValueError("a detector needs at least one branch: use_events or use_image")
+        if not (math.isfinite(self.event_head_weight) and self.event_head_weight >= 0):
+            raise ValueError(f"event_head_weight must be a number >= 0, got {self.event_head_weight!r}")
         if self.use_events and self.graph is None:
             raise ValueError("a detector with an event branch needs an event-graph spec (graph)")
 
@@ -152,8 +159,10 @@ class DetectorConfig:
 
     @classmethod
     def from_dict(cls, values: dict) -> "DetectorConfig":
-        """The config of :meth:`as_dict`'s output; a missing or unknown key is an error naming it."""
+        """The config of :meth:`as_dict`'s output; a missing or unknown key is an error naming it
+        (keys added later, such as ``event_head_weight``, take their default when missing)."""
         names = {f.name for f in fields(cls)}
+        values = {**_ADDED_LATER, **values}
         if set(values) != names:
             missing, unknown = sorted(names - set(values)), sorted(set(values) - names)
             raise ValueError(f"detector config: missing keys {missing}, unknown keys {unknown}")
@@ -161,6 +170,10 @@ class DetectorConfig:
         return cls(**{**values, "event_channels": tuple(values["event_channels"]), "strides": tuple(values["strides"]),
                       "recency_us": tuple(values["recency_us"]),
                       "graph": None if graph is None else EventGraphSpec.from_dict(dict(graph))})
+
+
+# Config keys newer than some checkpoints, with the value that gives those checkpoints' models.
+_ADDED_LATER = {"event_head_weight": 0.0}
 
 
 class Detector(nn.Module):
@@ -188,6 +201,11 @@ class Detector(nn.Module):
         head_in = (list(self.image.channels[1:]) if cfg.use_image
                    else [c + self.num_recency for c in self.events.out_channels])
         self.head = YOLOXHead(head_in, self.strides, hidden=cfg.head_hidden, num_classes=cfg.num_classes)
+        # Training only: the events' own head (deep supervision of the event branch in a hybrid), at
+        # half the width: a quarter of the main head's cost, and the event maps must do more of the work.
+        self.event_head = (YOLOXHead([c + self.num_recency for c in self.events.out_channels], self.strides,
+                                     hidden=max(cfg.head_hidden // 2, 1), num_classes=cfg.num_classes)
+                           if cfg.use_image and cfg.use_events and cfg.event_head_weight > 0 else None)
         # Training on several processes sets this: the loss normaliser of the global batch (see yolox_losses).
         self.loss_normaliser = None
 
@@ -203,16 +221,21 @@ class Detector(nn.Module):
 
     def features(self, batch: Batch) -> list[torch.Tensor]:
         """The fused maps the head reads, one per stride."""
+        return self._features(batch)[0]
+
+    def _features(self, batch: Batch) -> tuple[list[torch.Tensor], list[torch.Tensor] | None]:
+        """The fused maps, and the event and recency maps the event head reads (None without events)."""
         image_maps = self.image(batch.images) if self.image is not None else None
         if self.events is None:
-            return image_maps[1:]
+            return image_maps[1:], None
         sampler = self.node_sampler(self.node_maps(image_maps)) if image_maps is not None else None
         event_maps = self.events(batch.events, batch.batch_index, len(batch), image_sampler=sampler,
                                  edge_index=batch.edge_index)
         recency = [recency_maps(batch.events, batch.batch_index, batch.age_us, batch_size=len(batch), stride=stride,
                                 height=m.shape[-2], width=m.shape[-1], taus_us=self.cfg.recency_us)
                    for m, stride in zip(event_maps, self.strides)]
-        return self.combine(image_maps, event_maps, recency, batch.age_us)
+        fused = self.combine(image_maps, event_maps, recency, batch.age_us)
+        return fused, [torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)]
 
     def combine(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor],
                 recency: list[torch.Tensor], age_us: torch.Tensor) -> list[torch.Tensor]:
@@ -253,9 +276,16 @@ class Detector(nn.Module):
         return sampler
 
     def forward(self, batch: Batch, *, conf_threshold: float = 0.001, nms_threshold: float = 0.65):
-        raw, shapes = self.head(self.features(batch))
+        fused, event_inputs = self._features(batch)
+        raw, shapes = self.head(fused)
         if self.training:
-            return yolox_losses(raw, shapes, self.strides, batch.boxes, batch.labels,
-                                normaliser=self.loss_normaliser)
+            out = yolox_losses(raw, shapes, self.strides, batch.boxes, batch.labels, normaliser=self.loss_normaliser)
+            if self.event_head is not None:
+                event_raw, event_shapes = self.event_head(event_inputs)
+                events = yolox_losses(event_raw, event_shapes, self.strides, batch.boxes, batch.labels,
+                                      normaliser=self.loss_normaliser)
+                out["loss"] = out["loss"] + self.cfg.event_head_weight * events["loss"]
+                out["event_head_loss"] = events["loss"].detach()
+            return out
         return postprocess(raw, shapes, self.strides, conf_threshold=conf_threshold, nms_threshold=nms_threshold,
                            image_size=(self.cfg.height, self.cfg.width))

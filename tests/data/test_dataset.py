@@ -8,7 +8,7 @@ from torch.utils.data import DataLoader
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.collate import collate
-from dagr_lite.data.dataset import EventEgoHands, cap_events
+from dagr_lite.data.dataset import EventEgoHands, cap_events, draw_age
 from dagr_lite.data.reader import DatasetFormatError, read_frame
 from dagr_lite.data.writer import write_frame
 from tests.conftest import make_dataset
@@ -265,6 +265,31 @@ def test_training_draws_ages_from_the_range_per_sample(dataset):
     ds.set_epoch(2)
     again = [ds[i].image_frame for i in range(len(ds))]
     assert again == [ds[i].image_frame for i in range(len(ds))]  # same seed and epoch, same ages
+
+
+@pytest.mark.parametrize("power", [1.0, 2.5])
+def test_weighted_ages_follow_their_weights(power):
+    low, high, draws = 2, 7, 60_000
+    rng = np.random.default_rng(3)
+    counts = np.bincount([draw_age(rng, low, high, power) for _ in range(draws)], minlength=high + 1)
+    weights = np.array([(a - low + 1) ** power for a in range(low, high + 1)])  # hand-written law
+    expected = draws * weights / weights.sum()
+    assert counts[:low].sum() == 0
+    # each count within 5 standard deviations of its binomial expectation (seeded: no flakes)
+    sd = np.sqrt(expected * (1 - weights / weights.sum()))
+    assert np.all(np.abs(counts[low:] - expected) < 5 * sd)
+    assert draw_age(rng, 4, 4, power) == 4 and draw_age(rng, 4, 3, power) == 4
+
+
+def test_unweighted_ages_are_the_uniform_draws(dataset):
+    a, b = np.random.default_rng(7), np.random.default_rng(7)
+    assert [draw_age(a, 1, 10) for _ in range(50)] == b.integers(1, 11, 50).tolist()
+    uniform = EventEgoHands(dataset.root, "train", image_age=(1, 6))
+    linear = EventEgoHands(dataset.root, "train", image_age=(1, 6), age_power=1.0)
+    ages = [[ds[i].frame - ds[i].image_frame for i in range(len(ds))] for ds in (uniform, linear)]
+    assert ages[0] != ages[1] and all(1 <= a <= 6 for a in ages[1])
+    with pytest.raises(ValueError, match="age_power must be a number >= 0, got -1"):
+        EventEgoHands(dataset.root, "train", image_age=(1, 6), age_power=-1)
 
 
 def test_the_cap_keeps_the_latest_window_whole_and_thins_the_rest():

@@ -1,8 +1,9 @@
+import pytest
 import torch
 
 from dagr_lite.data.collate import collate
 from dagr_lite.data.dataset import EventEgoHands
-from dagr_lite.nn.detector import Detector
+from dagr_lite.nn.detector import Detector, DetectorConfig
 from dagr_lite.nn.head import box_iou
 from dagr_lite.synth.stub import stub_root
 from tests.models import small_detector_config
@@ -40,9 +41,49 @@ def test_training_output_names_and_variants():
         model = Detector(small_detector_config(use_events=use_events, use_image=use_image, image_width=8,
                                                event_channels=(8, 8, 8, 8), head_hidden=16))
         out = model(batch)
-        assert set(out) == {"loss", "iou_loss", "obj_loss", "cls_loss", "num_fg"} and torch.isfinite(out["loss"])
+        expected = {"loss", "iou_loss", "obj_loss", "cls_loss", "num_fg"} | ({"event_head_loss"} if use_events and
+                                                                           use_image else set())
+        assert set(out) == expected and torch.isfinite(out["loss"])
         model.eval()
         assert len(model(batch)) == 2
+
+
+def test_the_event_head_adds_its_weighted_loss_in_training_and_leaves_detection_alone():
+    dataset = EventEgoHands(stub_root(), "valid", max_events=2000)
+    batch = collate([dataset[i] for i in (0, 40)])
+    torch.manual_seed(0)
+    sizes = dict(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16)
+    with_head = Detector(small_detector_config(**sizes, event_head_weight=0.5))
+    without = Detector(small_detector_config(**sizes, event_head_weight=0.0))
+    assert without.event_head is None and with_head.event_head is not None
+    own = {k: v for k, v in with_head.state_dict().items() if not k.startswith("event_head.")}
+    without.load_state_dict(own)  # strict: the event head is the only difference
+    out, reference = with_head(batch), without(batch)
+    assert set(out) == set(reference) | {"event_head_loss"}
+    assert float(out["event_head_loss"]) > 0
+    torch.testing.assert_close(out["loss"], reference["loss"] + 0.5 * out["event_head_loss"])
+    out["loss"].backward()
+    assert all(p.grad is not None for p in with_head.event_head.parameters())
+    assert all(stem[0].weight.grad.abs().sum() > 0 for stem in with_head.event_head.stems)  # it trains
+    with_head.eval(), without.eval()
+    with torch.no_grad():
+        for a, b in zip(with_head(batch), without(batch)):  # detection reads the fused head only
+            for key in ("boxes", "scores", "labels"):
+                torch.testing.assert_close(a[key], b[key], rtol=0, atol=0)
+    for variant in ("events_only", "image_only"):  # only a hybrid has a second head to train
+        assert Detector(small_detector_config(variant=variant, **sizes, event_head_weight=1.0)).event_head is None
+
+
+def test_a_detector_config_saved_before_the_event_head_loads_without_one():
+    saved = small_detector_config(event_head_weight=2.0).as_dict()
+    assert DetectorConfig.from_dict(saved).event_head_weight == 2.0
+    del saved["event_head_weight"]
+    assert DetectorConfig.from_dict(saved).event_head_weight == 0.0
+    saved["event_heads"] = 1
+    with pytest.raises(ValueError, match="unknown keys \\['event_heads'\\]"):
+        DetectorConfig.from_dict(saved)
+    with pytest.raises(ValueError, match="event_head_weight must be a number >= 0, got -1"):
+        small_detector_config(event_head_weight=-1.0)
 
 
 def test_mixed_precision_keeps_losses_and_graph_products_in_float32(monkeypatch):
