@@ -224,7 +224,7 @@ class Detector(nn.Module):
         return self._features(batch)[0]
 
     def _features(self, batch: Batch) -> tuple[list[torch.Tensor], list[torch.Tensor] | None]:
-        """The fused maps, and the event and recency maps the event head reads (None without events)."""
+        """The fused maps, and in training the event and recency maps the event head reads (else None)."""
         image_maps = self.image(batch.images) if self.image is not None else None
         if self.events is None:
             return image_maps[1:], None
@@ -235,6 +235,8 @@ class Detector(nn.Module):
                                 height=m.shape[-2], width=m.shape[-1], taus_us=self.cfg.recency_us)
                    for m, stride in zip(event_maps, self.strides)]
         fused = self.combine(image_maps, event_maps, recency, batch.age_us)
+        if self.event_head is None or not self.training:
+            return fused, None
         return fused, [torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)]
 
     def combine(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor],
