@@ -234,17 +234,20 @@ class Detector(nn.Module):
         recency = [recency_maps(batch.events, batch.batch_index, batch.age_us, batch_size=len(batch), stride=stride,
                                 height=m.shape[-2], width=m.shape[-1], taus_us=self.cfg.recency_us)
                    for m, stride in zip(event_maps, self.strides)]
-        fused = self.combine(image_maps, event_maps, recency, batch.age_us)
-        if self.event_head is None or not self.training:
-            return fused, None
-        return fused, [torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)]
+        event_inputs = [torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)]
+        fused = self._fuse(image_maps, event_inputs, batch.age_us)
+        return fused, event_inputs if self.event_head is not None and self.training else None
 
     def combine(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor],
                 recency: list[torch.Tensor], age_us: torch.Tensor) -> list[torch.Tensor]:
         """The head's input from the event maps, the recency maps (``(B, num_recency, h, w)`` per
         stride, how recently each cell saw events at the query time) and, in a hybrid, the image
         maps (all strides of :class:`ImageBranch`) and the image's age ``(B,)`` in microseconds."""
-        event_maps = [torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)]
+        return self._fuse(image_maps, [torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)], age_us)
+
+    def _fuse(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor],
+              age_us: torch.Tensor) -> list[torch.Tensor]:
+        """:meth:`combine` on event maps already joined with their recency maps."""
         if image_maps is None:
             return event_maps
         age = (age_us.to(image_maps[0].dtype) / self.cfg.time_scale_us)[:, None, None, None]  # (B, 1, 1, 1)
