@@ -22,7 +22,8 @@ from torch.utils.data import DataLoader
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from dagr_lite.config import build_dataset, build_model, build_optimizer, check_values, resolve_config
+from dagr_lite.config import (ConfigError, build_dataset, build_model, build_optimizer, check_values,
+                              resolve_config)
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.common import (EpochSampler, RunSampler, ShardSampler, load_checkpoint, make_loader,
                                      resolve_device, run_folder, save_checkpoint, seed_everything)
@@ -31,6 +32,7 @@ from dagr_lite.engine.distributed import (Distributed, broadcast_object, cleanup
 from dagr_lite.engine.state import TrainState, train_step, validate
 from dagr_lite.eval.coco import METRIC_KEYS, format_metrics
 from dagr_lite.eval.score import render_sample
+from dagr_lite.nn.warm_start import warm_start
 
 
 class ResumeError(ValueError):
@@ -428,6 +430,34 @@ def own_last_checkpoint(cfg: DictConfig) -> Path | None:
     return last if last.is_file() else None
 
 
+def start_weights(cfg: DictConfig, resume_from: Path | None) -> str | None:
+    """The checkpoint ``init_from`` names, when this run starts from it: not when it resumes (a
+    run restarted in its own folder continues from its own ``last.pt``, which holds what training
+    made of those weights); ``resume`` and ``init_from`` given together are refused."""
+    path = cfg.get("init_from")
+    if path is None:
+        return None
+    if cfg.get("resume") is not None:
+        raise ConfigError(f"init_from={path} starts a new run from other weights, and resume={cfg.resume} "
+                          "continues a run from its own: give one of them")
+    return None if resume_from is not None else str(path)
+
+
+def start_from(model, path: str | Path, *, verbose: bool = True) -> dict:
+    """Start ``model`` from the weights of checkpoint ``path`` (its EMA weights, the ones it was
+    validated with) that fit, :func:`~dagr_lite.nn.warm_start.warm_start`."""
+    saved = load_checkpoint(path)
+    report = warm_start(model, saved["ema"]["module"] if saved.get("ema") else saved["model"])
+    if not report["copied"] and not report["widened"]:
+        source = ((saved.get("config") or {}).get("model") or {}).get("name", "another model")
+        raise ValueError(f"init_from={path}: no weight of that checkpoint ({source}) fits this model; "
+                         "nothing to start from")
+    if verbose:
+        print(f"init_from {path}: {len(report['copied'])} tensors copied, {len(report['widened'])} widened "
+              f"with zeros, {len(report['kept'])} at their own initialisation", flush=True)
+    return report
+
+
 def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
     if place.is_main:
         print(OmegaConf.to_yaml(cfg), flush=True)
@@ -435,6 +465,9 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
     seed_everything(cfg.seed)
     train_set = build_dataset(cfg, "train", train=True, with_image=cfg.model.use_image)
     model = build_model(cfg, height=train_set.image_size[0], width=train_set.image_size[1]).to(device)
+    init_from = start_weights(cfg, resume_from)
+    if init_from is not None:
+        start_from(model, init_from, verbose=place.is_main)
     if place.enabled:
         model = synchronise_batch_norm(model, device)
         model.loss_normaliser = global_normaliser(place)

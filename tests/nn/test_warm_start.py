@@ -1,0 +1,99 @@
+from pathlib import Path
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from dagr_lite.config import ConfigError
+from dagr_lite.data.collate import collate
+from dagr_lite.data.dataset import EventEgoHands
+from dagr_lite.engine.common import CHECKPOINT_FORMAT
+from dagr_lite.engine.train import start_from, start_weights
+from dagr_lite.nn.detector import Detector
+from dagr_lite.nn.warm_start import warm_start, widen
+from dagr_lite.synth.stub import stub_root
+from tests.models import small_detector_config
+
+SIZES = dict(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16)
+
+
+def test_widen_puts_the_source_first_and_zeros_after_it():
+    source = torch.tensor([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    wide = widen(source, torch.Size([4, 3]))
+    assert torch.equal(wide, torch.tensor([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]))
+    assert torch.equal(widen(source, torch.Size([2, 5]))[:, 3:], torch.zeros(2, 2))
+    assert widen(source, torch.Size([3, 4])) is None  # two dimensions differ
+    assert widen(source, torch.Size([1, 3])) is None  # the source is the larger
+    assert widen(source, torch.Size([2, 3, 1])) is None
+
+
+def test_an_events_only_branch_started_in_a_hybrid_computes_the_same_maps_whatever_the_image():
+    torch.manual_seed(0)
+    events_only = Detector(small_detector_config(variant="events_only", **SIZES)).eval()
+    hybrid = Detector(small_detector_config(**SIZES)).eval()
+    report = warm_start(hybrid, events_only.state_dict())
+    # every first block of a stage reads the node's time (stage 0) and image channels besides the source's inputs
+    # (there, with as many channels in as out, the source's skip is the identity: widened from it)
+    assert sorted(report["widened"]) == sorted(f"events.stages.{s}.0.{layer}.weight" for s in range(4)
+                                               for layer in ("conv", "skip"))
+    assert all(name.startswith(("image.", "to_nodes.", "fuse.", "head.stems.")) or name.endswith("num_batches_tracked")
+               for name in report["kept"])
+    dataset = EventEgoHands(stub_root(), "valid", image_age=3, max_events=3000)
+    batch = collate([dataset[i] for i in (5, 40)])
+    with torch.no_grad():
+        expected = events_only.events(batch.events, batch.batch_index, len(batch))
+        for images in (batch.images, torch.zeros_like(batch.images), torch.full_like(batch.images, 255)):
+            sampler = hybrid.node_sampler(hybrid.node_maps(hybrid.image(images)))
+            maps = hybrid.events(batch.events, batch.batch_index, len(batch), image_sampler=sampler)
+            for got, want in zip(maps, expected, strict=True):
+                torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+        # the reference is not trivially equal: the hybrid's own initialisation gives other maps
+        fresh = Detector(small_detector_config(**SIZES)).eval()
+        sampler = fresh.node_sampler(fresh.node_maps(fresh.image(batch.images)))
+        other = fresh.events(batch.events, batch.batch_index, len(batch), image_sampler=sampler)
+    assert not torch.allclose(other[0], expected[0])
+
+
+def test_same_shapes_are_copied_and_only_the_event_branch_is_widened():
+    torch.manual_seed(0)
+    source = Detector(small_detector_config(**SIZES))
+    target = Detector(small_detector_config(**SIZES))
+    report = warm_start(target, source.state_dict())
+    assert report["widened"] == [] and all(name.endswith("num_batches_tracked") for name in report["kept"])
+    for name, value in source.state_dict().items():
+        assert torch.equal(target.state_dict()[name], value)
+    # a head reading more channels is not widened: its inputs are not laid out source-first
+    wider_image = Detector(small_detector_config(**{**SIZES, "image_width": 16}))
+    report = warm_start(wider_image, source.state_dict())
+    assert report["widened"] == [] and any(name.startswith("head.stems.") for name in report["kept"])
+
+
+def _save(path, model):
+    torch.save({"format": CHECKPOINT_FORMAT, "model": model.state_dict(),
+                "ema": {"module": model.state_dict(), "updates": 0}, "detector": model.cfg.as_dict()}, path)
+
+
+def test_start_from_reads_a_checkpoint_and_refuses_what_cannot_start_a_run(tmp_path):
+    torch.manual_seed(0)
+    events_only = Detector(small_detector_config(variant="events_only", **SIZES))
+    _save(tmp_path / "ev.pt", events_only)
+    hybrid = Detector(small_detector_config(**SIZES))
+    report = start_from(hybrid, tmp_path / "ev.pt", verbose=False)
+    assert len(report["widened"]) == 8
+    assert torch.equal(hybrid.state_dict()["events.stages.1.0.norm.weight"],
+                       events_only.state_dict()["events.stages.1.0.norm.weight"])
+    foreign = torch.nn.Sequential(torch.nn.Linear(3, 5))
+    torch.save({"format": CHECKPOINT_FORMAT, "model": foreign.state_dict(), "ema": None}, tmp_path / "foreign.pt")
+    with pytest.raises(ValueError, match="no weight of that checkpoint fits"):
+        start_from(hybrid, tmp_path / "foreign.pt")
+    with pytest.raises(FileNotFoundError, match="missing.pt"):
+        start_from(hybrid, tmp_path / "missing.pt")
+
+
+def test_init_from_starts_a_new_run_only():
+    assert start_weights(OmegaConf.create({"init_from": None, "resume": None}), None) is None
+    assert start_weights(OmegaConf.create({"init_from": "ev.pt", "resume": None}), None) == "ev.pt"
+    # restarted in its own folder (torchrun), the run continues from its own last.pt
+    assert start_weights(OmegaConf.create({"init_from": "ev.pt", "resume": None}), Path("run/last.pt")) is None
+    with pytest.raises(ConfigError, match="init_from=ev.pt .* resume=run/last.pt .* give one of them"):
+        start_weights(OmegaConf.create({"init_from": "ev.pt", "resume": "run/last.pt"}), Path("run/last.pt"))
