@@ -84,7 +84,7 @@ def test_start_from_reads_a_checkpoint_and_refuses_what_cannot_start_a_run(tmp_p
                        events_only.state_dict()["events.stages.1.0.norm.weight"])
     foreign = torch.nn.Sequential(torch.nn.Linear(3, 5))
     torch.save({"format": CHECKPOINT_FORMAT, "model": foreign.state_dict(), "ema": None}, tmp_path / "foreign.pt")
-    with pytest.raises(ValueError, match="no weight of that checkpoint fits"):
+    with pytest.raises(ValueError, match=r"no weight of that checkpoint \(another model\) fits this model"):
         start_from(hybrid, tmp_path / "foreign.pt")
     with pytest.raises(FileNotFoundError, match="missing.pt"):
         start_from(hybrid, tmp_path / "missing.pt")
