@@ -25,6 +25,8 @@ def test_widen_puts_the_source_first_and_zeros_after_it():
     assert widen(source, torch.Size([3, 4])) is None  # two dimensions differ
     assert widen(source, torch.Size([1, 3])) is None  # the source is the larger
     assert widen(source, torch.Size([2, 3, 1])) is None
+    assert widen(source, torch.Size([4, 3]), dim=1) is None  # not the dimension asked for
+    assert torch.equal(widen(source, torch.Size([4, 3]), dim=0), widen(source, torch.Size([4, 3])))
 
 
 def test_an_events_only_branch_started_in_a_hybrid_computes_the_same_maps_whatever_the_image():
@@ -66,6 +68,10 @@ def test_same_shapes_are_copied_and_only_the_event_branch_is_widened():
     wider_image = Detector(small_detector_config(**{**SIZES, "image_width": 16}))
     report = warm_start(wider_image, source.state_dict())
     assert report["widened"] == [] and any(name.startswith("head.stems.") for name in report["kept"])
+    # a wider event branch (more outputs per stage, as in size m) is not widened: it would zero whole channels
+    wider_events = Detector(small_detector_config(**{**SIZES, "event_channels": (12, 12, 12, 12)}))
+    report = warm_start(wider_events, source.state_dict())
+    assert report["widened"] == [] and "events.stages.1.0.norm.weight" in report["kept"]
 
 
 def _save(path, model):
