@@ -142,6 +142,9 @@ def check_values(cfg: DictConfig) -> None:
         value = OmegaConf.select(cfg, key, default=_ABSENT)
         if value is not _ABSENT and not ok(value):
             raise ConfigError(f"{key} must be {expected}, got {value!r}")
+    if cfg.get("init_from") is not None and cfg.get("resume") is not None:
+        raise ConfigError(f"init_from={cfg.init_from} starts a new run from other weights, and resume={cfg.resume} "
+                          "continues a run from its own: give one of them")
     trainer = cfg.get("trainer")
     if trainer is not None and trainer.max_steps is None and trainer.max_epochs is None:
         raise ConfigError("set trainer.max_steps or trainer.max_epochs (both are null)")

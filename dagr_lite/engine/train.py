@@ -22,8 +22,7 @@ from torch.utils.data import DataLoader
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from dagr_lite.config import (ConfigError, build_dataset, build_model, build_optimizer, check_values,
-                              resolve_config)
+from dagr_lite.config import build_dataset, build_model, build_optimizer, check_values, resolve_config
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.common import (EpochSampler, RunSampler, ShardSampler, load_checkpoint, make_loader,
                                      resolve_device, run_folder, save_checkpoint, seed_everything)
@@ -391,6 +390,8 @@ def train(cfg: DictConfig) -> dict:
     per-step training losses. Launched by ``torchrun``, every process runs this together."""
     cfg = resolve_config(cfg)
     check_values(cfg)
+    if cfg.get("init_from") is not None and not Path(cfg.init_from).is_file():  # before the run folder is made
+        raise FileNotFoundError(f"init_from={cfg.init_from}: checkpoint file is missing")
     place = Distributed.from_environment()
     device = setup(place, resolve_device(cfg.device))
     try:
@@ -433,14 +434,9 @@ def own_last_checkpoint(cfg: DictConfig) -> Path | None:
 def start_weights(cfg: DictConfig, resume_from: Path | None) -> str | None:
     """The checkpoint ``init_from`` names, when this run starts from it: not when it resumes (a
     run restarted in its own folder continues from its own ``last.pt``, which holds what training
-    made of those weights); ``resume`` and ``init_from`` given together are refused."""
+    made of those weights; ``check_values`` refuses ``init_from`` beside ``resume``)."""
     path = cfg.get("init_from")
-    if path is None:
-        return None
-    if cfg.get("resume") is not None:
-        raise ConfigError(f"init_from={path} starts a new run from other weights, and resume={cfg.resume} "
-                          "continues a run from its own: give one of them")
-    return None if resume_from is not None else str(path)
+    return None if path is None or resume_from is not None else str(path)
 
 
 def start_from(model, path: str | Path, *, verbose: bool = True) -> dict:

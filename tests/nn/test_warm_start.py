@@ -4,11 +4,11 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from dagr_lite.config import ConfigError
+from dagr_lite.config import ConfigError, check_values, compose_config
 from dagr_lite.data.collate import collate
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.common import CHECKPOINT_FORMAT
-from dagr_lite.engine.train import start_from, start_weights
+from dagr_lite.engine.train import start_from, start_weights, train
 from dagr_lite.nn.detector import Detector
 from dagr_lite.nn.warm_start import warm_start, widen
 from dagr_lite.synth.stub import stub_root
@@ -102,4 +102,12 @@ def test_init_from_starts_a_new_run_only():
     # restarted in its own folder (torchrun), the run continues from its own last.pt
     assert start_weights(OmegaConf.create({"init_from": "ev.pt", "resume": None}), Path("run/last.pt")) is None
     with pytest.raises(ConfigError, match="init_from=ev.pt .* resume=run/last.pt .* give one of them"):
-        start_weights(OmegaConf.create({"init_from": "ev.pt", "resume": "run/last.pt"}), Path("run/last.pt"))
+        check_values(OmegaConf.create({"init_from": "ev.pt", "resume": "run/last.pt"}))
+    check_values(OmegaConf.create({"init_from": "ev.pt", "resume": None}))
+
+
+def test_a_missing_init_from_is_refused_before_the_run_folder_is_made(tmp_path):
+    cfg = compose_config("train", [f"run_dir={tmp_path / 'run'}", f"init_from={tmp_path / 'nope.pt'}"])
+    with pytest.raises(FileNotFoundError, match="init_from=.*nope.pt: checkpoint file is missing"):
+        train(cfg)
+    assert not (tmp_path / "run").exists()
