@@ -18,10 +18,11 @@ compute. Its ratio to the step with the workers is what the loader costs when it
 cores with the step (on few cores the workers' graph building slows the step's own threads,
 even while no time is spent waiting for data).
 
-``--device auto`` runs on CUDA when present, with the trainer's mixed precision (bfloat16 where
-the GPU has it; float16 elsewhere, here without the trainer's gradient scaler, which barely
-changes the time); times are then taken after ``torch.cuda.synchronize()`` and the peak GPU
-memory of each variant is printed too.
+Every step runs in the trainer's precision: on CUDA bfloat16 where the GPU has it (float16
+elsewhere, here without the trainer's gradient scaler, which barely changes the time), on a CPU
+bfloat16 where the CPU has it natively, else float32. ``--device auto`` runs on CUDA when
+present; times are then taken after ``torch.cuda.synchronize()`` and the peak GPU memory of each
+variant is printed too. ``benchmarks/cpu_step.py`` compares the two precisions on a CPU.
 """
 from __future__ import annotations
 
@@ -164,7 +165,7 @@ def main() -> None:
     args = parser.parse_args()
     args.device = resolve_device(args.device)
     defaults = compose_config("train", [])
-    args.amp = amp_dtype(defaults.trainer, args.device)  # as the trainer: None on the CPU
+    args.amp = amp_dtype(defaults.trainer, args.device)  # as the trainer (on a CPU: bfloat16 where it is native)
     if args.worker_nice is None:
         args.worker_nice = int(defaults.loader.worker_nice)
     where = torch.cuda.get_device_name(args.device) if args.device.type == "cuda" else "CPU"

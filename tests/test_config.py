@@ -48,7 +48,7 @@ def test_default_dataset_is_the_stub_with_its_short_recipe():
     cfg = resolve_config(compose_cfg("train"))
     assert cfg.dataset.name == "stub" and cfg.dataset.root is None
     assert (cfg.dataset.height, cfg.dataset.width) == (180, 320)
-    assert cfg.optim.lr == pytest.approx(1e-3) and cfg.trainer.max_epochs == 12 and cfg.loader.batch_size == 16
+    assert cfg.optim.lr == pytest.approx(1e-3) and cfg.trainer.max_epochs == 20 and cfg.loader.batch_size == 16
     paper = resolve_config(compose_cfg("train", ["dataset=v6", "dataset.root=/data/v6"]))
     assert paper.optim.lr == pytest.approx(2e-4) and paper.trainer.max_steps == 100_000  # the paper's recipe
     assert resolve_config(compose_cfg("train", ["optim.lr=5e-4"])).optim.lr == pytest.approx(5e-4)
@@ -156,6 +156,7 @@ def test_model_defaults_come_from_conf_and_variants_inherit_them():
     ("trainer.ema_decay=1.5", r"trainer\.ema_decay must be a number in \[0, 1\)"),
     ("data.train_image_age_power=-0.5", r"data\.train_image_age_power must be a number >= 0 \(0: ages drawn uniformly\), got -0\.5"),
     ("model.event_head_weight=-1", r"model\.event_head_weight must be a number >= 0 \(0: no event head\), got -1"),
+    ("model.image_stem=vit", r"model\.image_stem must be one of patch, conv, got 'vit'"),
     ("loader.worker_nice=25", r"loader\.worker_nice must be an integer from 0 to 19 \(a Unix nice increment\), got 25"),
 ])
 def test_bad_values_name_their_key(override, match):

@@ -37,39 +37,55 @@ class _Residual(nn.Module):
         return x + self.body(x)
 
 
+IMAGE_STEMS = ("patch", "conv")
+
+
 class ImageBranch(nn.Module):
     """A small CNN from scratch: a stride-4 stem, then one downsampling stage per doubling of
     the stride up to the largest head stride.
 
     Args:
-        width: ``w``, the stem's channels; the stage at stride ``4 * 2^(i + 1)`` has ``2^(i + 2) w``.
+        width: ``w``; the stem gives ``2w`` channels, the stage at stride ``4 * 2^(i + 1)`` ``2^(i + 2) w``.
         strides: the head's strides, each twice the one before, starting at 8 or above.
+        stem: ``"patch"``: one 4x4 convolution of stride 4 (each stride-4 cell reads its own 4x4
+            pixels), then a residual block; ``"conv"``: two 3x3 convolutions of stride 2 (``w``
+            then ``2w`` channels), then the residual block. Both give the same stride-4 map
+            size; the patch stem never computes a map at half resolution, which makes training
+            steps on a CPU faster (``benchmarks/cpu_step.py``).
 
     Shapes:
         images ``(B, 3, H, W)`` uint8 -> maps at strides ``(4, *strides)`` (the stride-4 map is
         what event nodes sample at the input level), with ``channels = (2w, ...)``.
     """
 
-    def __init__(self, width: int, strides: Sequence[int]):
+    def __init__(self, width: int, strides: Sequence[int], stem: str = "patch"):
         super().__init__()
+        if stem not in IMAGE_STEMS:
+            raise ValueError(f"image_stem must be one of {list(IMAGE_STEMS)}, got {stem!r}")
         strides = [int(s) for s in strides]
         first = strides[0] if strides else 0
         if (not strides or first < 8 or first & (first - 1)
                 or strides != [first * 2 ** i for i in range(len(strides))]):
             raise ValueError(f"the image branch needs strides that double, starting at a power of two >= 8 "
                              f"(e.g. [8, 16, 32] or [16, 32]), got {list(strides)}")
-        self.strides = (4, *strides)
+        self.strides, self.stem_kind = (4, *strides), stem
         stage_strides = [8 * 2 ** i for i in range(int(math.log2(strides[-1] // 4)))]  # 8, 16, ..., largest
         stage_channels = [2 * width] + [4 * width * 2 ** i for i in range(len(stage_strides))]
         self.read = [0] + [1 + stage_strides.index(s) for s in strides]  # which maps are given out
         self.channels = tuple(stage_channels[i] for i in self.read)
-        self.stem = nn.Sequential(conv_bn_act(3, width, stride=2), conv_bn_act(width, 2 * width, stride=2),
-                                  _Residual(2 * width))
+        if stem == "patch":
+            self.stem = nn.Sequential(conv_bn_act(3, 2 * width, stride=4, k=4), _Residual(2 * width))
+        else:
+            self.stem = nn.Sequential(conv_bn_act(3, width, stride=2), conv_bn_act(width, 2 * width, stride=2),
+                                      _Residual(2 * width))
         self.stages = nn.ModuleList(nn.Sequential(conv_bn_act(c_in, c_out, stride=2), _Residual(c_out))
                                     for c_in, c_out in zip(stage_channels[:-1], stage_channels[1:]))
 
     def forward(self, images: torch.Tensor) -> list[torch.Tensor]:
-        x = self.stem(images.to(self.stem[0][0].weight.dtype) / 255.0 - 0.5)  # (B, 2w, H/4, W/4)
+        x = images.to(self.stem[0][0].weight.dtype) / 255.0 - 0.5
+        if self.stem_kind == "patch":  # whole 4x4 patches: pad the right and bottom with grey
+            x = F.pad(x, (0, -x.shape[-1] % 4, 0, -x.shape[-2] % 4))
+        x = self.stem(x)  # (B, 2w, ceil(H/4), ceil(W/4))
         maps = [x]
         for stage in self.stages:
             x = stage(x)
@@ -124,6 +140,7 @@ class DetectorConfig:
             the recency maps alone (as an events-only model's head does, at half its width); in training its loss,
             times this weight, joins the fused head's, so the events learn to detect by
             themselves. Detection always reads the fused head. 0: no such head.
+        image_stem: the image branch's stride-4 stem, ``"patch"`` or ``"conv"`` (see :class:`ImageBranch`).
     """
 
     height: int
@@ -141,6 +158,7 @@ class DetectorConfig:
     time_scale_us: float
     recency_us: tuple[float, ...]
     event_head_weight: float = 0.0
+    image_stem: str = "patch"
 
     def __post_init__(self):
         if not (self.use_events or self.use_image):
@@ -149,6 +167,8 @@ class DetectorConfig:
             raise ValueError(f"event_head_weight must be a number >= 0, got {self.event_head_weight!r}")
         if self.use_events and self.graph is None:
             raise ValueError("a detector with an event branch needs an event-graph spec (graph)")
+        if self.image_stem not in IMAGE_STEMS:
+            raise ValueError(f"image_stem must be one of {list(IMAGE_STEMS)}, got {self.image_stem!r}")
 
     def as_dict(self) -> dict:
         values = {f.name: getattr(self, f.name) for f in fields(self)}
@@ -173,7 +193,7 @@ class DetectorConfig:
 
 
 # Config keys newer than some checkpoints, with the value that gives those checkpoints' models.
-_ADDED_LATER = {"event_head_weight": 0.0}
+_ADDED_LATER = {"event_head_weight": 0.0, "image_stem": "conv"}
 
 
 class Detector(nn.Module):
@@ -183,7 +203,7 @@ class Detector(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.strides = list(cfg.strides)
-        self.image = ImageBranch(cfg.image_width, cfg.strides) if cfg.use_image else None
+        self.image = ImageBranch(cfg.image_width, cfg.strides, cfg.image_stem) if cfg.use_image else None
         if cfg.use_events:
             fuse = (cfg.fuse_channels,) * (len(cfg.strides) + 1) if cfg.use_image else None
             self.events = EventBranch(height=cfg.height, width=cfg.width, channels=cfg.event_channels,

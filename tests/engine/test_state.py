@@ -117,6 +117,21 @@ def test_the_loaders_graph_is_the_models_own():
         assert torch.equal(x["boxes"], y["boxes"]) and torch.equal(x["scores"], y["scores"])
 
 
+@pytest.mark.parametrize("native", [True, False])
+def test_the_cpu_trains_in_bfloat16_only_where_it_has_it_natively(monkeypatch, native):
+    from omegaconf import OmegaConf
+
+    import dagr_lite.engine.train as train_module
+
+    monkeypatch.setattr(train_module, "cpu_has_bfloat16", lambda: native)
+    cpu = torch.device("cpu")
+    for dtype in ("auto", "bfloat16"):
+        chosen = train_module.amp_dtype(OmegaConf.create({"amp": True, "amp_dtype": dtype}), cpu)
+        assert chosen == (torch.bfloat16 if native else None)
+    assert train_module.amp_dtype(OmegaConf.create({"amp": True, "amp_dtype": "float16"}), cpu) is None
+    assert train_module.amp_dtype(OmegaConf.create({"amp": False, "amp_dtype": "auto"}), cpu) is None
+
+
 def test_mixed_precision_choices_run_a_step_on_the_cpu():
     """The CUDA path's precision choices, exercised on the CPU: bfloat16 autocast runs without a
     scaler (the hybrid's sparse products and the losses stay float32), float16 gets the scaler."""
@@ -139,6 +154,5 @@ def test_mixed_precision_choices_run_a_step_on_the_cpu():
     with pytest.raises(ValueError, match="float16 or bfloat16"):
         TrainState.create(model, build_optimizer(cfg, model.parameters()), amp=torch.float64, **common)
     trainer = OmegaConf.create({"amp": True, "amp_dtype": "bfloat16"})
-    assert amp_dtype(trainer, torch.device("cpu")) is None  # the CPU trains in float32
     assert amp_dtype(trainer, torch.device("cuda")) == torch.bfloat16
     assert amp_dtype(OmegaConf.create({"amp": False, "amp_dtype": "auto"}), torch.device("cuda")) is None

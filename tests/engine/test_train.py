@@ -25,10 +25,10 @@ def config(name, *overrides):
 
 
 def small(run_dir, *overrides):
-    """A tiny training config, on the CPU: the exactness checks (resume, processes) hold there
-    (CUDA's atomics and bfloat16 make runs differ in the last digits); tests/engine/test_cuda.py
-    trains on a GPU where there is one."""
-    return config("train", f"run_dir={run_dir}", "device=cpu", "loader.batch_size=4", "loader.num_workers=0", "optim.lr=2e-3",
+    """A tiny training config, on the CPU in float32: the exactness checks (resume, processes)
+    hold there (CUDA's atomics and bfloat16 make runs differ in the last digits);
+    tests/engine/test_cuda.py trains on a GPU where there is one."""
+    return config("train", f"run_dir={run_dir}", "device=cpu", "trainer.amp=false", "loader.batch_size=4", "loader.num_workers=0", "optim.lr=2e-3",
                   "trainer.warmup_steps=5", "trainer.log_every=1", "trainer.image_every=0", "data.max_events=6000",
                   *overrides)
 
@@ -96,7 +96,7 @@ def test_resume_continues_exactly_across_epoch_ends(tmp_path, monkeypatch):
     saved = keep_last_copies(monkeypatch)
 
     def run(name, *overrides):
-        return train(config("train", f"run_dir={tmp_path / name}", "device=cpu", "dataset=custom",
+        return train(config("train", f"run_dir={tmp_path / name}", "device=cpu", "trainer.amp=false", "dataset=custom",
                             f"dataset.root={written.root}", "loader.batch_size=4", "trainer.max_steps=12", "trainer.val_every=100",
                             "trainer.checkpoint_every=1", "trainer.image_every=0", "trainer.warmup_steps=2",
                             *overrides))

@@ -84,6 +84,17 @@ def test_a_detector_config_saved_before_the_event_head_loads_without_one():
         small_detector_config(event_head_weight=-1.0)
 
 
+def test_a_detector_config_saved_before_the_patch_stem_rebuilds_its_conv_stem():
+    saved = small_detector_config().as_dict()
+    assert saved["image_stem"] == "patch"  # the default of conf/model/hybrid.yaml
+    del saved["image_stem"]
+    old = DetectorConfig.from_dict(saved)
+    assert old.image_stem == "conv"
+    assert [type(layer).__name__ for layer in Detector(old).image.stem] == ["Sequential", "Sequential", "_Residual"]
+    with pytest.raises(ValueError, match="image_stem must be one of"):
+        small_detector_config(image_stem="big")
+
+
 def test_mixed_precision_keeps_losses_and_graph_products_in_float32(monkeypatch):
     import dagr_lite.nn.head as head_module
     real_bce = head_module.F.binary_cross_entropy

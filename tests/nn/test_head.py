@@ -132,6 +132,40 @@ def test_image_branch_gives_out_the_head_strides_only():
             ImageBranch(width=8, strides=bad)
 
 
+@pytest.mark.parametrize("height, width", [(180, 320), (181, 322), (35, 61)])
+def test_both_image_stems_give_the_same_map_sizes(height, width):
+    images = torch.zeros(2, 3, height, width, dtype=torch.uint8)
+    shapes = {stem: [tuple(m.shape) for m in ImageBranch(width=8, strides=(8, 16, 32), stem=stem)(images)]
+              for stem in ("patch", "conv")}
+    assert shapes["patch"] == shapes["conv"]
+    assert shapes["patch"][0] == (2, 16, -(-height // 4), -(-width // 4))  # ceil(H / 4), ceil(W / 4)
+    with pytest.raises(ValueError, match="image_stem must be one of \\['patch', 'conv'\\], got 'vit'"):
+        ImageBranch(width=8, strides=(8, 16, 32), stem="vit")
+
+
+def test_the_patch_stem_reads_each_cells_own_four_by_four_pixels():
+    """A pixel changes exactly the stride-4 cell that holds it (before the residual block mixes
+    neighbours): cell (i, j) covers pixels [4i, 4i + 4) x [4j, 4j + 4), as the node sampler
+    assumes; a frame cut mid-patch is padded on the right and bottom only."""
+    torch.manual_seed(0)
+    branch = ImageBranch(width=8, strides=(8, 16, 32), stem="patch").eval()
+    patchify = branch.stem[0][0]  # the 4x4 stride-4 convolution
+    images = torch.randint(0, 255, (1, 3, 22, 30), dtype=torch.uint8)
+    padded = F.pad(images.float() / 255.0 - 0.5, (0, 2, 0, 2))  # 22 x 30 -> 24 x 32
+    with torch.no_grad():
+        reference = patchify(padded)
+        assert reference.shape[-2:] == (6, 8)
+        for y, x in ((0, 0), (5, 13), (21, 29), (20, 3)):
+            changed = padded.clone()
+            changed[0, :, y, x] += 0.7
+            moved = (patchify(changed) - reference).abs().sum(dim=1)[0] > 1e-6  # (6, 8)
+            expected = torch.zeros(6, 8, dtype=torch.bool)
+            expected[y // 4, x // 4] = True
+            assert torch.equal(moved, expected)
+        # The branch pads the same way: its stride-4 map is the stem on the padded frame.
+        torch.testing.assert_close(branch(images)[0], branch.stem(padded))
+
+
 def sigmoid(x: float) -> float:
     return 1 / (1 + math.exp(-x))
 
