@@ -10,7 +10,9 @@ asked for to the last step done (after 2 untimed warm-up steps). The arms take t
 ``bfloat16`` autocast (the trainer's CPU precision where the CPU has native bfloat16, printed),
 and for a model with an image the image stem ``conv`` (two 3x3 convolutions of stride 2) or
 ``patch`` (one 4x4 convolution of stride 4). The baseline, measured in the same run, is float32
-with the conv stem: the default before both.
+with the conv stem: the default before both. Each arm's step alone, on batches loaded
+beforehand with no workers running, is printed beside it: the difference is what the loader's
+workers take from the step on the same cores.
 """
 from __future__ import annotations
 
@@ -46,6 +48,14 @@ def timed_steps(model, optimizer, dataset, dtype, steps: int, workers: int, nice
     return seconds
 
 
+def steps_alone(model, optimizer, batches, dtype) -> float:
+    """Seconds per step on ``batches`` loaded beforehand (no loader running)."""
+    start = time.perf_counter()
+    for batch in batches:
+        step(model, optimizer, batch, dtype)
+    return (time.perf_counter() - start) / len(batches)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=20, help="timed steps per arm and round")
@@ -70,12 +80,16 @@ def main() -> None:
                 name = f"{variant} {'stem ' + stem if stem else ''} {'bfloat16' if dtype else 'float32'}"
                 arms.append((" ".join(name.split()), model.train(), torch.optim.AdamW(model.parameters(), lr=1e-4),
                              dtype))
-        best = [float("inf")] * len(arms)
+        iterator = iter(make_loader(dataset, batch_size=16, num_workers=0, graph=arms[0][1].graph_spec))
+        loaded = [next(iterator) for _ in range(6)]
+        best, alone = [float("inf")] * len(arms), [float("inf")] * len(arms)
         for _ in range(args.rounds):
             for i, (_, model, optimizer, dtype) in enumerate(arms):
                 best[i] = min(best[i], timed_steps(model, optimizer, dataset, dtype, args.steps, workers, nice))
-        for (name, *_), seconds in zip(arms, best):
-            print(f"{name:32s} {seconds:6.3f} s/step, {best[0] / seconds:4.2f}x the step of {arms[0][0]}", flush=True)
+                alone[i] = min(alone[i], steps_alone(model, optimizer, loaded, dtype))
+        for (name, *_), seconds, own in zip(arms, best, alone):
+            print(f"{name:32s} {seconds:6.3f} s/step, {best[0] / seconds:4.2f}x the step of {arms[0][0]} "
+                  f"(the step alone {own:5.3f} s, {alone[0] / own:4.2f}x)", flush=True)
 
 
 if __name__ == "__main__":
