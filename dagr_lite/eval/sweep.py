@@ -27,7 +27,7 @@ from dagr_lite.config import ConfigError, build_dataset, resolve_config
 from dagr_lite.data.dataset import EventEgoHands, Sample
 from dagr_lite.engine.common import load_checkpoint, make_loader, resolve_device
 from dagr_lite.data.writer import write_text_atomically
-from dagr_lite.engine.evaluate import SAMPLE_KEYS, load_model
+from dagr_lite.engine.evaluate import SAMPLE_KEYS, _override, load_model
 from dagr_lite.eval.score import score_model
 from dagr_lite.nn.detector import DetectorConfig
 from dagr_lite.nn.head import box_iou
@@ -119,14 +119,22 @@ def score_point(cfg: DictConfig, model, dataset: EventEgoHands, frames: list[tup
             "num_images": len(evaluator.images)}
 
 
+# What a sample is, besides its image age (the sweep's own): the checkpoint's unless given.
+OVERRIDABLE = tuple(key for key in SAMPLE_KEYS if key != "image_age")
+
+
 def sweep_checkpoint(cfg: DictConfig, path: str, frames: list[tuple[int, int]] | None, device: torch.device
-                     ) -> tuple[list[dict], list[tuple[int, int]]]:
+                     ) -> tuple[list[dict], list[tuple[int, int]], dict]:
     """The rows of one checkpoint at every sweep point, with its own data settings (image age
-    aside); the frames are found on first use and shared by every later checkpoint."""
+    aside) unless ``data.*`` overrides them; the frames are found on first use and shared by
+    every later checkpoint. Also returns the overrides (``{"data.key": {"checkpoint", "used"}}``)."""
     state = load_checkpoint(path)
     detector = DetectorConfig.from_dict(state["detector"])
     trained = state["config"]
-    run_cfg = OmegaConf.merge(cfg, {"data": {key: trained["data"][key] for key in SAMPLE_KEYS}})
+    overrides: dict = {}
+    data = {key: trained["data"][key] for key in SAMPLE_KEYS}
+    data.update({key: _override("data", key, data[key], cfg.data.get(key), overrides) for key in OVERRIDABLE})
+    run_cfg = OmegaConf.merge(cfg, {"data": data})
     largest = max(cfg.ages)
     dataset = build_dataset(run_cfg, cfg.split, train=False, with_image=detector.use_image, image_age=largest,
                             first_frame=largest)
@@ -134,12 +142,13 @@ def sweep_checkpoint(cfg: DictConfig, path: str, frames: list[tuple[int, int]] |
         frames = sweep_frames(dataset, largest, cfg.between)
     model = load_model(state, detector, dataset.image_size, path).to(device)
     name = trained["model"]["name"] + (" (grey image)" if cfg.blank_image else "")
-    print(f"{path}: {name}, {len(frames)} label frames of {cfg.split}", flush=True)
+    changed = "".join(f", {key}={value['used']} (trained with {value['checkpoint']})" for key, value in overrides.items())
+    print(f"{path}: {name}, {len(frames)} label frames of {cfg.split}{changed}", flush=True)
     rows = [{"ckpt": str(path), "model": name, "age_frames": age + fraction,
              "age_ms": 1000 * (age + fraction) / cfg.dataset.fps,
              **score_point(run_cfg, model, dataset, frames, age, fraction, device)}
             for age, fraction in sweep_points(list(cfg.ages), cfg.between)]
-    return rows, frames
+    return rows, frames, overrides
 
 
 def check_sweep(cfg: DictConfig) -> None:
@@ -166,17 +175,22 @@ def sweep(cfg: DictConfig) -> dict:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     device = resolve_device(cfg.device)
-    rows, frames = [], None
+    rows, frames, overrides = [], None, {}
     for path in cfg.ckpt:
-        ckpt_rows, frames = sweep_checkpoint(cfg, path, frames, device)
+        ckpt_rows, frames, changed = sweep_checkpoint(cfg, path, frames, device)
         rows += ckpt_rows
-    write_results(out, rows, split=cfg.split, between=cfg.between, blank_image=cfg.blank_image)
+        if changed:
+            overrides[str(path)] = changed
+    write_results(out, rows, split=cfg.split, between=cfg.between, blank_image=cfg.blank_image, overrides=overrides)
     print(format_table(rows), flush=True)
-    return {"results": rows, "frames": frames, "out": out}
+    return {"results": rows, "frames": frames, "out": out, "overrides": overrides}
 
 
-def write_results(out: Path, rows: list[dict], *, split: str, between: int, blank_image: bool) -> None:
-    summary = {"split": split, "between": between, "blank_image": blank_image, "results": rows}
+def write_results(out: Path, rows: list[dict], *, split: str, between: int, blank_image: bool,
+                  overrides: dict | None = None) -> None:
+    """``overrides``: per checkpoint, the data settings given on the command line instead of its own."""
+    summary = {"split": split, "between": between, "blank_image": blank_image, "overrides": overrides or {},
+               "results": rows}
     write_text_atomically(out / "sweep.json", json.dumps(summary, indent=1))
     with open(out / "sweep.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=RESULT_KEYS)

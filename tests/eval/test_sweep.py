@@ -60,7 +60,7 @@ def test_points_cover_ages_and_in_between_times():
     assert sweep_points([2], 4) == [(2, 0.0), (2, 0.25), (2, 0.5), (2, 0.75)]
 
 
-def test_the_sweep_writes_its_table_plot_and_rows(tmp_path, capsys):
+def test_the_sweep_writes_its_table_plot_and_rows(tmp_path, capsys, monkeypatch):
     ckpts = []
     for variant in ("image_only", "events_only"):
         train(compose_config("train", [f"run_dir={tmp_path / variant}", f"model={variant}", "trainer.max_steps=1",
@@ -80,5 +80,24 @@ def test_the_sweep_writes_its_table_plot_and_rows(tmp_path, capsys):
         assert len(list(csv.DictReader(handle))) == len(rows)
     assert (out / "sweep.png").stat().st_size > 10_000
     assert "AP50" in capsys.readouterr().out
+    assert json.loads((out / "sweep.json").read_text())["overrides"] == {}
     with pytest.raises(FileExistsError, match="earlier sweep"):
         sweep(compose_config("sweep", [f"ckpt=[{ckpts[0]}]", f"out={out}"]))
+    # data.* given on the command line replace a checkpoint's own settings, printed and recorded.
+    capsys.readouterr()
+    import dagr_lite.eval.sweep as sweep_module
+    built, real_build = [], sweep_module.build_dataset
+
+    def recording_build(cfg, *args, **kwargs):
+        dataset = real_build(cfg, *args, **kwargs)
+        built.append(dataset.max_events)
+        return dataset
+
+    monkeypatch.setattr(sweep_module, "build_dataset", recording_build)
+    again = sweep(compose_config("sweep", [f"ckpt=[{ckpts[1]}]", "split=valid", "ages=[1]", f"out={tmp_path / 'cap'}",
+                                           "loader.num_workers=0", "data.max_events=500", "data.window_us=33333"]))
+    expected = {ckpts[1]: {"data.max_events": {"checkpoint": 3000, "used": 500}}}  # window_us: the same as trained
+    assert again["overrides"] == expected
+    assert json.loads((tmp_path / "cap" / "sweep.json").read_text())["overrides"] == expected
+    assert "max_events=500 (trained with 3000)" in capsys.readouterr().out
+    assert built == [500]  # the samples were made with the override
