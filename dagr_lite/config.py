@@ -20,7 +20,7 @@ from dagr_lite.data import format as fmt
 from dagr_lite.data.augment import TrainAugment
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.graph.spec import EventGraphSpec
-from dagr_lite.nn.detector import Detector, DetectorConfig
+from dagr_lite.nn.detector import IMAGE_STEMS, Detector, DetectorConfig
 
 ROOT_ENV = "EVENTEGOHANDS_ROOT"
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
@@ -107,7 +107,7 @@ _RULES = {
     "data.train_image_age_power": ("a number >= 0 (0: ages drawn uniformly)", lambda v: _number(v) and v >= 0),
     "data.context_us": ("an integer >= 0 (microseconds)", lambda v: _integer(v) and v >= 0),
     "model.event_head_weight": ("a number >= 0 (0: no event head)", lambda v: _number(v) and v >= 0),
-    "model.image_stem": ("one of patch, conv", lambda v: v in ("patch", "conv")),
+    "model.image_stem": (f"one of {', '.join(IMAGE_STEMS)}", lambda v: v in IMAGE_STEMS),
     "model.time_scale_us": ("a positive number (microseconds)", lambda v: _number(v) and v > 0),
     "data.window_us": ("a positive integer (microseconds)", lambda v: _integer(v) and v > 0),
     "data.max_events": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
