@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from dagr_lite.data.collate import collate
-from dagr_lite.data.dataset import Sample
+from dagr_lite.data.dataset import Sample, sample_start_us
 from dagr_lite.data.reader import list_videos
 from dagr_lite.data.writer import VideoWriter
 from dagr_lite.demo import Recording
@@ -124,7 +124,7 @@ def full_pass(model: Detector, rec: Recording, t_query: float, *, context_us: in
     k = frame_at(rec, t_query)
     t_image = rec.frame_times[k]
     t = rec.events["t"]
-    begin = t_image - context_us if model.image is not None else t_query - window_us
+    begin = sample_start_us(t_query, window_us, t_image if model.image is not None else None, context_us)
     keep = slice(int(np.searchsorted(t, begin)), int(np.searchsorted(t, t_query, side="right")))
     x, y, tt, p = (rec.events[key][keep] for key in ("x", "y", "t", "p"))
     events = torch.from_numpy(np.stack([x, y, tt - t_image, p], 1).astype(np.float32)).reshape(-1, 4)

@@ -174,7 +174,8 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
     Training draws each sample's image age from ``data.train_image_age`` and augments (when
     ``data.augment.enabled``; images are dropped for grey only in a hybrid); otherwise the age
     is ``image_age`` (default ``data.image_age``).
-    A model with an image reads the events since it, one without reads the fixed window.
+    Every model reads the events of the last ``data.window_us``; one with an image none from
+    before ``image time - data.context_us`` (:func:`~dagr_lite.data.dataset.sample_start_us`).
     """
     data, dataset = cfg.data, cfg.dataset
     hybrid = with_image and bool(OmegaConf.select(cfg, "model.use_events", default=False))
@@ -188,7 +189,7 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
                                  image_dropout=augment.image_dropout if hybrid else 0.0)
     image_size = (dataset.height, dataset.width) if dataset.height is not None else None
     return EventEgoHands(dataset_root(dataset), split, image_age=image_age,
-                         event_span="since_image" if with_image else "window", window_us=data.window_us,
+                         event_span="image" if with_image else "window", window_us=data.window_us,
                          context_us=data.context_us, max_events=data.max_events, first_frame=first_frame,
                          fps=dataset.fps, image_size=image_size, transform=transform,
                          clip_boxes=data.clip_boxes, labelled_only=bool(data.get("labelled_only", False)),

@@ -2,22 +2,23 @@
 
 Images arrive at the camera's rate, events continuously; :meth:`StreamingDetector.detect`
 answers at any time. The answer equals the batch model (:class:`~dagr_lite.nn.detector.Detector`)
-run on the sample of that moment, with no event cap (docs/design.md, "The streaming detector"):
+run on the sample of that moment, the sample training and evaluation read
+(:func:`~dagr_lite.data.dataset.sample_start_us`, docs/design.md, "One sample"):
 
-- a hybrid reads the latest image and every event since ``image time - context_us``;
-- an events-only model reads the events of ``[t - window_us, t]``.
+- every model reads the events of ``[t - window_us, t]`` (a horizon);
+- a hybrid reads the latest image, and no event from before ``image time - context_us``.
 
 Work per update: new events get their incoming edges from the streaming graph builder, the
 first GCN stage computes the new nodes only (reading the cached features of older nodes; a
-node never changes once computed, as the graph is causal), and the first pooled cells take the
-new nodes in (max and mean are updated, never recomputed, as a hybrid's cells only gain
-members). The pooled stages, the dense maps and the head are then run in full: the query time
-enters every cell through the recency maps and the image's age, and the pooled graph has a few
-hundred cells. Image features are computed once per image. An events-only model's oldest
-events leave its window: the nodes near the window's start, whose edges or whose neighbours'
-in-degrees reached the events that left, are recomputed from the events of the window (a
-prefix of ``(event_blocks + 1) * radius / beta`` microseconds); its pooled graph is rebuilt
-from the window's nodes.
+node never changes once computed, as the graph is causal). While no event of a hybrid's
+sample has left the horizon, its first pooled cells take the new nodes in (max and mean are
+updated, never recomputed, as the cells only gain members). The pooled stages, the dense maps
+and the head are then run in full: the query time enters every cell through the recency maps
+and the image's age, and the pooled graph has a few hundred cells. Image features are computed
+once per image. Once events leave the horizon, the nodes near its start, whose edges or whose
+neighbours' in-degrees reached the events that left, are recomputed from the events of the
+horizon (a prefix of ``(event_blocks + 1) * radius / beta`` microseconds), and the pooled graph
+is rebuilt from the horizon's nodes.
 """
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dagr_lite.data.dataset import sample_start_us
 from dagr_lite.graph.pool import PooledGraph, recency_cells, recency_from_latest
 from dagr_lite.graph.streaming import StreamingGraph
 from dagr_lite.nn.detector import Detector
@@ -142,8 +144,9 @@ class _Segment:
         self.h = [_Rows(like.new_zeros((0, width_in)))]  # the input of each first-stage block, then its output
         self.h += [_Rows(like.new_zeros((0, block.conv.out_channels))) for block in branch.stages[0]]
         self.in_degree = _Rows(torch.zeros(0, dtype=torch.int64, device=detector.device))
-        self.edges = _Rows(torch.zeros((0, 2), dtype=torch.int64, device=detector.device))  # (src, dst), events-only
+        self.edges = _Rows(torch.zeros((0, 2), dtype=torch.int64, device=detector.device))  # (src, dst), global ids
         self.cell = _Rows(torch.zeros(0, dtype=torch.int64, device=detector.device))  # first pooled cell, hybrid
+        # A hybrid's first pooled cells over every node of the segment: valid until a node leaves the horizon.
         self.cells = (_Cells(model.cfg.height, model.cfg.width, model.strides[0], branch.stages[0][-1].conv.out_channels,
                              detector.dtype, detector.device) if detector.hybrid else None)
         self.latest = [like.new_full((2 * h * w,), -math.inf) for h, w in detector.map_sizes]
@@ -156,8 +159,8 @@ class StreamingDetector:
     Args:
         model: a :class:`Detector` with an event branch (hybrid or events-only); it is put in
             evaluation mode.
-        context_us: a hybrid reads the events since ``image time - context_us``.
-        window_us: an events-only model reads the events of ``[t - window_us, t]``.
+        window_us: the horizon: every model reads the events of ``[t - window_us, t]``.
+        context_us: a hybrid reads no event from before ``image time - context_us``.
         conf_threshold, nms_threshold: score threshold and NMS IoU of the detections.
 
     Times are microseconds on the stream's clock. Events come as numpy arrays sorted by time;
@@ -187,7 +190,7 @@ class StreamingDetector:
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str | torch.device = "cpu", **kwargs) -> "StreamingDetector":
-        """The EMA weights of a training checkpoint, with the context and window it was trained with."""
+        """The EMA weights of a training checkpoint, with the horizon and context it was trained with."""
         from dagr_lite.engine.common import load_checkpoint
         from dagr_lite.engine.evaluate import load_model
         from dagr_lite.nn.detector import DetectorConfig
@@ -230,8 +233,9 @@ class StreamingDetector:
             raise ValueError(f"image at t={t_us:g} us is older than the previous image ({self._t_image:g} us)")
         if not self.hybrid:
             return
-        if t_us - self.context_us < self._kept_from:
-            raise ValueError(f"image at t={t_us:g} us needs the events from {t_us - self.context_us:g} us, but "
+        needed_from = sample_start_us(max(t_us, self._last_t), self.window_us, t_us, self.context_us)
+        if needed_from < self._kept_from:
+            raise ValueError(f"image at t={t_us:g} us needs the events from {needed_from:g} us, but "
                              f"only those since {self._kept_from:g} us are kept (an image may be at most "
                              f"{MAX_IMAGE_DELAY_US} us older than the latest event)")
         with torch.no_grad(), self._part("image features"):
@@ -239,7 +243,8 @@ class StreamingDetector:
             image_maps = self.model.image(pixels)
             self._image = (image_maps, self.model.node_maps(image_maps))
         self._t_image = t_us
-        self._start_segment(t_us, t_us - self.context_us)
+        # Events older than the horizon of the earliest answer left to give are not read.
+        self._start_segment(t_us, needed_from)
 
     def push_events(self, x, y, t, p) -> None:
         """Events sorted by ``t`` (any number, including 0), not earlier than any pushed before."""
@@ -308,32 +313,35 @@ class StreamingDetector:
             return self._head_outputs(t_us)
 
     def _head_outputs(self, t_us: float) -> tuple[torch.Tensor, list[tuple[int, int]]]:
-        if not self.hybrid:
-            self._ingest()
-            if self._segment is None:  # no event yet
-                self._start_segment(t_us - self.window_us, t_us - self.window_us)
-            with self._part("window start + pooled stages"):
-                event_maps, t_start = self._window_maps(t_us)
-            origin = self._segment.origin_us
-        else:
-            self._ingest()
-            segment = self._segment
+        self._ingest()
+        if self._segment is None:  # events-only, no event yet
+            self._start_segment(t_us - self.window_us, t_us - self.window_us)
+        segment = self._segment
+        t_start = self._sample_start(t_us)
+        if segment.cells is not None and not np.searchsorted(segment.t_abs.view, t_start, side="left"):
+            # No event of the segment has left the horizon: the cells kept up to date serve.
             if segment.maps is None or segment.maps[0] != segment.events.n:  # the pooled stages saw new nodes
                 with self._part("pooled stages"):
-                    first = segment.cells.graph()
-                    maps = self.model.events.pooled_maps(None, None, None, None, 1, self._sampler(), first=first)
+                    maps = self.model.events.pooled_maps(None, None, None, None, 1, self._sampler(),
+                                                         first=segment.cells.graph())
                 segment.maps = (segment.events.n, maps)
             event_maps = segment.maps[1]
-            t_start, origin = -math.inf, segment.origin_us
+        else:
+            with self._part("horizon start + pooled stages"):
+                event_maps = self._window_maps(t_start)
         with self._part("recency + fusion + head"):
-            return self._head(event_maps, t_us, t_start, origin)
+            return self._head(event_maps, t_us, t_start, segment.origin_us)
+
+    def _sample_start(self, t_us: float) -> float:
+        """The start of the events the model reads at ``t_us`` (the batch sample's, :func:`sample_start_us`)."""
+        return sample_start_us(t_us, self.window_us, self._t_image if self.hybrid else None, self.context_us)
 
     def _head(self, event_maps: list[torch.Tensor], t_us: float, t_start: float, origin: float):
         t_query = torch.tensor([t_us - origin], dtype=torch.float64, device=self.device)
         recency = []
         for latest, (h, w) in zip(self._segment.latest, self.map_sizes):
-            if math.isfinite(t_start):  # events-only: a cell whose latest event left the window has none
-                latest = torch.where(latest >= t_start - origin, latest, torch.full_like(latest, -math.inf))
+            # A cell whose latest event left the horizon has none in the sample.
+            latest = torch.where(latest >= t_start - origin, latest, torch.full_like(latest, -math.inf))
             recency.append(recency_from_latest(latest.view(1, 2, h, w), t_query, self.model.cfg.recency_us))
         image_maps = self._image[0] if self.hybrid else None
         age = torch.tensor([t_us - (self._t_image if self.hybrid else origin)], dtype=torch.float64,
@@ -386,7 +394,12 @@ class StreamingDetector:
                 self._start_segment(t_start, t_start)  # ingests the window again
                 return
             self._trim_log(min(self._done, int(np.searchsorted(log["t"].view, t_start, side="left"))), t_start)
-            self._expire(t_start)
+        else:
+            t_start = self._sample_start(self._last_t)  # the earliest sample start of any later answer
+            # A later image (not older than this one) may need the events since its time - context_us.
+            keep_from = max(self._t_image, self._last_t - MAX_IMAGE_DELAY_US) - self.context_us
+            self._trim_log(min(self._done, int(np.searchsorted(log["t"].view, keep_from, side="left"))), keep_from)
+        self._expire(t_start)
         end = log["t"].n
         if self.hybrid:  # events pushed after the image but from before its context are not the sample's
             self._done = max(self._done, int(np.searchsorted(log["t"].view, self._segment.first_us, side="left")))
@@ -421,20 +434,19 @@ class StreamingDetector:
 
     def _update_cells(self, segment: _Segment, events: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor,
                       edges: torch.Tensor, old: int) -> None:
-        """A hybrid's first pooled cells take the new nodes (rows from ``old``) in; an events-only
-        segment keeps their edges. The latest event time of every recency cell."""
+        """The new nodes' edges (rows from ``old``); a hybrid's first pooled cells take them in while
+        they serve. The latest event time of every recency cell."""
+        segment.edges.extend(edges.T)
         if segment.cells is not None:
             segment.cell.extend(segment.cells.cell_of(pos))
             cell = segment.cell.view
             segment.cells.add(segment.h[-1].view[old:], pos, cell[old:], cell[edges - segment.base])
-        else:
-            segment.edges.extend(edges.T)
         for latest, stride, (h, w) in zip(segment.latest, self.model.strides, self.map_sizes):
             key = recency_cells(events, batch, stride=stride, height=h, width=w)
             latest.scatter_reduce_(0, key, events[:, 2], reduce="amax")
 
     def _expire(self, t_start: float) -> None:
-        """Forget the events-only segment's rows older than the window once they are half of it."""
+        """Forget the segment's rows older than the horizon once they are half of it."""
         segment = self._segment
         first = int(np.searchsorted(segment.t_abs.view, t_start, side="left"))
         if first < max(1024, segment.events.n // 2):
@@ -442,14 +454,15 @@ class StreamingDetector:
         for rows in (segment.events, segment.t_abs, segment.pos, segment.in_degree, *segment.h):
             rows.drop_front(first)
         segment.base += first
+        segment.cells = None  # its cells hold nodes that left: the horizon's own serve from now on
         edges = segment.edges.view
         segment.edges.drop_front(int(torch.searchsorted(edges[:, 1].contiguous(), segment.base)))
 
-    def _window_maps(self, t_query: float) -> tuple[list[torch.Tensor], float]:
-        """An events-only model's dense maps over ``[t_query - window_us, t_query]``: the nodes of
-        the first ``reach_us`` of the window recomputed from the window's events, the rest cached."""
+    def _window_maps(self, t_start: float) -> list[torch.Tensor]:
+        """The dense maps over the events since ``t_start``: the nodes of the first ``reach_us`` of
+        the horizon recomputed from its events, the rest cached."""
         segment, branch, spec = self._segment, self.model.events, self.model.graph_spec
-        t_start = t_query - self.window_us
+        sampler = self._sampler()
         t = segment.t_abs.view
         first = int(np.searchsorted(t, t_start, side="left"))
         stable = int(np.searchsorted(t, t_start + self.reach_us * (1 + 1e-9) + 1.0, side="left"))
@@ -457,7 +470,7 @@ class StreamingDetector:
         zone = segment.events.view[first:stable]
         zone_batch = torch.zeros(len(zone), dtype=torch.int64, device=self.device)
         zone_edges = spec.edges(zone, zone_batch, workers=1).to(self.device)
-        x_zone, _, _ = branch.event_nodes(zone, zone_batch, None, zone_edges)
+        x_zone, _, _ = branch.event_nodes(zone, zone_batch, sampler, zone_edges)
         edges = segment.edges.view
         from_id = int(torch.searchsorted(edges[:, 1].contiguous(), segment.base + stable))
         stable_edges = edges[from_id:].T - (segment.base + first)
@@ -465,4 +478,4 @@ class StreamingDetector:
         pos = segment.pos.view[first:]
         batch = torch.zeros(len(x), dtype=torch.int64, device=self.device)
         edge_index = torch.cat([zone_edges, stable_edges], dim=1)
-        return branch.pooled_maps(x, pos, batch, edge_index, 1), t_start
+        return branch.pooled_maps(x, pos, batch, edge_index, 1, sampler)

@@ -84,3 +84,21 @@ def dataset(tmp_path_factory) -> Written:
 def dataset_copy(tmp_path) -> Written:
     """A fresh small dataset a test may break."""
     return make_dataset(tmp_path / "ds", compression=None)
+
+
+@pytest.fixture(scope="session")
+def trained_checkpoints(tmp_path_factory) -> dict[str, Path]:
+    """``last.pt`` of a hybrid and of an events-only model trained for three steps on the stub by
+    the training loop, on the CPU in float32, with the default sample settings."""
+    from dagr_lite.config import compose_config
+    from dagr_lite.engine.train import train
+
+    root = tmp_path_factory.mktemp("trained")
+    paths = {}
+    for variant in ("hybrid", "events_only"):
+        train(compose_config("train", [f"run_dir={root / variant}", f"model={variant}", "trainer.max_steps=3",
+                                       "device=cpu", "trainer.amp=false", "loader.batch_size=4",
+                                       "loader.num_workers=0", "trainer.image_every=0", "trainer.warmup_steps=1",
+                                       "optim.lr=3e-3"]))
+        paths[variant] = root / variant / "checkpoints" / "last.pt"
+    return paths

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from dagr_lite.data.collate import collate
-from dagr_lite.data.dataset import Sample
+from dagr_lite.data.dataset import Sample, sample_start_us
 from dagr_lite.nn.detector import Detector
 from dagr_lite.nn.head import postprocess
 from dagr_lite.stream import REORIGIN_US, StreamingDetector
@@ -68,10 +68,9 @@ def check_against_batch(stream: StreamingDetector, model: Detector, events: dict
                         t_query: float) -> int:
     """Compare one answer with the batch model; returns the number of events the sample held."""
     t = events["t"][:upto]
-    if model.image is not None:
-        keep, origin = t >= t_image - CONTEXT_US, t_image
-    else:
-        keep, origin = t >= t_query - WINDOW_US, stream.origin_us
+    hybrid = model.image is not None
+    keep = t >= sample_start_us(t_query, WINDOW_US, t_image if hybrid else None, CONTEXT_US)
+    origin = t_image if hybrid else stream.origin_us
     sample = sample_of(image, tuple(v[:upto][keep] for v in events.values()), origin, t_query)
     with torch.no_grad():
         raw, shapes = stream.head_outputs(t_query)
@@ -203,14 +202,10 @@ def test_bad_input_is_refused_and_leaves_the_state_valid():
         StreamingDetector(Detector(small_detector_config(H, W, variant="image_only")))
 
 
-@pytest.fixture(scope="module")
-def hybrid_checkpoint(tmp_path_factory) -> Path:
-    """A hybrid trained for two steps on the stub by the training loop."""
-    from tests.engine.test_train import small, train
-
-    run = tmp_path_factory.mktemp("stream") / "run"
-    train(small(run, "model=hybrid", "trainer.max_steps=2"))
-    return run / "checkpoints" / "last.pt"
+@pytest.fixture
+def hybrid_checkpoint(trained_checkpoints) -> Path:
+    """A hybrid trained for a few steps on the stub by the training loop."""
+    return trained_checkpoints["hybrid"]
 
 
 def test_from_checkpoint_matches_the_batch_model_in_float32(hybrid_checkpoint):
@@ -228,7 +223,7 @@ def test_from_checkpoint_matches_the_batch_model_in_float32(hybrid_checkpoint):
     for part in np.array_split(np.arange(n), 9):
         stream.push_events(**{k: v[part] for k, v in events.items()})
         t_query = float(events["t"][part[-1]])
-        keep = (events["t"] >= 10_000) & (np.arange(n) <= part[-1])
+        keep = (events["t"] >= sample_start_us(t_query, stream.window_us, 20_000, 10_000)) & (np.arange(n) <= part[-1])
         x, y, t, p = (v[keep] for v in events.values())
         sample = Sample(events=torch.from_numpy(np.stack([x, y, t - 20_000, p], 1).astype(np.float32)),
                         image=torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))),

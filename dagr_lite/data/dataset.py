@@ -1,10 +1,11 @@
 """The EventEgoHands dataset: one sample per label frame (docs/design.md, "One sample").
 
 For label frame ``k`` and image age ``a`` (in frames) a sample holds the image of frame
-``k - a``, the events since that image (``[t(k - a) - context_us, t(k))``; or, for a model
-without an image, the fixed window ``[t(k) - window_us, t(k))``) and the boxes of frame ``k``.
+``k - a``, the events of :func:`sample_start_us` up to ``t(k)`` and the boxes of frame ``k``.
 The events bring the stale image up to date. Training draws ``a`` per sample from a range;
-evaluation fixes it.
+evaluation fixes it. Which events a sample holds depends on the query time, the image's time
+and fixed spans only, so the streaming detector reads exactly the same events
+(:mod:`dagr_lite.stream`); nothing thins a sample.
 """
 from __future__ import annotations
 
@@ -22,8 +23,27 @@ from dagr_lite.data.reader import (DatasetFormatError, EventFile, Problem, box_p
 
 # At most this many frame problems are listed when the dataset refuses to open.
 MAX_LISTED_PROBLEMS = 10
-# Which events a sample holds: all since the image (models with an image), or a fixed window.
-EVENT_SPANS = ("since_image", "window")
+# Which events a sample holds (see :func:`sample_start_us`): bounded by the image and the window
+# (models with an image), or by the window alone.
+EVENT_SPANS = ("image", "window")
+
+
+def sample_start_us(t_query_us: float, window_us: int, t_image_us: float | None = None, context_us: int = 0) -> float:
+    """The start of the events a model reads when asked at ``t_query_us``: it reads ``[start, t_query_us)``.
+
+    Every model reads at most the last ``window_us`` (a horizon: older events have left); a model
+    with an image (``t_image_us`` given) reads none from before ``t_image_us - context_us`` either.
+    This is the one definition of a sample's events: the dataset (training, validation,
+    evaluation, the sweep) and the streaming detector both call it.
+    """
+    start = t_query_us - window_us
+    if t_image_us is not None:
+        start = max(start, t_image_us - context_us)
+    return start
+
+
+class SampleTooLarge(ValueError):
+    """A sample holds more events than ``max_events`` allows (a guard, never a thinning)."""
 
 
 def draw_age(rng: np.random.Generator, low: int, high: int, power: float = 0.0) -> int:
@@ -48,26 +68,6 @@ def age_range(image_age: int | Sequence[int]) -> tuple[int, int]:
         raise ValueError(f"image_age must be an integer >= 0 or a range [low, high] with 0 <= low <= high "
                          f"(frames; the image is never from the future), got {image_age!r}")
     return int(ages[0]), int(ages[1])
-
-
-def cap_events(t: np.ndarray, t_end: int, max_events: int | None, recent_us: int,
-               rng: np.random.Generator) -> slice | np.ndarray:
-    """Which of the sorted times ``t`` a sample keeps under the cap ``max_events``.
-
-    The events of the last ``recent_us`` before ``t_end`` (where the objects are now) are kept
-    whole when they fit, and the older ones are thinned uniformly to fill the cap; when the
-    recent ones alone exceed it, they are thinned uniformly and the older ones dropped. Time
-    order is kept.
-    """
-    n = len(t)
-    if max_events is None or n <= max_events:
-        return slice(None)
-    first_recent = int(np.searchsorted(t, t_end - recent_us, side="left"))
-    n_recent = n - first_recent
-    if n_recent >= max_events:
-        return first_recent + np.sort(rng.choice(n_recent, size=max_events, replace=False))
-    older = np.sort(rng.choice(first_recent, size=max_events - n_recent, replace=False))
-    return np.concatenate([older, np.arange(first_recent, n)])
 
 
 @dataclass
@@ -130,13 +130,13 @@ class EventEgoHands(Dataset):
             (training; a label frame ``k`` draws from ``[low, min(high, k)]``, see :func:`draw_age`).
         age_power: how a range is drawn: age ``a`` with probability proportional to
             ``(a - low + 1) ** age_power`` (0: uniform; 1: ten frames ten times as often as one).
-        event_span: ``"since_image"``: the events of ``[t(k - a) - context_us, t(k))``;
-            ``"window"``: the fixed window ``[t(k) - window_us, t(k))`` (a model without an image).
-        window_us: the fixed window's length; with ``since_image`` the most recent ``window_us``
-            are kept whole when the cap thins a sample (see :func:`cap_events`).
-        context_us: events from before the image joined to a ``since_image`` sample.
-        max_events: cap on events per sample (None: no cap), see :func:`cap_events`; seeded by
-            ``seed``, the epoch and the sample index.
+        event_span: ``"image"``: the events of ``[max(t(k - a) - context_us, t(k) - window_us), t(k))``
+            (a model with an image); ``"window"``: ``[t(k) - window_us, t(k))`` (a model without one).
+            See :func:`sample_start_us`.
+        window_us: the horizon: no sample reads events older than this before its query time.
+        context_us: with ``event_span="image"``, events from before the image may join (within the horizon).
+        max_events: a guard: a sample holding more events raises :class:`SampleTooLarge` (None: no
+            guard). It never thins a sample, since the streaming detector could not follow.
         first_frame: the first label frame (default: the smallest image age), e.g. the largest
             age of a sweep so that every age scores the same frames.
         fps: frame rate defining the frame times.
@@ -146,11 +146,11 @@ class EventEgoHands(Dataset):
         clip_boxes: clip boxes to the image and drop empty ones instead of raising.
         labelled_only: samples only at frames with a label entry (sparse labels: an unlabelled
             frame is unknown, not empty); by default every frame is a sample, unlabelled ones empty.
-        seed: seed of the image ages, the event subsampling and ``transform``'s generator.
+        seed: seed of the image ages and of ``transform``'s generator.
     """
 
     def __init__(self, root: Path | str, split: str, *, image_age: int | Sequence[int] = 1,
-                 event_span: str = "since_image", window_us: int = fmt.DEFAULT_WINDOW_US, context_us: int = 0,
+                 event_span: str = "image", window_us: int = fmt.DEFAULT_WINDOW_US, context_us: int = 0,
                  max_events: int | None = None, first_frame: int | None = None, fps: float = fmt.DEFAULT_FPS,
                  image_size: Sequence[int] | None = None, videos: Sequence[str] | None = None,
                  transform: Callable[[Sample, np.random.Generator], Sample] | None = None,
@@ -245,7 +245,7 @@ class EventEgoHands(Dataset):
             raise DatasetFormatError(*problems)
 
     def set_epoch(self, epoch: int) -> None:
-        """Vary event subsampling and augmentation between epochs (same epoch, same samples)."""
+        """Vary image ages and augmentation between epochs (same epoch, same samples)."""
         self.epoch = int(epoch)
 
     def __len__(self) -> int:
@@ -257,7 +257,7 @@ class EventEgoHands(Dataset):
 
     def __getitem__(self, index: int | tuple[int, int]) -> Sample:
         """Sample ``index`` as drawn in the current epoch (:meth:`set_epoch`), or with an
-        ``(epoch, index)`` pair as drawn in that epoch (its image age, thinning and augmentation)."""
+        ``(epoch, index)`` pair as drawn in that epoch (its image age and augmentation)."""
         epoch = self.epoch
         if isinstance(index, tuple):
             epoch, index = index
@@ -283,25 +283,38 @@ class EventEgoHands(Dataset):
         """``(M, 4)`` xyxy boxes of frame ``k`` of video number ``v`` (none for an unlabelled frame)."""
         return self._boxes[v].get(k, np.zeros((0, 4), np.float32))
 
+    def events_of(self, v: int, t_start: int, t_end: int) -> dict[str, np.ndarray]:
+        """The raw events ``x, y, t, p`` of video number ``v`` with ``t_start <= t < t_end`` (us), as stored."""
+        return self._events[v].window(t_start, t_end)
+
+    def image_of(self, v: int, frame: int) -> np.ndarray:
+        """Frame ``frame`` of video number ``v``: ``(H, W, 3)`` uint8 RGB."""
+        return read_frame(fmt.frame_path(self.root, self.split, self.videos[v], frame), self.image_size)
+
     def sample_at(self, v: int, k: int, image_frame: int, t_end: int, boxes: np.ndarray,
                   rng: np.random.Generator) -> Sample:
         """The sample of video number ``v`` with the image of ``image_frame``, the events up to
         ``t_end`` (us) and ``boxes`` (xyxy) as the truth at ``t_end``; ``k`` names the label frame."""
         video, events_file = self.videos[v], self._events[v]
         t_image = events_file.frame_time_us(image_frame)
-        t_start = t_image - self.context_us if self.event_span == "since_image" else t_end - self.window_us
-        raw = events_file.window(t_start, t_end)
-        keep = cap_events(raw["t"], t_end, self.max_events, self.window_us, rng)
+        t_start = int(sample_start_us(t_end, self.window_us, t_image if self.event_span == "image" else None,
+                                      self.context_us))
+        raw = self.events_of(v, t_start, t_end)
+        if self.max_events is not None and len(raw["t"]) > self.max_events:
+            raise SampleTooLarge(f"{events_file.path}: the sample of frame {k} (image frame {image_frame}) holds "
+                                 f"{len(raw['t'])} events in [{t_start}, {t_end}) us, more than max_events="
+                                 f"{self.max_events}; shorten the horizon (data.window_us) or raise the guard "
+                                 f"(data.max_events, null: none)")
         height, width = self.image_size
-        x, y = raw["x"][keep], raw["y"][keep]
+        x, y = raw["x"], raw["y"]
         if len(x) and (x.max() >= width or y.max() >= height):
             raise DatasetFormatError.at(events_file.path, f"events of [{t_start}, {t_end}) us lie outside the "
                                                           f"{width}x{height} frame (x max {x.max()}, y max {y.max()})",
                                         key="events/x, events/y")
         events = np.stack([x.astype(np.float32), y.astype(np.float32),
-                           (raw["t"][keep] - t_image).astype(np.float32),
-                           raw["p"][keep].astype(np.float32)], axis=1).reshape(-1, 4)  # (N, 4)
-        image = read_frame(fmt.frame_path(self.root, self.split, video, image_frame), self.image_size)  # (H, W, 3)
+                           (raw["t"] - t_image).astype(np.float32),
+                           raw["p"].astype(np.float32)], axis=1).reshape(-1, 4)  # (N, 4)
+        image = self.image_of(v, image_frame)  # (H, W, 3)
         sample = Sample(events=torch.from_numpy(events),
                         image=torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))),  # (3, H, W)
                         boxes=torch.from_numpy(np.array(boxes, dtype=np.float32).reshape(-1, 4)),

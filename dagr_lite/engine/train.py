@@ -42,7 +42,8 @@ def describe_dataset(dataset: EventEgoHands) -> str:
     height, width = dataset.image_size
     return (f"{dataset.root} [{dataset.split}]: {len(dataset.videos)} videos, {len(dataset)} samples, "
             f"{width}x{height} px, image age {describe_age(dataset.age_range, dataset.age_power)} frames, events "
-            f"{'since the image' if dataset.event_span == 'since_image' else f'of {dataset.window_us} us'}")
+            f"of the last {dataset.window_us} us"
+            + (f" (none from before the image - {dataset.context_us} us)" if dataset.event_span == "image" else ""))
 
 
 def describe_age(ages: tuple[int, int], power: float = 0.0) -> str:

@@ -1,13 +1,15 @@
 """Detection quality against the image's age, for several checkpoints on the same frames.
 
-    python -m dagr_lite.eval.sweep ckpt=[A.pt,B.pt] split=test ages=[1,2,3,5,7,10] out=DIR [between=10]
+    python -m dagr_lite.eval.sweep ckpt=[A.pt,B.pt] split=test ages=[1,2,3,5,7,10] out=DIR [between=10] [stream=true]
 
 Every checkpoint is scored at every image age ``a`` (the image of frame ``k - a`` and the
 events since it, boxes of frame ``k``) on one list of label frames, ``k >= max(ages)``, so the
 rows compare. With ``between=N`` each age is also scored at the ``N - 1`` times between label
 frames ``k`` and ``k + 1`` (every ``1/N`` of a frame interval), against boxes interpolated
 linearly between the two frames (:func:`interpolate_boxes`); only frame pairs whose boxes all
-match are used. Writes ``sweep.json``, ``sweep.csv`` and ``sweep.png`` into ``out`` and prints
+match are used. With ``stream=true`` each point scores what the streaming detector answers when
+fed as a camera feeds it (:func:`streamed_detections`); it reads the same sample as the batch
+model, so the figures agree (tests/eval/test_sweep_stream.py). Writes ``sweep.json``, ``sweep.csv`` and ``sweep.png`` into ``out`` and prints
 the table.
 """
 from __future__ import annotations
@@ -22,15 +24,18 @@ import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from scipy.optimize import linear_sum_assignment
 from torch.utils.data import Dataset
+from tqdm import tqdm
 
 from dagr_lite.config import ConfigError, build_dataset, resolve_config
+from dagr_lite.data import format as fmt
 from dagr_lite.data.dataset import EventEgoHands, Sample
 from dagr_lite.engine.common import load_checkpoint, make_loader, resolve_device
 from dagr_lite.data.writer import write_text_atomically
 from dagr_lite.engine.evaluate import SAMPLE_KEYS, _override, load_model
-from dagr_lite.eval.score import score_model
-from dagr_lite.nn.detector import DetectorConfig
+from dagr_lite.eval.score import score_entries, score_model
+from dagr_lite.nn.detector import Detector, DetectorConfig
 from dagr_lite.nn.head import box_iou
+from dagr_lite.stream import StreamingDetector
 
 # Boxes of frames k and k + 1 are the same hand when their IoU is at least this (after the best one-to-one match).
 MATCH_IOU = 0.3
@@ -74,6 +79,52 @@ def sweep_frames(dataset: EventEgoHands, first: int, between: int) -> list[tuple
     return frames
 
 
+def point_truth(dataset: EventEgoHands, v: int, k: int, fraction: float) -> tuple[np.ndarray, int]:
+    """The boxes (xyxy) and the time (us) of a sweep point ``fraction`` of a frame interval after
+    label frame ``k`` of video number ``v`` (boxes interpolated towards frame ``k + 1``'s)."""
+    boxes = dataset.boxes_of(v, k)
+    t_end = dataset.frame_time_us(v, k)
+    if fraction:
+        boxes = interpolate_boxes(boxes, dataset.boxes_of(v, k + 1), fraction)
+        t_end += int(round(fraction * (dataset.frame_time_us(v, k + 1) - t_end)))
+    return boxes, t_end
+
+
+def streamed_detections(model: Detector, dataset: EventEgoHands, frames: list[tuple[int, int]], age: int,
+                        fraction: float, *, conf_threshold: float, nms_threshold: float, chunk_us: int = 5_000,
+                        progress: bool = True, desc: str = "streaming") -> list[tuple]:
+    """What the streaming detector answers at one sweep point, fed as a camera feeds it.
+
+    For each label frame, a new :class:`StreamingDetector` with the dataset's horizon and context
+    is fed the stream's events in ``chunk_us`` pieces from well before the image (``window_us +
+    context_us`` before it), the image of frame ``k - age`` at its time, the events up to the
+    point's time, and then asked for detections at that time. Entries as
+    :func:`~dagr_lite.eval.score.detections_of` gives them, in ``frames``' order.
+    """
+    entries = []
+    height, width = dataset.image_size
+    for v, k in tqdm(frames, desc=desc, leave=False, disable=not progress):
+        boxes, t_end = point_truth(dataset, v, k, fraction)
+        image_frame = k - age
+        t_image = dataset.frame_time_us(v, image_frame)
+        stream = StreamingDetector(model, window_us=dataset.window_us, context_us=dataset.context_us,
+                                   conf_threshold=conf_threshold, nms_threshold=nms_threshold)
+        t_begin = min(t_image, t_end) - dataset.window_us - dataset.context_us
+        events = dataset.events_of(v, max(t_begin, 0), t_end)
+        edges = sorted({*range(t_begin, t_end, chunk_us), t_image, t_end})
+        cuts = np.searchsorted(events["t"], edges, side="left")
+        for t0, lo, hi in zip(edges[:-1], cuts[:-1], cuts[1:]):
+            if t0 == t_image:
+                stream.push_image(dataset.image_of(v, image_frame), t_image)
+            stream.push_events(*(events[key][lo:hi] for key in ("x", "y", "t", "p")))
+        if t_image == t_end:  # age 0: the image comes with the last events
+            stream.push_image(dataset.image_of(v, image_frame), t_image)
+        answer = stream.detect(t_end)
+        entries.append((fmt.label_key(dataset.videos[v], k), height, width, np.asarray(boxes, np.float32),
+                        answer["boxes"], answer["scores"]))
+    return entries
+
+
 class SweepSamples(Dataset):
     """The samples of one sweep point: image age ``age`` frames, asked for ``fraction`` of a frame
     interval after label frame ``k``, over the sweep's ``frames``."""
@@ -88,11 +139,7 @@ class SweepSamples(Dataset):
 
     def __getitem__(self, index: int) -> Sample:
         ds, (v, k) = self.dataset, self.frames[index]
-        boxes = ds.boxes_of(v, k)
-        t_end = ds.frame_time_us(v, k)
-        if self.fraction:
-            boxes = interpolate_boxes(boxes, ds.boxes_of(v, k + 1), self.fraction)
-            t_end += int(round(self.fraction * (ds.frame_time_us(v, k + 1) - t_end)))
+        boxes, t_end = point_truth(ds, v, k, self.fraction)
         rng = np.random.default_rng([self.seed, index])
         sample = ds.sample_at(v, k, k - self.age, t_end, boxes, rng)
         if self.blank_image:  # an ablation: what the model makes of the events alone
@@ -108,13 +155,20 @@ def sweep_points(ages: list[int], between: int) -> list[tuple[int, float]]:
 
 def score_point(cfg: DictConfig, model, dataset: EventEgoHands, frames: list[tuple[int, int]], age: int,
                 fraction: float, device: torch.device) -> dict[str, float]:
-    """COCO metrics of ``model`` at one sweep point."""
-    samples = SweepSamples(dataset, frames, age, fraction, cfg.seed, blank_image=cfg.blank_image)
-    loader = make_loader(samples, batch_size=cfg.loader.batch_size, num_workers=cfg.loader.num_workers,
-                         graph=model.graph_spec, worker_nice=cfg.loader.worker_nice)
-    metrics, evaluator = score_model(model, loader, device, backend=cfg.eval.backend,
-                                     conf_threshold=cfg.eval.conf_threshold, nms_threshold=cfg.eval.nms_threshold,
-                                     desc=f"age {age + fraction:g} frames")
+    """COCO metrics of ``model`` at one sweep point: of the batch model, or with ``cfg.stream`` of
+    what the streaming detector answers (:func:`streamed_detections`)."""
+    desc = f"age {age + fraction:g} frames"
+    if cfg.stream:
+        entries = streamed_detections(model, dataset, frames, age, fraction, conf_threshold=cfg.eval.conf_threshold,
+                                      nms_threshold=cfg.eval.nms_threshold, desc=desc + ", streaming")
+        metrics, evaluator = score_entries(entries, backend=cfg.eval.backend)
+    else:
+        samples = SweepSamples(dataset, frames, age, fraction, cfg.seed, blank_image=cfg.blank_image)
+        loader = make_loader(samples, batch_size=cfg.loader.batch_size, num_workers=cfg.loader.num_workers,
+                             graph=model.graph_spec, worker_nice=cfg.loader.worker_nice)
+        metrics, evaluator = score_model(model, loader, device, backend=cfg.eval.backend,
+                                         conf_threshold=cfg.eval.conf_threshold, nms_threshold=cfg.eval.nms_threshold,
+                                         desc=desc)
     return {"mAP": metrics["mAP"], "AP50": metrics["AP50"], "AP75": metrics["AP75"],
             "num_images": len(evaluator.images)}
 
@@ -141,7 +195,7 @@ def sweep_checkpoint(cfg: DictConfig, path: str, frames: list[tuple[int, int]] |
     if frames is None:
         frames = sweep_frames(dataset, largest, cfg.between)
     model = load_model(state, detector, dataset.image_size, path).to(device)
-    name = trained["model"]["name"] + (" (grey image)" if cfg.blank_image else "")
+    name = trained["model"]["name"] + (" (grey image)" if cfg.blank_image else "") + (" (streaming)" if cfg.stream else "")
     changed = "".join(f", {key}={value['used']} (trained with {value['checkpoint']})" for key, value in overrides.items())
     print(f"{path}: {name}, {len(frames)} label frames of {cfg.split}{changed}", flush=True)
     rows = [{"ckpt": str(path), "model": name, "age_frames": age + fraction,
@@ -159,6 +213,11 @@ def check_sweep(cfg: DictConfig) -> None:
         raise ConfigError(f"between must be an integer >= 0 (0: label frames only), got {cfg.between!r}")
     if not isinstance(cfg.blank_image, bool):
         raise ConfigError(f"blank_image must be true or false, got {cfg.blank_image!r}")
+    if not isinstance(cfg.stream, bool):
+        raise ConfigError(f"stream must be true or false, got {cfg.stream!r}")
+    if cfg.stream and cfg.blank_image:
+        raise ConfigError("stream=true scores what a camera's stream gives; blank_image=true is a batch ablation: "
+                          "give one of them")
     if not isinstance(cfg.ckpt, ListConfig) or not cfg.ckpt:
         raise ConfigError(f"ckpt must be a list of checkpoints, e.g. ckpt=[a.pt,b.pt], got {cfg.ckpt!r}")
     for path in cfg.ckpt:
@@ -181,16 +240,18 @@ def sweep(cfg: DictConfig) -> dict:
         rows += ckpt_rows
         if changed:
             overrides[str(path)] = changed
-    write_results(out, rows, split=cfg.split, between=cfg.between, blank_image=cfg.blank_image, overrides=overrides)
+    write_results(out, rows, split=cfg.split, between=cfg.between, blank_image=cfg.blank_image, overrides=overrides,
+                  stream=cfg.stream)
     print(format_table(rows), flush=True)
     return {"results": rows, "frames": frames, "out": out, "overrides": overrides}
 
 
 def write_results(out: Path, rows: list[dict], *, split: str, between: int, blank_image: bool,
-                  overrides: dict | None = None) -> None:
-    """``overrides``: per checkpoint, the data settings given on the command line instead of its own."""
-    summary = {"split": split, "between": between, "blank_image": blank_image, "overrides": overrides or {},
-               "results": rows}
+                  overrides: dict | None = None, stream: bool = False) -> None:
+    """``overrides``: per checkpoint, the data settings given on the command line instead of its own;
+    ``stream``: the rows score the streaming detector's answers."""
+    summary = {"split": split, "between": between, "blank_image": blank_image, "stream": stream,
+               "overrides": overrides or {}, "results": rows}
     write_text_atomically(out / "sweep.json", json.dumps(summary, indent=1))
     with open(out / "sweep.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=RESULT_KEYS)

@@ -18,7 +18,7 @@ that size (by default 12 / 2 / 2 train / valid / test videos of 2 s, ``--stub-vi
 proportions) into ``OUT/source``.
 
 Training uses the stub's short recipe (AdamW lr 1e-3, 100 warm-up steps, EMA time constant
-200 steps, at most 10,000 events per sample) with ``trainer.max_minutes`` as the budget.
+200 steps, the default sample, the last ``data.window_us`` of events) with ``trainer.max_minutes`` as the budget.
 """
 from __future__ import annotations
 
@@ -34,8 +34,7 @@ from dagr_lite.data import format as fmt
 from dagr_lite.data.writer import write_frame, write_text_atomically
 from dagr_lite.synth.build import VERSIONS, BuildSettings, build, folder_jobs
 
-RECIPE = ["optim.lr=1e-3", "trainer.warmup_steps=100", "trainer.ema_tau=200", "data.max_events=10000",
-          "trainer.image_every=0"]
+RECIPE = ["optim.lr=1e-3", "trainer.warmup_steps=100", "trainer.ema_tau=200", "trainer.image_every=0"]
 METRICS = ("AP50", "AP75", "mAP")
 
 

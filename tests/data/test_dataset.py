@@ -8,7 +8,7 @@ from torch.utils.data import DataLoader
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.collate import collate
-from dagr_lite.data.dataset import EventEgoHands, cap_events, draw_age
+from dagr_lite.data.dataset import EventEgoHands, SampleTooLarge, draw_age, sample_start_us
 from dagr_lite.data.reader import DatasetFormatError, read_frame
 from dagr_lite.data.writer import write_frame
 from tests.conftest import make_dataset
@@ -45,29 +45,28 @@ def test_frames_without_boxes_are_samples_with_zero_boxes(dataset):
     assert by_frame[2].boxes.shape[0] >= 1
 
 
-def test_event_cap_subsamples_uniformly_and_reproducibly(dataset):
-    full = EventEgoHands(dataset.root, "train", max_events=None)
-    capped = EventEgoHands(dataset.root, "train", max_events=50, seed=3)
-    index = 7
-    all_events, sub = full[index].events, capped[index].events
-    assert len(all_events) > 50 and len(sub) == 50
-    assert torch.all(sub[1:, 2] >= sub[:-1, 2])  # time order kept
-    rows = {tuple(r) for r in all_events.tolist()}
-    assert all(tuple(r) in rows for r in sub.tolist())  # a subset of the window's events
-    assert torch.equal(capped[index].events, sub)  # same seed and epoch: same events
-    capped.set_epoch(1)
-    assert not torch.equal(capped[index].events, sub)
-    other = EventEgoHands(dataset.root, "train", max_events=50, seed=4)
-    assert not torch.equal(other[index].events, sub)
-    # Uniform: over many draws every event is kept about equally often.
-    counts = np.zeros(len(all_events))
-    lookup = {tuple(r): i for i, r in enumerate(all_events.tolist())}
-    for epoch in range(300):
-        capped.set_epoch(epoch)
-        for r in capped[index].events.tolist():
-            counts[lookup[tuple(r)]] += 1
-    expected = 300 * 50 / len(all_events)
-    assert np.abs(counts - expected).max() < 5 * np.sqrt(expected)
+def test_max_events_guards_and_never_thins(dataset):
+    full = EventEgoHands(dataset.root, "train", image_age=3)
+    sizes = [len(full[i].events) for i in range(len(full))]
+    limit = sorted(sizes)[len(sizes) // 2]
+    guarded = EventEgoHands(dataset.root, "train", image_age=3, max_events=limit)
+    for index, size in enumerate(sizes):
+        if size <= limit:
+            assert torch.equal(guarded[index].events, full[index].events)  # whole, never thinned
+        else:
+            video, k = guarded.sample_name(index)
+            with pytest.raises(SampleTooLarge, match=rf"{video}\.h5: the sample of frame {k} \(image frame {k - 3}\) "
+                                                     rf"holds {size} events in .* more than max_events={limit}; "
+                                                     r"shorten the horizon \(data\.window_us\)"):
+                guarded[index]
+
+
+def test_the_sample_start_by_hand():
+    # every model: the last window_us; with an image, nothing from before t_image - context_us
+    assert sample_start_us(100_000, 33_333) == 66_667
+    assert sample_start_us(100_000, 33_333, t_image_us=90_000, context_us=10_000) == 80_000  # image 10 ms old
+    assert sample_start_us(100_000, 33_333, t_image_us=30_000, context_us=10_000) == 66_667  # image 70 ms old
+    assert sample_start_us(100_000, 33_333, t_image_us=100_000, context_us=0) == 100_000  # age 0, no context
 
 
 def test_window_with_no_events_gives_zero_events(tmp_path):
@@ -81,7 +80,7 @@ def test_window_with_no_events_gives_zero_events(tmp_path):
 
 
 def test_loader_workers_reopen_files(dataset):
-    ds = EventEgoHands(dataset.root, "train", max_events=100)
+    ds = EventEgoHands(dataset.root, "train")
     ds[0]  # open the file in the main process first: workers must not reuse that handle
     loader = DataLoader(ds, batch_size=4, num_workers=2, collate_fn=collate)
     batches = list(loader)
@@ -92,7 +91,7 @@ def test_loader_workers_reopen_files(dataset):
 
 def test_new_epochs_reach_loader_workers(dataset):
     from dagr_lite.engine.common import make_loader
-    ds = EventEgoHands(dataset.root, "train", max_events=20, seed=0)
+    ds = EventEgoHands(dataset.root, "train", image_age=(1, 4), seed=0)  # the epoch draws the image ages
     loader = make_loader(ds, batch_size=8, num_workers=2)
     first = next(iter(loader)).events
     assert torch.equal(next(iter(loader)).events, first)
@@ -103,7 +102,7 @@ def test_new_epochs_reach_loader_workers(dataset):
 def test_epoch_index_pairs_draw_as_that_epoch(dataset):
     """``ds[(epoch, i)]`` is ``ds[i]`` after ``set_epoch(epoch)``, through loader workers too."""
     from dagr_lite.engine.common import make_loader
-    ds = EventEgoHands(dataset.root, "train", image_age=(1, 4), max_events=20, seed=0)
+    ds = EventEgoHands(dataset.root, "train", image_age=(1, 4), seed=0)
     for epoch in (0, 3):
         for i in range(len(ds)):
             ds.set_epoch(epoch)
@@ -234,16 +233,17 @@ def test_frame_size_must_agree_across_videos(dataset_copy):
     assert len(lines) == 11 and lines[-1].endswith("vid_b: ... and 2 more frame problems in this folder")
 
 
-@pytest.mark.parametrize("age", [1, 3, 5])
-def test_events_since_the_image_match_a_brute_force_time_mask(dataset, age):
-    ds = EventEgoHands(dataset.root, "train", image_age=age, context_us=7_000)
+@pytest.mark.parametrize("age,window_us", [(1, 33_333), (3, 33_333), (5, 33_333), (3, 200_000), (1, 35_000)])
+def test_events_of_the_horizon_since_the_image_match_a_brute_force_time_mask(dataset, age, window_us):
+    ds = EventEgoHands(dataset.root, "train", image_age=age, context_us=7_000, window_us=window_us)
     assert len(ds) == 2 * (12 - age)
     for index in range(len(ds)):
         sample = ds[index]
         video, k = ds.sample_name(index)
         t_image, t_end = fmt.frame_time_us(k - age), fmt.frame_time_us(k)
         raw = dataset.events[video]
-        mask = (raw["t"] >= t_image - 7_000) & (raw["t"] < t_end)
+        # hand-written: not older than the horizon, nor than 7 ms before the image
+        mask = (raw["t"] >= t_image - 7_000) & (raw["t"] >= t_end - window_us) & (raw["t"] < t_end)
         expected = np.stack([raw["x"][mask], raw["y"][mask], raw["t"][mask] - t_image, raw["p"][mask]], 1)
         np.testing.assert_array_equal(sample.events.numpy(), expected.astype(np.float32))
         assert (sample.image_frame, sample.t_image_us, sample.t_end_us) == (k - age, t_image, t_end)
@@ -290,21 +290,6 @@ def test_unweighted_ages_are_the_uniform_draws(dataset):
     assert ages[0] != ages[1] and all(1 <= a <= 6 for a in ages[1])
     with pytest.raises(ValueError, match="age_power must be a number >= 0, got -1"):
         EventEgoHands(dataset.root, "train", image_age=(1, 6), age_power=-1)
-
-
-def test_the_cap_keeps_the_latest_window_whole_and_thins_the_rest():
-    t = np.arange(0, 100_000, 10)  # 10,000 events, one every 10 us, up to t_end = 100,000
-    rng = np.random.default_rng([0])
-    keep = cap_events(t, 100_000, 4_000, 30_000, rng)
-    kept = t[keep]
-    assert len(kept) == 4_000 and np.all(np.diff(kept) > 0)
-    assert np.sum(kept >= 70_000) == 3_000  # the last 30 ms whole: 3,000 events
-    assert np.sum(kept < 70_000) == 1_000  # 1,000 of the 7,000 older ones, spread over them
-    assert kept[0] < 10_000 and np.sum(kept < 35_000) > 350
-    recent_only = t[cap_events(t, 100_000, 2_000, 30_000, rng)]
-    assert len(recent_only) == 2_000 and recent_only.min() >= 70_000  # too many recent ones: thinned, old dropped
-    assert isinstance(cap_events(t, 100_000, None, 30_000, rng), slice)
-    assert isinstance(cap_events(t, 100_000, 10_000, 30_000, rng), slice)
 
 
 @pytest.mark.parametrize("image_age", [-1, (3, 1), (1, 2, 3), 1.5])

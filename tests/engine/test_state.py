@@ -22,7 +22,7 @@ def fresh_state(variant="image_only", seed=0):
 
 
 def a_batch(indices=(3, 40, 77, 120)):
-    dataset = EventEgoHands(stub_root(), "train", max_events=2000, window_us=33333)
+    dataset = EventEgoHands(stub_root(), "train", window_us=10_000)
     return collate([dataset[i] for i in indices])
 
 
@@ -71,7 +71,7 @@ def test_a_non_finite_loss_stops_before_any_weight_changes(monkeypatch):
 
 def test_validate_scores_the_ema_weights_over_every_sample():
     state = fresh_state()
-    dataset = EventEgoHands(stub_root(), "valid", max_events=2000, window_us=33333)
+    dataset = EventEgoHands(stub_root(), "valid", window_us=10_000)
     loader = make_loader(dataset, batch_size=8, num_workers=0)
     metrics = validate(state, loader, progress=False)
     assert set(METRIC_KEYS) <= set(metrics) and all(-1 <= metrics[k] <= 1 for k in METRIC_KEYS)
@@ -99,7 +99,7 @@ def test_the_loaders_graph_is_the_models_own():
     cfg = resolve_config(compose_config("train", ["model=events_only", "model.graph.radius=4",
                                                   "model.graph.max_neighbors=6"]))
     model = build_model(cfg, height=180, width=320).eval()
-    dataset = EventEgoHands(stub_root(), "valid", max_events=1200, window_us=33333)
+    dataset = EventEgoHands(stub_root(), "valid", window_us=6_000)
     batch = next(iter(make_loader(dataset, batch_size=2, num_workers=0, graph=model.graph_spec)))
     spec = model.graph_spec
     events = batch.events.double()
@@ -145,7 +145,7 @@ def test_mixed_precision_choices_run_a_step_on_the_cpu():
     common = dict(total_steps=20, warmup_steps=4, min_lr_ratio=0.05, ema_decay=0.99, ema_tau=5.0, grad_clip=10.0)
     bf16 = TrainState.create(model, build_optimizer(cfg, model.parameters()), amp=torch.bfloat16, **common)
     assert bf16.amp and not bf16.scaler.is_enabled()
-    dataset = EventEgoHands(stub_root(), "train", max_events=2000, context_us=10_000)
+    dataset = EventEgoHands(stub_root(), "train", window_us=10_000)
     out = train_step(bf16, collate([dataset[i] for i in (3, 40)]))
     assert torch.isfinite(out["loss"]) and out["loss"].dtype == torch.float32
     fp16 = TrainState.create(model, build_optimizer(cfg, model.parameters()), amp=True, **common)

@@ -29,7 +29,7 @@ def small(run_dir, *overrides):
     hold there (CUDA's atomics and bfloat16 make runs differ in the last digits);
     tests/engine/test_cuda.py trains on a GPU where there is one."""
     return config("train", f"run_dir={run_dir}", "device=cpu", "trainer.amp=false", "loader.batch_size=4", "loader.num_workers=0", "optim.lr=2e-3",
-                  "trainer.warmup_steps=5", "trainer.log_every=1", "trainer.image_every=0", "data.max_events=6000",
+                  "trainer.warmup_steps=5", "trainer.log_every=1", "trainer.image_every=0", "data.window_us=20000",
                   *overrides)
 
 
@@ -214,7 +214,7 @@ def test_evaluation_takes_the_data_and_graph_settings_from_the_checkpoint(tmp_pa
     ckpt = tmp_path / "run" / "checkpoints" / "last.pt"
     evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'e'}", "loader.num_workers=0", "split=valid"))
     out = json.loads((tmp_path / "e" / "metrics.json").read_text())
-    assert out["data"] == {"image_age": 2, "window_us": 20000, "context_us": 10000, "max_events": 6000}
+    assert out["data"] == {"image_age": 2, "window_us": 20000, "context_us": 10000, "max_events": 100000}
     assert out["graph"] == {"radius": 4.0, "beta": 5e-4, "max_neighbors": 16} and out["overrides"] == {}
     assert out["num_images"] == len(EventEgoHands(stub_root(), "valid", image_age=2))
     capsys.readouterr()

@@ -64,7 +64,7 @@ def test_the_sweep_writes_its_table_plot_and_rows(tmp_path, capsys, monkeypatch)
     ckpts = []
     for variant in ("image_only", "events_only"):
         train(compose_config("train", [f"run_dir={tmp_path / variant}", f"model={variant}", "trainer.max_steps=1",
-                                       "loader.batch_size=4", "loader.num_workers=0", "data.max_events=3000",
+                                       "loader.batch_size=4", "loader.num_workers=0", "data.window_us=15000",
                                        "trainer.image_every=0"]))
         ckpts.append(str(tmp_path / variant / "checkpoints" / "last.pt"))
     out = tmp_path / "sweep"
@@ -90,14 +90,14 @@ def test_the_sweep_writes_its_table_plot_and_rows(tmp_path, capsys, monkeypatch)
 
     def recording_build(cfg, *args, **kwargs):
         dataset = real_build(cfg, *args, **kwargs)
-        built.append(dataset.max_events)
+        built.append(dataset.window_us)
         return dataset
 
     monkeypatch.setattr(sweep_module, "build_dataset", recording_build)
     again = sweep(compose_config("sweep", [f"ckpt=[{ckpts[1]}]", "split=valid", "ages=[1]", f"out={tmp_path / 'cap'}",
-                                           "loader.num_workers=0", "data.max_events=500", "data.window_us=33333"]))
-    expected = {ckpts[1]: {"data.max_events": {"checkpoint": 3000, "used": 500}}}  # window_us: the same as trained
+                                           "loader.num_workers=0", "data.window_us=10000", "data.context_us=10000"]))
+    expected = {ckpts[1]: {"data.window_us": {"checkpoint": 15000, "used": 10000}}}  # context_us: the same as trained
     assert again["overrides"] == expected
     assert json.loads((tmp_path / "cap" / "sweep.json").read_text())["overrides"] == expected
-    assert "max_events=500 (trained with 3000)" in capsys.readouterr().out
-    assert built == [500]  # the samples were made with the override
+    assert "window_us=10000 (trained with 15000)" in capsys.readouterr().out
+    assert built == [10000]  # the samples were made with the override

@@ -11,7 +11,7 @@ from tests.models import small_detector_config
 
 def test_the_hybrid_model_overfits_one_batch():
     torch.manual_seed(0)
-    dataset = EventEgoHands(stub_root(), "train", max_events=4000)
+    dataset = EventEgoHands(stub_root(), "train", window_us=20_000)
     batch = collate([dataset[i] for i in (5, 60, 150, 260)])
     model = Detector(small_detector_config(image_width=8, event_channels=(8, 16, 16, 16), head_hidden=32))
     optimizer = torch.optim.AdamW(model.parameters(), lr=3e-3)
@@ -35,7 +35,7 @@ def test_the_hybrid_model_overfits_one_batch():
 
 
 def test_training_output_names_and_variants():
-    dataset = EventEgoHands(stub_root(), "valid", max_events=2000)
+    dataset = EventEgoHands(stub_root(), "valid", window_us=10_000)
     batch = collate([dataset[i] for i in (0, 40)])
     for use_events, use_image in ((True, True), (True, False), (False, True)):
         model = Detector(small_detector_config(use_events=use_events, use_image=use_image, image_width=8,
@@ -47,7 +47,7 @@ def test_training_output_names_and_variants():
 
 
 def test_the_event_head_adds_its_weighted_loss_in_training_and_leaves_detection_alone():
-    dataset = EventEgoHands(stub_root(), "valid", max_events=2000)
+    dataset = EventEgoHands(stub_root(), "valid", window_us=10_000)
     batch = collate([dataset[i] for i in (0, 40)])
     torch.manual_seed(0)
     sizes = dict(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16)
@@ -104,7 +104,7 @@ def test_mixed_precision_keeps_losses_and_graph_products_in_float32(monkeypatch)
         return real_bce(*args, **kwargs)
 
     monkeypatch.setattr(head_module.F, "binary_cross_entropy", guarded_bce)
-    dataset = EventEgoHands(stub_root(), "valid", max_events=2000)
+    dataset = EventEgoHands(stub_root(), "valid", window_us=10_000)
     batch = collate([dataset[i] for i in (3, 50)])
     model = Detector(small_detector_config(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16))
     with torch.autocast("cpu", dtype=torch.bfloat16):

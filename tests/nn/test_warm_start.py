@@ -40,7 +40,7 @@ def test_an_events_only_branch_started_in_a_hybrid_computes_the_same_maps_whatev
                                                for layer in ("conv", "skip"))
     assert all(name.startswith(("image.", "to_nodes.", "fuse.", "head.stems.")) or name.endswith("num_batches_tracked")
                for name in report["kept"])
-    dataset = EventEgoHands(stub_root(), "valid", image_age=3, max_events=3000)
+    dataset = EventEgoHands(stub_root(), "valid", image_age=3, window_us=15_000)
     batch = collate([dataset[i] for i in (5, 40)])
     with torch.no_grad():
         expected = events_only.events(batch.events, batch.batch_index, len(batch))

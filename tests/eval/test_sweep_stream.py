@@ -1,0 +1,67 @@
+"""The sweep measures what runs: the streaming detector, fed as a camera feeds it, answers what
+the sweep's batch evaluation scores, on the same frames and image ages."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+from scipy.optimize import linear_sum_assignment
+
+from dagr_lite.config import build_dataset, compose_config
+from dagr_lite.engine.common import load_checkpoint, make_loader
+from dagr_lite.engine.evaluate import load_model
+from dagr_lite.eval.score import detections_of
+from dagr_lite.eval.sweep import SweepSamples, streamed_detections, sweep_frames
+from dagr_lite.nn.detector import DetectorConfig
+
+AGES = (1, 3, 10)
+
+
+def pair_detections(boxes: np.ndarray, scores: np.ndarray, other_boxes: np.ndarray, other_scores: np.ndarray
+                    ) -> np.ndarray:
+    """For each detection ``(boxes[i], scores[i])``, the index of its nearest one of the other list
+    (one to one, by the largest difference of any coordinate or of the score times 1000)."""
+    cost = np.maximum(np.abs(boxes[:, None] - other_boxes[None]).max(axis=2),
+                      1000 * np.abs(scores[:, None] - other_scores[None]))
+    rows, cols = linear_sum_assignment(cost)
+    return cols[np.argsort(rows)]
+
+
+@pytest.mark.parametrize("variant", ["hybrid", "events_only"])
+def test_the_streaming_detector_answers_what_the_sweep_scores(trained_checkpoints, variant, tmp_path):
+    checkpoints = trained_checkpoints
+    state = load_checkpoint(checkpoints[variant])
+    detector = DetectorConfig.from_dict(state["detector"])
+    cfg = OmegaConf.merge(compose_config("sweep", [f"ckpt=[{checkpoints[variant]}]", f"out={tmp_path}",
+                                                   "split=valid", "loader.num_workers=0"]),
+                          {"data": {key: state["config"]["data"][key] for key in ("image_age", "window_us",
+                                                                                   "context_us", "max_events")}})
+    dataset = build_dataset(cfg, "valid", train=False, with_image=detector.use_image, image_age=max(AGES),
+                            first_frame=max(AGES))
+    model = load_model(state, detector, dataset.image_size, str(checkpoints[variant]))
+    assert next(model.parameters()).dtype == torch.float32
+    frames = sweep_frames(dataset, max(AGES), between=0)
+    frames = [frames[i] for i in (0, 17, 41, len(frames) - 1)]  # both videos, early and late frames
+    # A model a few steps old scores near its prior (objectness 0.01 x class 0.01): a threshold below
+    # it compares many boxes, where the sweep's 0.001 would compare none.
+    thresholds = {"conf_threshold": 1e-6, "nms_threshold": cfg.eval.nms_threshold}
+    compared = 0
+    for age in AGES:
+        loader = make_loader(SweepSamples(dataset, frames, age, 0.0, cfg.seed), batch_size=2, num_workers=0,
+                             graph=model.graph_spec)
+        batch = detections_of(model, loader, torch.device("cpu"), progress=False, **thresholds)
+        streamed = streamed_detections(model, dataset, frames, age, 0.0, progress=False, **thresholds)
+        assert len(batch) == len(streamed) == len(frames)
+        for (name, height, width, truth, boxes, scores), (s_name, s_height, s_width, s_truth, s_boxes, s_scores) \
+                in zip(batch, streamed):
+            assert (s_name, s_height, s_width) == (name, height, width)
+            np.testing.assert_array_equal(s_truth, truth)
+            assert len(boxes) > 0 and s_boxes.shape == boxes.shape, name
+            # The same detections: paired one to one (boxes of scores equal to float32 rounding may come
+            # in either order), every pair equal to 1e-5.
+            pairs = pair_detections(boxes, scores, s_boxes, s_scores)
+            np.testing.assert_allclose(s_scores[pairs], scores, rtol=1e-5, atol=1e-6)
+            np.testing.assert_allclose(s_boxes[pairs], boxes, rtol=1e-5, atol=1e-5 * max(height, width))
+            compared += len(boxes)
+    assert compared > 50
