@@ -152,6 +152,18 @@ def test_streaming_stays_exact_across_long_gaps(variant):
     assert checks >= 20 and stream.origin_us > REORIGIN_US  # the events-only origin moved forward
 
 
+def test_the_hybrid_stays_exact_while_its_events_leave_the_horizon():
+    """One image for a long stretch: events leave the horizon, the forgotten rows are dropped and
+    the horizon's own pooled graph serves instead of the cells kept since the image."""
+    model = trained(small_model("hybrid", seed=2))
+    rng = np.random.default_rng(12)
+    events = random_stream(rng, 8000, 400_000)
+    images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), 20_000)]
+    checks, largest, stream = replay(model, events, images, seed=3, detect_prob=0.3, sizes=(1, 5, 40, 300))
+    assert checks >= 20 and largest >= 500
+    assert stream._segment.base > 0 and stream._segment.cells is None  # rows were forgotten
+
+
 def test_events_only_window_empties_and_refills():
     model = small_model("events_only")
     stream = StreamingDetector(model, context_us=CONTEXT_US, window_us=WINDOW_US, conf_threshold=0.0)
