@@ -110,6 +110,7 @@ _RULES = {
     "model.image_stem": (f"one of {', '.join(IMAGE_STEMS)}", lambda v: v in IMAGE_STEMS),
     "model.time_scale_us": ("a positive number (microseconds)", lambda v: _number(v) and v > 0),
     "data.window_us": ("a positive integer (microseconds)", lambda v: _integer(v) and v > 0),
+    "data.refractory_us": ("an integer >= 0 (microseconds; 0: every event)", lambda v: _integer(v) and v >= 0),
     "data.max_events": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
     "loader.batch_size": ("a positive integer", lambda v: _integer(v) and v > 0),
     "loader.num_workers": ("an integer >= 0", lambda v: _integer(v) and v >= 0),
@@ -190,7 +191,8 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
     image_size = (dataset.height, dataset.width) if dataset.height is not None else None
     return EventEgoHands(dataset_root(dataset), split, image_age=image_age,
                          event_span="image" if with_image else "window", window_us=data.window_us,
-                         context_us=data.context_us, max_events=data.max_events, first_frame=first_frame,
+                         context_us=data.context_us, refractory_us=data.refractory_us, max_events=data.max_events,
+                         first_frame=first_frame,
                          fps=dataset.fps, image_size=image_size, transform=transform,
                          clip_boxes=data.clip_boxes, labelled_only=bool(data.get("labelled_only", False)),
                          seed=cfg.seed, age_power=data.train_image_age_power if train else 0.0)

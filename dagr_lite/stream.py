@@ -6,7 +6,9 @@ run on the sample of that moment, the sample training and evaluation read
 (:func:`~dagr_lite.data.dataset.sample_start_us`, docs/design.md, "One sample"):
 
 - every model reads the events of ``[t - window_us, t]`` (a horizon);
-- a hybrid reads the latest image, and no event from before ``image time - context_us``.
+- a hybrid reads the latest image, and no event from before ``image time - context_us``;
+- with ``refractory_us`` > 0, an event whose pixel had one less than that long before it is
+  dropped on arrival (:func:`~dagr_lite.data.dataset.refractory_keep`).
 
 Work per update: new events get their incoming edges from the streaming graph builder, the
 first GCN stage computes the new nodes only (reading the cached features of older nodes; a
@@ -30,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dagr_lite.data.dataset import sample_start_us
+from dagr_lite.data.dataset import refractory_keep, sample_start_us
 from dagr_lite.graph.pool import PooledGraph, recency_cells, recency_from_latest
 from dagr_lite.graph.streaming import StreamingGraph
 from dagr_lite.nn.detector import Detector
@@ -161,6 +163,8 @@ class StreamingDetector:
             evaluation mode.
         window_us: the horizon: every model reads the events of ``[t - window_us, t]``.
         context_us: a hybrid reads no event from before ``image time - context_us``.
+        refractory_us: > 0: an event is dropped when its pixel had an event (kept or not) less than
+            this long before it, decided as it arrives; 0: every event is read.
         conf_threshold, nms_threshold: score threshold and NMS IoU of the detections.
 
     Times are microseconds on the stream's clock. Events come as numpy arrays sorted by time;
@@ -168,17 +172,18 @@ class StreamingDetector:
     ``ValueError`` naming what was wrong and leaves the detector as it was.
     """
 
-    def __init__(self, model: Detector, *, context_us: int = 10_000, window_us: int = 33_333,
+    def __init__(self, model: Detector, *, context_us: int = 10_000, window_us: int = 33_333, refractory_us: int = 0,
                  conf_threshold: float = 0.25, nms_threshold: float = 0.65):
         if model.events is None:
             raise ValueError("the streaming detector needs a model with an event branch (use_events true)")
-        if context_us < 0 or window_us <= 0:
-            raise ValueError(f"context_us must be >= 0 and window_us > 0, got {context_us} and {window_us}")
+        if context_us < 0 or window_us <= 0 or refractory_us < 0:
+            raise ValueError(f"context_us and refractory_us must be >= 0 and window_us > 0, got {context_us}, "
+                             f"{refractory_us} and {window_us}")
         self.model = model.eval()
         parameter = next(model.parameters())
         self.dtype, self.device = parameter.dtype, parameter.device
         self.hybrid = model.image is not None
-        self.context_us, self.window_us = int(context_us), int(window_us)
+        self.context_us, self.window_us, self.refractory_us = int(context_us), int(window_us), int(refractory_us)
         self.conf_threshold, self.nms_threshold = float(conf_threshold), float(nms_threshold)
         self.height, self.width = model.cfg.height, model.cfg.width
         self.map_sizes = [(math.ceil(self.height / s), math.ceil(self.width / s)) for s in model.strides]
@@ -199,7 +204,8 @@ class StreamingDetector:
         detector = DetectorConfig.from_dict(state["detector"])
         model = load_model(state, detector, (detector.height, detector.width), str(path))
         data = state["config"]["data"]
-        kwargs = {"context_us": data["context_us"], "window_us": data["window_us"], **kwargs}
+        kwargs = {"context_us": data["context_us"], "window_us": data["window_us"],
+                  "refractory_us": data.get("refractory_us", 0), **kwargs}
         return cls(model.to(device), **kwargs)
 
     def reset(self) -> None:
@@ -207,6 +213,7 @@ class StreamingDetector:
         self._log = {key: _Rows(np.zeros(0)) for key in ("x", "y", "t", "p")}  # raw events not yet dropped
         self._done = 0  # events of the log already in the segment
         self._last_t = -math.inf
+        self._pixel_last = np.full(self.height * self.width, -math.inf) if self.refractory_us else None
         self._kept_from = -math.inf  # the log holds every event since this time
         self._image = None  # (image maps, node maps) of the latest image
         self._t_image: float | None = None
@@ -276,9 +283,13 @@ class StreamingDetector:
         if not np.all((p == 0) | (p == 1)):
             i = int(np.flatnonzero((p != 0) & (p != 1))[0])
             raise ValueError(f"events p must be 0 or 1, got p[{i}]={p[i]:g}")
+        last_t = float(t[-1])
+        if self._pixel_last is not None:
+            keep = refractory_keep(x, y, t, self.refractory_us, self.width, self._pixel_last)
+            x, y, t, p = x[keep], y[keep], t[keep], p[keep]
         for name, values in (("x", x), ("y", y), ("t", t), ("p", p)):
             self._log[name].extend(values)
-        self._last_t = float(t[-1])
+        self._last_t = last_t
 
     # ---------------------------------------------------------------- output
     def detect(self, t_us: float | None = None) -> dict:

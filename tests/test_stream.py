@@ -70,6 +70,8 @@ def check_against_batch(stream: StreamingDetector, model: Detector, events: dict
     t = events["t"][:upto]
     hybrid = model.image is not None
     keep = t >= sample_start_us(t_query, WINDOW_US, t_image if hybrid else None, CONTEXT_US)
+    if stream.refractory_us:  # brute force: each event against every earlier one at its pixel
+        keep &= brute_refractory(events, upto, stream.refractory_us)
     origin = t_image if hybrid else stream.origin_us
     sample = sample_of(image, tuple(v[:upto][keep] for v in events.values()), origin, t_query)
     with torch.no_grad():
@@ -86,12 +88,21 @@ def check_against_batch(stream: StreamingDetector, model: Detector, events: dict
     return int(keep.sum())
 
 
+def brute_refractory(events: dict, upto: int, refractory_us: int) -> np.ndarray:
+    keep = np.ones(upto, dtype=bool)
+    for i in range(upto):
+        same = (events["x"][:i] == events["x"][i]) & (events["y"][:i] == events["y"][i])
+        keep[i] = not np.any(same & (events["t"][:i] > events["t"][i] - refractory_us))
+    return keep
+
+
 def replay(model: Detector, events: dict, images: list, seed: int, *, detect_prob: float = 0.4,
-           sizes=(0, 1, 1, 2, 5, 40, 300)) -> tuple[int, int, StreamingDetector]:
+           sizes=(0, 1, 1, 2, 5, 40, 300), refractory_us: int = 0) -> tuple[int, int, StreamingDetector]:
     """Push ``events`` in random sizes (0, 1 and more), images at their times, and check random
     detect calls (at the latest event or a little later) against the batch model."""
     rng = np.random.default_rng(seed)
-    stream = StreamingDetector(model, context_us=CONTEXT_US, window_us=WINDOW_US, conf_threshold=0.0)
+    stream = StreamingDetector(model, context_us=CONTEXT_US, window_us=WINDOW_US, refractory_us=refractory_us,
+                               conf_threshold=0.0)
     n, i, checks, largest = len(events["t"]), 0, 0, 0
     pending = sorted(images, key=lambda item: item[1])
     image, t_image = None, None
@@ -162,6 +173,21 @@ def test_the_hybrid_stays_exact_while_its_events_leave_the_horizon():
     checks, largest, stream = replay(model, events, images, seed=3, detect_prob=0.3, sizes=(1, 5, 40, 300))
     assert checks >= 20 and largest >= 500
     assert stream._segment.base > 0 and stream._segment.cells is None  # rows were forgotten
+
+
+@pytest.mark.parametrize("variant", ["hybrid", "events_only"])
+def test_streaming_with_a_refractory_period_equals_the_batch_model_on_the_filtered_sample(variant):
+    """Hot pixels and bursts: few pixels, several events per pixel and microsecond."""
+    model = small_model(variant, seed=5)
+    rng = np.random.default_rng(21)
+    n = 1500
+    events = {"x": rng.integers(20, 26, n), "y": rng.integers(10, 14, n),
+              "t": np.sort(rng.integers(0, 120_000, n) // 50 * 50), "p": rng.integers(0, 2, n)}
+    assert len(np.unique(events["t"])) < n  # ties in time
+    images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (10_000, 70_000)]
+    checks, largest, stream = replay(model, events, images, seed=4, detect_prob=0.6, sizes=(1, 3, 20, 100),
+                                     refractory_us=400)
+    assert checks >= 10 and 0 < largest < len(events["t"])
 
 
 def test_events_only_window_empties_and_refills():

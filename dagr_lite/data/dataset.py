@@ -42,6 +42,45 @@ def sample_start_us(t_query_us: float, window_us: int, t_image_us: float | None 
     return start
 
 
+def refractory_keep(x: np.ndarray, y: np.ndarray, t: np.ndarray, refractory_us: float, width: int,
+                    last_t: np.ndarray | None = None) -> np.ndarray:
+    """Which events a per-pixel refractory period keeps, decided on arrival.
+
+    Event ``i`` (events sorted by ``t``) is kept when the latest earlier event at its pixel, kept or
+    not and of either polarity, is at least ``refractory_us`` older: ``t_i - t_prev >= refractory_us``.
+    A pixel firing faster than that (a hot pixel, a burst of several events in one microsecond)
+    gives its first event only. The decision reads the events of ``[t_i - refractory_us, t_i]``
+    alone, so a stream filtered chunk by chunk and a sample read from ``refractory_us`` before
+    its start agree.
+
+    Args:
+        x, y: integer pixel coordinates; ``width``: the sensor's width (pixel ``y * width + x``).
+        last_t: ``(H * W,)`` float64, the latest event time of each pixel before these events
+            (``-inf``: none); updated in place (a stream's state). None: no earlier events.
+
+    Returns:
+        ``(N,)`` bool.
+    """
+    n = len(t)
+    if n == 0:
+        return np.zeros(0, dtype=bool)
+    pixel = np.asarray(y, np.int64) * width + np.asarray(x, np.int64)
+    order = np.argsort(pixel, kind="stable")  # by pixel, then by arrival
+    pixel_sorted, t_sorted = pixel[order], np.asarray(t, np.float64)[order]
+    first = np.ones(n, dtype=bool)
+    first[1:] = pixel_sorted[1:] != pixel_sorted[:-1]
+    previous = np.empty(n, dtype=np.float64)
+    previous[1:] = t_sorted[:-1]
+    previous[first] = -np.inf if last_t is None else last_t[pixel_sorted[first]]
+    keep = np.empty(n, dtype=bool)
+    keep[order] = t_sorted - previous >= refractory_us
+    if last_t is not None:
+        last = np.ones(n, dtype=bool)
+        last[:-1] = first[1:]
+        last_t[pixel_sorted[last]] = t_sorted[last]
+    return keep
+
+
 class SampleTooLarge(ValueError):
     """A sample holds more events than ``max_events`` allows (a guard, never a thinning)."""
 
@@ -135,6 +174,9 @@ class EventEgoHands(Dataset):
             See :func:`sample_start_us`.
         window_us: the horizon: no sample reads events older than this before its query time.
         context_us: with ``event_span="image"``, events from before the image may join (within the horizon).
+        refractory_us: > 0: a pixel's event is dropped when the pixel had an event less than this
+            long before it (:func:`refractory_keep`, decided on arrival, as the streaming detector
+            does); 0: every event.
         max_events: a guard: a sample holding more events raises :class:`SampleTooLarge` (None: no
             guard). It never thins a sample, since the streaming detector could not follow.
         first_frame: the first label frame (default: the smallest image age), e.g. the largest
@@ -151,7 +193,7 @@ class EventEgoHands(Dataset):
 
     def __init__(self, root: Path | str, split: str, *, image_age: int | Sequence[int] = 1,
                  event_span: str = "image", window_us: int = fmt.DEFAULT_WINDOW_US, context_us: int = 0,
-                 max_events: int | None = None, first_frame: int | None = None, fps: float = fmt.DEFAULT_FPS,
+                 refractory_us: int = 0, max_events: int | None = None, first_frame: int | None = None, fps: float = fmt.DEFAULT_FPS,
                  image_size: Sequence[int] | None = None, videos: Sequence[str] | None = None,
                  transform: Callable[[Sample, np.random.Generator], Sample] | None = None,
                  clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0, age_power: float = 0.0):
@@ -167,11 +209,13 @@ class EventEgoHands(Dataset):
             raise ValueError(f"window_us must be > 0, got {window_us}")
         if context_us < 0:
             raise ValueError(f"context_us must be >= 0, got {context_us}")
+        if refractory_us < 0:
+            raise ValueError(f"refractory_us must be >= 0, got {refractory_us}")
         if max_events is not None and max_events <= 0:
             raise ValueError(f"max_events must be positive or None, got {max_events}")
         self.root, self.split = Path(root), split
         self.event_span, self.window_us, self.context_us = event_span, int(window_us), int(context_us)
-        self.max_events = max_events
+        self.max_events, self.refractory_us = max_events, int(refractory_us)
         self.first_frame = self.age_range[0] if first_frame is None else max(int(first_frame), self.age_range[0])
         self.fps, self.transform, self.seed, self.epoch = float(fps), transform, int(seed), 0
         available = list_videos(self.root, split)
@@ -299,18 +343,25 @@ class EventEgoHands(Dataset):
         t_image = events_file.frame_time_us(image_frame)
         t_start = int(sample_start_us(t_end, self.window_us, t_image if self.event_span == "image" else None,
                                       self.context_us))
-        raw = self.events_of(v, t_start, t_end)
+        raw = self.events_of(v, t_start - self.refractory_us, t_end)
+        height, width = self.image_size
+        if len(raw["x"]) and (raw["x"].max() >= width or raw["y"].max() >= height):
+            raise DatasetFormatError.at(events_file.path, f"events of [{t_start - self.refractory_us}, {t_end}) us lie "
+                                                          f"outside the {width}x{height} frame (x max {raw['x'].max()}, "
+                                                          f"y max {raw['y'].max()})", key="events/x, events/y")
+        first = int(np.searchsorted(raw["t"], t_start, side="left"))
+        if self.refractory_us:  # decided from the events of one refractory period before each
+            keep = refractory_keep(raw["x"], raw["y"], raw["t"], self.refractory_us, width)
+            keep[:first] = False
+        else:
+            keep = slice(first, None)
+        raw = {key: values[keep] for key, values in raw.items()}
         if self.max_events is not None and len(raw["t"]) > self.max_events:
             raise SampleTooLarge(f"{events_file.path}: the sample of frame {k} (image frame {image_frame}) holds "
                                  f"{len(raw['t'])} events in [{t_start}, {t_end}) us, more than max_events="
-                                 f"{self.max_events}; shorten the horizon (data.window_us) or raise the guard "
-                                 f"(data.max_events, null: none)")
-        height, width = self.image_size
+                                 f"{self.max_events}; shorten the horizon (data.window_us), thin it on arrival "
+                                 f"(data.refractory_us) or raise the guard (data.max_events, null: none)")
         x, y = raw["x"], raw["y"]
-        if len(x) and (x.max() >= width or y.max() >= height):
-            raise DatasetFormatError.at(events_file.path, f"events of [{t_start}, {t_end}) us lie outside the "
-                                                          f"{width}x{height} frame (x max {x.max()}, y max {y.max()})",
-                                        key="events/x, events/y")
         events = np.stack([x.astype(np.float32), y.astype(np.float32),
                            (raw["t"] - t_image).astype(np.float32),
                            raw["p"].astype(np.float32)], axis=1).reshape(-1, 4)  # (N, 4)

@@ -22,7 +22,15 @@ from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.detector import Detector, DetectorConfig
 
 # The data settings that define a model's input: taken from the checkpoint unless overridden.
-SAMPLE_KEYS = ("image_age", "window_us", "context_us", "max_events")
+SAMPLE_KEYS = ("image_age", "window_us", "context_us", "refractory_us", "max_events")
+# Sample keys newer than some checkpoints, with the value that gives those checkpoints' samples.
+SAMPLE_ADDED_LATER = {"refractory_us": 0}
+
+
+def trained_sample(state: dict) -> dict:
+    """The sample settings a checkpoint was trained with (keys added later at their old value)."""
+    return {**SAMPLE_ADDED_LATER, **{key: state["config"]["data"][key] for key in SAMPLE_KEYS
+                                     if key in state["config"]["data"]}}
 
 
 def _override(section: str, key: str, trained, given, overrides: dict):
@@ -36,7 +44,7 @@ def _override(section: str, key: str, trained, given, overrides: dict):
 
 def settings(cfg: DictConfig, state: dict) -> tuple[dict, DetectorConfig, dict]:
     """The data settings, the detector and the overrides of an evaluation of checkpoint ``state``."""
-    trained_data = state["config"]["data"]
+    trained_data = trained_sample(state)
     detector = DetectorConfig.from_dict(state["detector"])
     overrides: dict = {}
     data = {key: _override("data", key, trained_data[key], cfg.data[key], overrides) for key in SAMPLE_KEYS}

@@ -31,7 +31,7 @@ from dagr_lite.data import format as fmt
 from dagr_lite.data.dataset import EventEgoHands, Sample
 from dagr_lite.engine.common import load_checkpoint, make_loader, resolve_device
 from dagr_lite.data.writer import write_text_atomically
-from dagr_lite.engine.evaluate import SAMPLE_KEYS, _override, load_model
+from dagr_lite.engine.evaluate import SAMPLE_KEYS, _override, load_model, trained_sample
 from dagr_lite.eval.score import score_entries, score_model
 from dagr_lite.nn.detector import Detector, DetectorConfig
 from dagr_lite.nn.head import box_iou
@@ -97,7 +97,7 @@ def streamed_detections(model: Detector, dataset: EventEgoHands, frames: list[tu
 
     For each label frame, a new :class:`StreamingDetector` with the dataset's horizon and context
     is fed the stream's events in ``chunk_us`` pieces from well before the image (``window_us +
-    context_us`` before it), the image of frame ``k - age`` at its time, the events up to the
+    context_us + refractory_us`` before it), the image of frame ``k - age`` at its time, the events up to the
     point's time, and then asked for detections at that time. Entries as
     :func:`~dagr_lite.eval.score.detections_of` gives them, in ``frames``' order.
     """
@@ -108,8 +108,9 @@ def streamed_detections(model: Detector, dataset: EventEgoHands, frames: list[tu
         image_frame = k - age
         t_image = dataset.frame_time_us(v, image_frame)
         stream = StreamingDetector(model, window_us=dataset.window_us, context_us=dataset.context_us,
-                                   conf_threshold=conf_threshold, nms_threshold=nms_threshold)
-        t_begin = min(t_image, t_end) - dataset.window_us - dataset.context_us
+                                   refractory_us=dataset.refractory_us, conf_threshold=conf_threshold,
+                                   nms_threshold=nms_threshold)
+        t_begin = min(t_image, t_end) - dataset.window_us - dataset.context_us - dataset.refractory_us
         events = dataset.events_of(v, max(t_begin, 0), t_end)
         edges = sorted({*range(t_begin, t_end, chunk_us), t_image, t_end})
         cuts = np.searchsorted(events["t"], edges, side="left")
@@ -186,7 +187,7 @@ def sweep_checkpoint(cfg: DictConfig, path: str, frames: list[tuple[int, int]] |
     detector = DetectorConfig.from_dict(state["detector"])
     trained = state["config"]
     overrides: dict = {}
-    data = {key: trained["data"][key] for key in SAMPLE_KEYS}
+    data = trained_sample(state)
     data.update({key: _override("data", key, data[key], cfg.data.get(key), overrides) for key in OVERRIDABLE})
     run_cfg = OmegaConf.merge(cfg, {"data": data})
     largest = max(cfg.ages)

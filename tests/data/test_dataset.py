@@ -8,7 +8,7 @@ from torch.utils.data import DataLoader
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.collate import collate
-from dagr_lite.data.dataset import EventEgoHands, SampleTooLarge, draw_age, sample_start_us
+from dagr_lite.data.dataset import EventEgoHands, SampleTooLarge, draw_age, refractory_keep, sample_start_us
 from dagr_lite.data.reader import DatasetFormatError, read_frame
 from dagr_lite.data.writer import write_frame
 from tests.conftest import make_dataset
@@ -59,6 +59,50 @@ def test_max_events_guards_and_never_thins(dataset):
                                                      rf"holds {size} events in .* more than max_events={limit}; "
                                                      r"shorten the horizon \(data\.window_us\)"):
                 guarded[index]
+
+
+def brute_refractory(x, y, t, refractory_us):
+    """Each event against every earlier one at its pixel (hand-written, quadratic)."""
+    return np.array([not np.any((x[:i] == x[i]) & (y[:i] == y[i]) & (t[:i] > t[i] - refractory_us))
+                     for i in range(len(t))], dtype=bool)
+
+
+def test_the_refractory_filter_matches_brute_force_whole_and_in_chunks():
+    rng = np.random.default_rng(0)
+    n = 3000
+    x, y = rng.integers(0, 5, n), rng.integers(0, 4, n)
+    t = np.sort(rng.integers(0, 40_000, n)) // 7 * 7  # several events per pixel and microsecond
+    for refractory_us in (1, 100, 1000):
+        expected = brute_refractory(x, y, t, refractory_us)
+        assert 0 < expected.sum() < n
+        np.testing.assert_array_equal(refractory_keep(x, y, t, refractory_us, width=5), expected)
+        last = np.full(5 * 4, -np.inf)
+        cuts = np.sort(rng.integers(0, n, 12))
+        chunks = [refractory_keep(x[a:b], y[a:b], t[a:b], refractory_us, 5, last)
+                  for a, b in zip([0, *cuts], [*cuts, n])]
+        np.testing.assert_array_equal(np.concatenate(chunks), expected)  # a stream's state, chunk by chunk
+    # by hand: pixel (0, 0) at 0, 0 (same microsecond), 50, 100 and 260 with a period of 100
+    keep = refractory_keep(np.zeros(5, int), np.zeros(5, int), np.array([0, 0, 50, 100, 260]), 100, width=1)
+    assert keep.tolist() == [True, False, False, False, True]  # 100 - 50 < 100: the dropped event counts
+    assert refractory_keep(np.zeros(0, int), np.zeros(0, int), np.zeros(0), 10, width=1).shape == (0,)
+
+
+@pytest.mark.parametrize("age", [1, 4])
+def test_a_refractory_sample_is_the_filtered_stream_in_its_horizon(tmp_path, age):
+    written = make_dataset(tmp_path, videos={"v": "train"}, events_per_video=20_000, compression=None)
+    raw = written.events["v"]
+    whole = brute_refractory(raw["x"], raw["y"], raw["t"], 2_000)  # the filter over the whole stream
+    assert 0 < whole.sum() < len(whole)
+    ds = EventEgoHands(tmp_path, "train", image_age=age, refractory_us=2_000, context_us=5_000)
+    for index in range(len(ds)):
+        sample = ds[index]
+        _, k = ds.sample_name(index)
+        t_image, t_end = fmt.frame_time_us(k - age), fmt.frame_time_us(k)
+        mask = whole & (raw["t"] >= sample_start_us(t_end, 33_333, t_image, 5_000)) & (raw["t"] < t_end)
+        expected = np.stack([raw["x"][mask], raw["y"][mask], raw["t"][mask] - t_image, raw["p"][mask]], 1)
+        np.testing.assert_array_equal(sample.events.numpy(), expected.astype(np.float32))
+    with pytest.raises(ValueError, match="refractory_us must be >= 0"):
+        EventEgoHands(tmp_path, "train", refractory_us=-1)
 
 
 def test_the_sample_start_by_hand():

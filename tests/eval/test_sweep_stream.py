@@ -10,7 +10,7 @@ from scipy.optimize import linear_sum_assignment
 
 from dagr_lite.config import build_dataset, compose_config
 from dagr_lite.engine.common import load_checkpoint, make_loader
-from dagr_lite.engine.evaluate import load_model
+from dagr_lite.engine.evaluate import load_model, trained_sample
 from dagr_lite.eval.score import detections_of
 from dagr_lite.eval.sweep import SweepSamples, streamed_detections, sweep_frames
 from dagr_lite.nn.detector import DetectorConfig
@@ -28,21 +28,21 @@ def pair_detections(boxes: np.ndarray, scores: np.ndarray, other_boxes: np.ndarr
     return cols[np.argsort(rows)]
 
 
-@pytest.mark.parametrize("variant", ["hybrid", "events_only"])
-def test_the_streaming_detector_answers_what_the_sweep_scores(trained_checkpoints, variant, tmp_path):
+@pytest.mark.parametrize("variant,refractory_us", [("hybrid", 0), ("events_only", 0), ("hybrid", 2_000)])
+def test_the_streaming_detector_answers_what_the_sweep_scores(trained_checkpoints, variant, refractory_us, tmp_path):
     checkpoints = trained_checkpoints
     state = load_checkpoint(checkpoints[variant])
     detector = DetectorConfig.from_dict(state["detector"])
+    data = {**trained_sample(state), "refractory_us": refractory_us}
     cfg = OmegaConf.merge(compose_config("sweep", [f"ckpt=[{checkpoints[variant]}]", f"out={tmp_path}",
-                                                   "split=valid", "loader.num_workers=0"]),
-                          {"data": {key: state["config"]["data"][key] for key in ("image_age", "window_us",
-                                                                                   "context_us", "max_events")}})
+                                                   "split=valid", "loader.num_workers=0"]), {"data": data})
     dataset = build_dataset(cfg, "valid", train=False, with_image=detector.use_image, image_age=max(AGES),
                             first_frame=max(AGES))
     model = load_model(state, detector, dataset.image_size, str(checkpoints[variant]))
     assert next(model.parameters()).dtype == torch.float32
     frames = sweep_frames(dataset, max(AGES), between=0)
-    frames = [frames[i] for i in (0, 17, 41, len(frames) - 1)]  # both videos, early and late frames
+    frames = [frames[i] for i in (0, 41, len(frames) - 1)]  # both videos, early and late frames
+    assert dataset.refractory_us == refractory_us
     # A model a few steps old scores near its prior (objectness 0.01 x class 0.01): a threshold below
     # it compares many boxes, where the sweep's 0.001 would compare none.
     thresholds = {"conf_threshold": 1e-6, "nms_threshold": cfg.eval.nms_threshold}
@@ -64,4 +64,4 @@ def test_the_streaming_detector_answers_what_the_sweep_scores(trained_checkpoint
             np.testing.assert_allclose(s_scores[pairs], scores, rtol=1e-5, atol=1e-6)
             np.testing.assert_allclose(s_boxes[pairs], boxes, rtol=1e-5, atol=1e-5 * max(height, width))
             compared += len(boxes)
-    assert compared > 50
+    assert compared > 40
