@@ -3,7 +3,7 @@
     python -m dagr_lite.eval.sweep ckpt=[A.pt,B.pt] split=test ages=[1,2,3,5,7,10] out=DIR [between=10] [stream=true]
 
 Every checkpoint is scored at every image age ``a`` (the image of frame ``k - a`` and the
-events since it, boxes of frame ``k``) on one list of label frames, ``k >= max(ages)``, so the
+events of the sample's horizon, boxes of frame ``k``) on one list of label frames, ``k >= max(ages)``, so the
 rows compare. With ``between=N`` each age is also scored at the ``N - 1`` times between label
 frames ``k`` and ``k + 1`` (every ``1/N`` of a frame interval), against boxes interpolated
 linearly between the two frames (:func:`interpolate_boxes`); only frame pairs whose boxes all
