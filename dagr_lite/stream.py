@@ -197,15 +197,15 @@ class StreamingDetector:
     def from_checkpoint(cls, path: str | Path, device: str | torch.device = "cpu", **kwargs) -> "StreamingDetector":
         """The EMA weights of a training checkpoint, with the horizon and context it was trained with."""
         from dagr_lite.engine.common import load_checkpoint
-        from dagr_lite.engine.evaluate import load_model
+        from dagr_lite.engine.evaluate import load_model, trained_sample
         from dagr_lite.nn.detector import DetectorConfig
 
         state = load_checkpoint(path)
         detector = DetectorConfig.from_dict(state["detector"])
         model = load_model(state, detector, (detector.height, detector.width), str(path))
-        data = state["config"]["data"]
+        data = trained_sample(state)
         kwargs = {"context_us": data["context_us"], "window_us": data["window_us"],
-                  "refractory_us": data.get("refractory_us", 0), **kwargs}
+                  "refractory_us": data["refractory_us"], **kwargs}
         return cls(model.to(device), **kwargs)
 
     def reset(self) -> None:

@@ -193,7 +193,8 @@ class EventEgoHands(Dataset):
 
     def __init__(self, root: Path | str, split: str, *, image_age: int | Sequence[int] = 1,
                  event_span: str = "image", window_us: int = fmt.DEFAULT_WINDOW_US, context_us: int = 0,
-                 refractory_us: int = 0, max_events: int | None = None, first_frame: int | None = None, fps: float = fmt.DEFAULT_FPS,
+                 refractory_us: int = 0, max_events: int | None = None, first_frame: int | None = None,
+                 fps: float = fmt.DEFAULT_FPS,
                  image_size: Sequence[int] | None = None, videos: Sequence[str] | None = None,
                  transform: Callable[[Sample, np.random.Generator], Sample] | None = None,
                  clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0, age_power: float = 0.0):
@@ -345,13 +346,14 @@ class EventEgoHands(Dataset):
                                       self.context_us))
         raw = self.events_of(v, t_start - self.refractory_us, t_end)
         height, width = self.image_size
-        if len(raw["x"]) and (raw["x"].max() >= width or raw["y"].max() >= height):
+        x, y = raw["x"], raw["y"]
+        if len(x) and (x.max() >= width or y.max() >= height):
             raise DatasetFormatError.at(events_file.path, f"events of [{t_start - self.refractory_us}, {t_end}) us lie "
-                                                          f"outside the {width}x{height} frame (x max {raw['x'].max()}, "
-                                                          f"y max {raw['y'].max()})", key="events/x, events/y")
+                                                          f"outside the {width}x{height} frame (x max {x.max()}, "
+                                                          f"y max {y.max()})", key="events/x, events/y")
         first = int(np.searchsorted(raw["t"], t_start, side="left"))
         if self.refractory_us:  # decided from the events of one refractory period before each
-            keep = refractory_keep(raw["x"], raw["y"], raw["t"], self.refractory_us, width)
+            keep = refractory_keep(x, y, raw["t"], self.refractory_us, width)
             keep[:first] = False
         else:
             keep = slice(first, None)
@@ -361,8 +363,7 @@ class EventEgoHands(Dataset):
                                  f"{len(raw['t'])} events in [{t_start}, {t_end}) us, more than max_events="
                                  f"{self.max_events}; shorten the horizon (data.window_us), thin it on arrival "
                                  f"(data.refractory_us) or raise the guard (data.max_events, null: none)")
-        x, y = raw["x"], raw["y"]
-        events = np.stack([x.astype(np.float32), y.astype(np.float32),
+        events = np.stack([raw["x"].astype(np.float32), raw["y"].astype(np.float32),
                            (raw["t"] - t_image).astype(np.float32),
                            raw["p"].astype(np.float32)], axis=1).reshape(-1, 4)  # (N, 4)
         image = self.image_of(v, image_frame)  # (H, W, 3)

@@ -9,7 +9,8 @@ frames ``k`` and ``k + 1`` (every ``1/N`` of a frame interval), against boxes in
 linearly between the two frames (:func:`interpolate_boxes`); only frame pairs whose boxes all
 match are used. With ``stream=true`` each point scores what the streaming detector answers when
 fed as a camera feeds it (:func:`streamed_detections`); it reads the same sample as the batch
-model, so the figures agree (tests/eval/test_sweep_stream.py). Writes ``sweep.json``, ``sweep.csv`` and ``sweep.png`` into ``out`` and prints
+model, so the figures agree (tests/eval/test_sweep_stream.py). Writes ``sweep.json``, ``sweep.csv``
+and ``sweep.png`` into ``out`` and prints
 the table.
 """
 from __future__ import annotations
@@ -97,8 +98,8 @@ def streamed_detections(model: Detector, dataset: EventEgoHands, frames: list[tu
 
     For each label frame, a new :class:`StreamingDetector` with the dataset's horizon and context
     is fed the stream's events in ``chunk_us`` pieces from well before the image (``window_us +
-    context_us + refractory_us`` before it), the image of frame ``k - age`` at its time, the events up to the
-    point's time, and then asked for detections at that time. Entries as
+    context_us + refractory_us`` before it), the image of frame ``k - age`` at its time, the
+    events up to the point's time, and then asked for detections at that time. Entries as
     :func:`~dagr_lite.eval.score.detections_of` gives them, in ``frames``' order.
     """
     entries = []
@@ -196,7 +197,8 @@ def sweep_checkpoint(cfg: DictConfig, path: str, frames: list[tuple[int, int]] |
     if frames is None:
         frames = sweep_frames(dataset, largest, cfg.between)
     model = load_model(state, detector, dataset.image_size, path).to(device)
-    name = trained["model"]["name"] + (" (grey image)" if cfg.blank_image else "") + (" (streaming)" if cfg.stream else "")
+    name = (trained["model"]["name"] + (" (grey image)" if cfg.blank_image else "")
+            + (" (streaming)" if cfg.stream else ""))
     changed = "".join(f", {key}={value['used']} (trained with {value['checkpoint']})" for key, value in overrides.items())
     print(f"{path}: {name}, {len(frames)} label frames of {cfg.split}{changed}", flush=True)
     rows = [{"ckpt": str(path), "model": name, "age_frames": age + fraction,
