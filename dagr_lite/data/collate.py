@@ -113,6 +113,8 @@ class GraphCollate:
 
     def __init__(self, spec: EventGraphSpec):
         self.spec = spec
+        # Compile (or load) the graph builder here, so that the forked workers inherit it.
+        spec.edges(torch.tensor([[0.0, 0.0, 0.0, 1.0], [1.0, 0.0, 1.0, 1.0]]), workers=1)
 
     def __call__(self, samples: Sequence[Sample]) -> Batch:
         batch = collate(samples)

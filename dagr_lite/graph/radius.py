@@ -22,6 +22,8 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from dagr_lite.graph import compiled
+
 PAIR_BUDGET = 1 << 23  # most pairs within r (bounded by pairs_bound) for the all-pairs path
 ROW_CHUNK = 1 << 14  # query rows per pass: bounds the (rows, ask) candidate matrices
 CANDIDATE_BUDGET = 1 << 22  # most (row, candidate) pairs per query pass, when ties force large asks
@@ -194,7 +196,7 @@ def knn_from_pairs(tree: cKDTree, points: np.ndarray, k: int, r: float) -> np.nd
     return np.stack([edge_key % n, edge_key // n])
 
 
-BACKENDS = ("auto", "kdtree", "torch")
+BACKENDS = ("auto", "compiled", "kdtree", "torch")
 
 
 def radius_graph(pos, r: float, k: int, batch=None, *, workers: int = -1, backend: str = "auto") -> torch.Tensor:
@@ -206,9 +208,10 @@ def radius_graph(pos, r: float, k: int, batch=None, *, workers: int = -1, backen
         k: most incoming edges per node (the nearest earlier ones; ties by smaller index).
         batch: ``(N,)`` sample of each node, sorted; no edge crosses samples.
         workers: threads for the KD-tree queries (-1: all cores).
-        backend: ``kdtree`` (scipy, on the CPU), ``torch`` (pure torch, on ``pos``'s device; see
-            :func:`radius_graph_torch`) or ``auto`` (torch for a CUDA tensor, else kdtree). Both
-            give the identical edge set.
+        backend: ``compiled`` (cell chains compiled with numba, on the CPU; see
+            :mod:`dagr_lite.graph.compiled`), ``kdtree`` (scipy, on the CPU), ``torch`` (pure torch,
+            on ``pos``'s device; see :func:`radius_graph_torch`) or ``auto`` (torch for a CUDA
+            tensor, else compiled). All give the identical edge set.
 
     Returns:
         ``edge_index`` ``(2, E)`` int64, sources in row 0 and destinations in row 1, sorted by
@@ -229,8 +232,12 @@ def radius_graph(pos, r: float, k: int, batch=None, *, workers: int = -1, backen
     batch_np = None
     if batch is not None:
         batch_np = batch.detach().cpu().numpy() if isinstance(batch, torch.Tensor) else np.asarray(batch)
+    slices = sample_slices(batch_np, len(points))
+    if backend != "kdtree" and points.shape[1] == 3:
+        bounds = np.array([0] + [part.stop for part in slices], dtype=np.int64)
+        return torch.from_numpy(compiled.build(points, bounds, r, k, workers=workers)).to(device)
     parts = []
-    for part in sample_slices(batch_np, len(points)):  # one tree per sample: no edge can cross samples
+    for part in slices:  # one tree per sample: no edge can cross samples
         sample = points[part]
         if len(sample) < 2:
             continue

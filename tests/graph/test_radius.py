@@ -206,9 +206,9 @@ def test_all_pairs_path_equals_the_nearest_query_path(monkeypatch):
             pos_t = torch.from_numpy(pos)
             monkeypatch.setattr(radius_module, "PAIR_BUDGET", 1 << 23)
             assert radius_module.pairs_bound(pos, r) <= 1 << 23  # the all-pairs path is the one taken
-            pairs = radius_graph(pos_t, r, k, batch)
+            pairs = radius_graph(pos_t, r, k, batch, backend="kdtree")
             monkeypatch.setattr(radius_module, "PAIR_BUDGET", -1)  # force the query path
-            assert torch.equal(pairs, radius_graph(pos_t, r, k, batch))
+            assert torch.equal(pairs, radius_graph(pos_t, r, k, batch, backend="kdtree"))
 
 
 @pytest.mark.parametrize("grid", [None, 1])
