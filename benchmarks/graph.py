@@ -18,9 +18,10 @@ Clouds: N events in a 33 ms window at 640x360, moving blobs (events on their out
     KD-tree builder against the compiled one (``--no-loader`` skips it: it needs the stub dataset);
   * GCN layer forward + backward, 32 -> 64 channels, vs ``torch_geometric.nn.GCNConv`` if it is
     installed, else an ``index_add_`` message-passing layer written here;
-  * peak memory of the batch build (numpy allocations traced in a fresh process);
+  * peak memory the batch build adds (peak resident size, in a fresh process);
   * with a CUDA GPU: the torch backend on it against the compiled builder on this CPU (identical
     edges), and the GCN layer on it against the reference layer on it.
+"""
 from __future__ import annotations
 
 import argparse
@@ -102,7 +103,7 @@ def query_path(pos_t: torch.Tensor) -> torch.Tensor:
 
     budget, radius_module.PAIR_BUDGET = radius_module.PAIR_BUDGET, -1
     try:
-        return radius_graph(pos_t, RADIUS, K)
+        return radius_graph(pos_t, RADIUS, K, backend="kdtree")
     finally:
         radius_module.PAIR_BUDGET = budget
 
@@ -254,7 +255,7 @@ def _memory_probe(n: int, queue) -> None:
     import resource
 
     pos = event_cloud(n)
-    radius_graph(pos[:50_000], RADIUS, K)  # load and compile everything once before measuring
+    radius_graph(pos[:2_000], RADIUS, K)  # load and compile everything once before measuring
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     edges = radius_graph(pos, RADIUS, K)
     after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss

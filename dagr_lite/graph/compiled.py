@@ -144,6 +144,8 @@ def link(start, stop, lo, mask, nodes, last, frame, offsets, nearest, r, reach, 
     best_j = np.empty(k, dtype=np.int64)
     for i in range(start, stop):
         p = i & mask
+        while lo < i and nodes[lo & mask].z < nodes[p].z - reach:
+            lo += 1  # out of reach from here on: a chain stops there without loading it
         home = _cell(nodes[p].x, nodes[p].y, frame)
         count = _nearest_earlier(i, mask, lo, nodes, last, home, offsets, nearest, r, reach, k, best_d, best_j)
         _sort_ids(best_j, count)
@@ -192,8 +194,12 @@ def link_chunk(start, stop, replay, lo, nodes, home, grid_size, offsets, nearest
         last[home[j]] = j
     best_d = np.empty(k, dtype=np.float64)
     best_j = np.empty(k, dtype=np.int64)
+    near = replay
     for i in range(start, stop):
-        count = _nearest_earlier(i, -1, lo[i], nodes, last, home[i], offsets, nearest, r, reach, k, best_d, best_j)
+        near = max(near, lo[i])
+        while near < i and nodes[near].z < nodes[i].z - reach:
+            near += 1  # out of reach from here on: a chain stops there without loading it
+        count = _nearest_earlier(i, -1, near, nodes, last, home[i], offsets, nearest, r, reach, k, best_d, best_j)
         _sort_ids(best_j, count)
         neighbours[i, :count] = best_j[:count]
         counts[i] = count
