@@ -250,16 +250,20 @@ class IndexAddGCN(torch.nn.Module):
         return out + self.bias
 
 
-def _memory_probe(n: int, queue) -> None:
-    """Peak resident memory the build adds (its arrays, numpy's and the compiled kernels' alike)."""
-    import resource
+def _status_kib(field: str) -> int:
+    with open("/proc/self/status") as status:
+        return next(int(line.split()[1]) for line in status if line.startswith(field + ":"))
 
+
+def _memory_probe(n: int, queue) -> None:
+    """Peak resident memory the build adds (numpy's and the compiled kernels' arrays alike; Linux)."""
     pos = event_cloud(n)
     radius_graph(pos[:2_000], RADIUS, K)  # load and compile everything once before measuring
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with open("/proc/self/clear_refs", "w") as clear:
+        clear.write("5")  # the peak (VmHWM) starts again from the resident size now
+    before = _status_kib("VmRSS")
     edges = radius_graph(pos, RADIUS, K)
-    after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    queue.put(((after - before) * 1024, pos.nbytes, edges.numel() * 8))
+    queue.put(((_status_kib("VmHWM") - before) * 1024, pos.nbytes, edges.numel() * 8))
 
 
 def on_gpu(pos_t: torch.Tensor, edges: torch.Tensor, cpu_build: float, ReferenceGCN, reference_name: str,
