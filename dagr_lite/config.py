@@ -120,6 +120,7 @@ _RULES = {
     "trainer.max_epochs": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
     "trainer.max_minutes": ("a positive number or null", lambda v: v is None or (_number(v) and v > 0)),
     "trainer.schedule_by": ("steps or time", lambda v: v in ("steps", "time")),
+    "trainer.events_first": ("a number in [0, 1) (a fraction of the schedule)", lambda v: _number(v) and 0 <= v < 1),
     "trainer.val_every": ("an integer >= 0 (0: every epoch)", lambda v: _integer(v) and v >= 0),
     "trainer.log_every": ("a positive integer", lambda v: _integer(v) and v > 0),
     "trainer.image_every": ("an integer >= 0 (0: never)", lambda v: _integer(v) and v >= 0),

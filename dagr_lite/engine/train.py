@@ -12,7 +12,7 @@ import math
 import os
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -273,6 +273,21 @@ class TrainLoop:
         if self.offset >= self.epoch_samples:  # saved after an epoch's last batch
             self.epoch, self.offset = self.epoch + 1, 0
         self.saved_at = time.monotonic()
+        model_cfg = state.model.cfg
+        self.events_first = float(self.trainer.get("events_first", 0.0) or 0.0)
+        if not (model_cfg.use_events and model_cfg.use_image):  # a phase of a hybrid only
+            self.events_first = 0.0
+        self.in_phase = self.events_phase()
+
+    def events_phase(self) -> bool:
+        """Whether the next step is in the ``trainer.events_first`` phase: how far along the schedule
+        is, by steps (and by the time budget with ``schedule_by=time``, whichever is further)."""
+        if not self.events_first:
+            return False
+        done = self.state.step / max(1, self.total)
+        if self.clock.by_time:
+            done = max(done, self.clock.progress())
+        return done < self.events_first
 
     def run(self) -> dict:
         state = self.state
@@ -285,12 +300,17 @@ class TrainLoop:
             return self.metrics if self.metrics is not None else self.save_and_validate()
         self.data.sampler.start_at(self.epoch, self.offset)
         for batch in self.data.train_loader:  # every epoch from here on, one iterator
+            if self.events_phase():  # mid-grey, as data.augment.image_dropout makes it
+                batch = replace(batch, images=torch.full_like(batch.images, 128))
             batch = batch.to(state.device, non_blocking=True)
             out = mean_over_ranks(train_step(state, batch), self.place)
             self.offset += self.data.global_batch_size
             if self.offset >= self.epoch_samples:
                 self.epoch, self.offset = self.epoch + 1, 0
             self.losses.append(float(out["loss"]))
+            if self.events_first and self.place.is_main and not self.events_phase() and self.in_phase:
+                print(f"step {state.step}: the image joins (trainer.events_first={self.events_first})", flush=True)
+            self.in_phase = self.events_phase()
             bar.update(1)
             bar.set_postfix(loss=f"{self.losses[-1]:.3f}", lr=f"{state.lr:.2e}",
                             **({"left": f"{self.clock.left_s():.0f}s"} if by_time else {}))
