@@ -165,6 +165,45 @@ def test_a_time_budget_run_resumes_on_its_own_clock(tmp_path, monkeypatch):
     assert spent["step"] == 11 and spent["losses"] == [] and lrs == []
 
 
+def grey_steps(monkeypatch) -> list[bool]:
+    """Records, for each training step, whether every image of its batch is mid-grey."""
+    greys, original = [], train_module.train_step
+
+    def recording_step(state, batch):
+        greys.append(bool((batch.images == 128).all()))
+        return original(state, batch)
+
+    monkeypatch.setattr(train_module, "train_step", recording_step)
+    return greys
+
+
+def test_events_first_greys_the_first_fraction_of_the_schedule(tmp_path, monkeypatch):
+    """trainer.events_first=0.5 over 6 steps: steps 1-3 see mid-grey images only, then the stub's
+    own frames (none of them all grey); an events-only model is left as it is."""
+    greys = grey_steps(monkeypatch)
+    train(small(tmp_path / "hybrid", "trainer.max_steps=6", "trainer.events_first=0.5", "trainer.val_every=1000",
+                "data.augment.image_dropout=0"))
+    assert greys == [True] * 3 + [False] * 3
+    greys.clear()
+    train(small(tmp_path / "events", "model=events_only", "trainer.max_steps=2", "trainer.events_first=0.5",
+                "trainer.val_every=1000"))
+    assert greys == [False, False]
+    with pytest.raises(ConfigError, match=r"trainer\.events_first must be a number in \[0, 1\)"):
+        train(small(tmp_path / "bad", "trainer.events_first=1.0"))
+
+
+def test_events_first_follows_a_time_budget(tmp_path, monkeypatch):
+    """With schedule_by=time at 6 s a step (warm-up of 2 steps, 48 s of cosine after it), the phase
+    ends where the time spent after the warm-up reaches half: step k runs after the reading of
+    6 (k - 1) s, grey while (6 (k - 1) - 12) / 48 < 0.5, so steps 1-6 are grey and 7-11 not."""
+    six_seconds_a_step(monkeypatch)
+    greys = grey_steps(monkeypatch)
+    train(small(tmp_path / "run", "trainer.max_steps=null", "trainer.max_epochs=100000", "trainer.max_minutes=1",
+                "trainer.schedule_by=time", "trainer.warmup_steps=2", "trainer.val_every=1000",
+                "trainer.events_first=0.5", "data.augment.image_dropout=0"))
+    assert greys == [True] * 6 + [False] * 5
+
+
 def test_a_time_schedule_needs_a_time_budget(tmp_path):
     with pytest.raises(ConfigError, match=r"trainer\.schedule_by=time needs .*trainer\.max_minutes"):
         train(small(tmp_path / "run", "trainer.schedule_by=time", "trainer.max_minutes=null"))
