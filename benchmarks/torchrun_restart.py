@@ -60,7 +60,7 @@ def main() -> None:
         return
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=False)
-    overrides = [f"trainer.max_steps={args.steps}", "trainer.checkpoint_every=2", f"trainer.val_every={args.steps}",
+    overrides = [f"trainer.max_steps={args.steps}", "trainer.schedule_by=steps", "trainer.checkpoint_every=2", f"trainer.val_every={args.steps}",
                  "loader.batch_size=2", "loader.num_workers=0", "data.window_us=15000", "trainer.image_every=0",
                  "model=events_only", "device=cpu"]
     command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",

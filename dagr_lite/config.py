@@ -152,7 +152,8 @@ def check_values(cfg: DictConfig) -> None:
     if trainer is not None and trainer.max_steps is None and trainer.max_epochs is None:
         raise ConfigError("set trainer.max_steps or trainer.max_epochs (both are null)")
     if trainer is not None and trainer.get("schedule_by") == "time" and trainer.max_minutes is None:
-        raise ConfigError("trainer.schedule_by=time needs the time budget trainer.max_minutes (it is null)")
+        raise ConfigError("trainer.schedule_by=time needs the time budget trainer.max_minutes (it is null); "
+                          "give trainer.schedule_by=steps to train by steps alone")
 
 
 def dataset_root(dataset: DictConfig) -> Path:

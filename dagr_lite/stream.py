@@ -304,6 +304,8 @@ class StreamingDetector:
                 raise ValueError("nothing was pushed yet: give detect a time")
             t_us = latest
         t_us = float(t_us)
+        if not math.isfinite(t_us):
+            raise ValueError(f"detect time must be finite, got {t_us}")
         if t_us < self._last_t:
             raise ValueError(f"detect time {t_us:g} us is earlier than the latest event ({self._last_t:g} us)")
         if self.hybrid and self._t_image is None:

@@ -96,7 +96,7 @@ def trained_checkpoints(tmp_path_factory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("trained")
     paths = {}
     for variant in ("hybrid", "events_only"):
-        train(compose_config("train", [f"run_dir={root / variant}", f"model={variant}", "trainer.max_steps=3",
+        train(compose_config("train", [f"run_dir={root / variant}", f"model={variant}", "trainer.max_steps=3", "trainer.schedule_by=steps",
                                        "device=cpu", "trainer.amp=false", "loader.batch_size=4",
                                        "loader.num_workers=0", "trainer.image_every=0", "trainer.warmup_steps=1",
                                        "optim.lr=3e-3"]))

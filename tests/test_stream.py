@@ -1,6 +1,7 @@
 """The streaming detector equals the batch model on the same sample, at any moment."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -232,12 +233,20 @@ def test_bad_input_is_refused_and_leaves_the_state_valid():
         stream.push_image(image, 4_000)
     with pytest.raises(ValueError, match="earlier than the latest event"):
         stream.detect(float(events["t"][299] - 5))
+    for when in (math.nan, math.inf, -math.inf):  # never "no hands" at a time that is not one
+        with pytest.raises(ValueError, match="detect time must be finite"):
+            stream.detect(when)
     after = stream.detect(events["t"][299] + 1.0)  # nothing above changed the state
     np.testing.assert_array_equal(before["boxes"], after["boxes"])
     stream.push_events(**{k: v[300:] for k, v in events.items()})
     check_against_batch(stream, model, events, 600, image, 5_000, float(events["t"][-1]))
     with pytest.raises(ValueError, match="event branch"):
         StreamingDetector(Detector(small_detector_config(H, W, variant="image_only")))
+    events_only = StreamingDetector(small_model("events_only"), window_us=WINDOW_US, conf_threshold=0.0)
+    events_only.push_events(**{k: v[:10] for k, v in events.items()})
+    for when in (math.nan, math.inf):
+        with pytest.raises(ValueError, match="detect time must be finite"):
+            events_only.detect(when)
 
 
 @pytest.fixture

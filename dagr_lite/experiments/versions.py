@@ -17,8 +17,8 @@ that size (by default 12 / 2 / 2 train / valid / test videos of 2 s, ``--stub-vi
 ``--stub-seconds`` to change it; upscaled from the stub's 320x180 so the hands keep their
 proportions) into ``OUT/source``.
 
-Training uses the stub's short recipe (AdamW lr 1e-3, 100 warm-up steps, EMA time constant
-200 steps, the default sample, the last ``data.window_us`` of events) with ``trainer.max_minutes`` as the budget.
+Training uses the stub's short recipe (``conf/recipe/stub.yaml``, composed as ``recipe=stub``) with
+``trainer.max_minutes`` as the budget in place of its length.
 """
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ from dagr_lite.data import format as fmt
 from dagr_lite.data.writer import write_frame, write_text_atomically
 from dagr_lite.synth.build import VERSIONS, BuildSettings, build, folder_jobs
 
-RECIPE = ["optim.lr=1e-3", "trainer.warmup_steps=100", "trainer.ema_tau=200", "trainer.image_every=0"]
+RECIPE = ["recipe=stub", "trainer.image_every=0"]  # conf/recipe/stub.yaml itself; the budget replaces its length
 METRICS = ("AP50", "AP75", "mAP")
 
 
@@ -74,16 +74,23 @@ def write_stub_source(out: Path, height: int, width: int, *, seconds: float = 2.
     return frames_dir, labels_file, splits_file
 
 
+def version_config(root: Path, run: Path, *, minutes: float, steps: int | None, seed: int,
+                   overrides: list[str] = ()):
+    """The training config of one version: the default hybrid, the stub recipe, the budget."""
+    from dagr_lite.config import compose_config
+    from dagr_lite.engine.train import budget_overrides
+
+    return compose_config("train", ["dataset=custom", f"dataset.root={root}", f"run_dir={run}", f"seed={seed}",
+                                    *RECIPE, "trainer.val_every=200", *budget_overrides(minutes, steps), *overrides])
+
+
 def train_version(root: Path, run: Path, *, minutes: float, steps: int | None, seed: int,
                   overrides: list[str] = ()) -> Path:
     """The default hybrid trained on ``root`` for the budget; a finished run is reused."""
-    from dagr_lite.config import compose_config
-    from dagr_lite.engine.train import budget_overrides, train
+    from dagr_lite.engine.train import train
 
     if not (run / "metrics.json").exists():
-        train(compose_config("train", ["dataset=custom", f"dataset.root={root}", f"run_dir={run}", f"seed={seed}",
-                                       "trainer.val_every=200", *RECIPE, *budget_overrides(minutes, steps),
-                                       *overrides]))
+        train(version_config(root, run, minutes=minutes, steps=steps, seed=seed, overrides=overrides))
     return run / "checkpoints" / "best.pt"
 
 

@@ -29,6 +29,7 @@ def small(run_dir, *overrides):
     hold there (CUDA's atomics and bfloat16 make runs differ in the last digits);
     tests/engine/test_cuda.py trains on a GPU where there is one."""
     return config("train", f"run_dir={run_dir}", "device=cpu", "trainer.amp=false", "loader.batch_size=4", "loader.num_workers=0", "optim.lr=2e-3",
+                  "trainer.schedule_by=steps",
                   "trainer.warmup_steps=5", "trainer.log_every=1", "trainer.image_every=0", "data.window_us=20000",
                   *overrides)
 

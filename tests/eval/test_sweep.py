@@ -63,7 +63,7 @@ def test_points_cover_ages_and_in_between_times():
 def test_the_sweep_writes_its_table_plot_and_rows(tmp_path, capsys, monkeypatch):
     ckpts = []
     for variant in ("image_only", "events_only"):
-        train(compose_config("train", [f"run_dir={tmp_path / variant}", f"model={variant}", "trainer.max_steps=1",
+        train(compose_config("train", [f"run_dir={tmp_path / variant}", f"model={variant}", "trainer.max_steps=1", "trainer.schedule_by=steps",
                                        "loader.batch_size=4", "loader.num_workers=0", "data.window_us=15000",
                                        "trainer.image_every=0"]))
         ckpts.append(str(tmp_path / variant / "checkpoints" / "last.pt"))

@@ -1,5 +1,6 @@
 """The version experiment's plumbing: source, builds, training, evaluation and the table, with tiny budgets."""
 import json
+from pathlib import Path
 
 import pytest
 
@@ -54,3 +55,24 @@ def test_bad_stub_source_options_are_named(tmp_path, option, value, expected):
     with pytest.raises(SystemExit, match=f"{option}: expected {expected}"):
         main(argv)
     assert not (tmp_path / "source").exists()
+
+
+def test_versions_train_with_the_stub_recipe_itself(tmp_path):
+    """Every key the stub recipe sets has the recipe's value in a version's training config, but
+    the length, which the budget replaces (and the validation and picture intervals)."""
+    from omegaconf import OmegaConf
+
+    from dagr_lite.config import compose_config
+    from dagr_lite.experiments.versions import version_config
+
+    recipe = OmegaConf.load(Path(__file__).resolve().parents[2] / "conf" / "recipe" / "stub.yaml")
+    stub = compose_config("train", [])
+    ours = version_config(tmp_path / "root", tmp_path / "run", minutes=4.0, steps=None, seed=0)
+    budget = {"trainer.max_steps", "trainer.max_epochs", "trainer.max_minutes", "trainer.schedule_by",
+              "trainer.val_every", "trainer.image_every"}
+    keys = [f"{group}.{key}" for group, values in recipe.items() for key in values]
+    assert ours.data.max_events == stub.data.max_events
+    for key in keys:
+        if key not in budget:
+            assert OmegaConf.select(ours, key) == OmegaConf.select(stub, key), key
+    assert ours.trainer.max_minutes == 4.0 and ours.trainer.schedule_by == "time"
