@@ -196,6 +196,12 @@ def sweep_checkpoint(cfg: DictConfig, path: str, frames: list[tuple[int, int]] |
                             first_frame=largest)
     if frames is None:
         frames = sweep_frames(dataset, largest, cfg.between)
+        if not frames:
+            lengths = [dataset.num_frames(v) for v in range(len(dataset.videos))]
+            paired = " whose boxes pair with frame k + 1's (between)" if cfg.between else ""
+            held = f"its videos have {min(lengths)} to {max(lengths)} frames" if lengths else "it has no video"
+            raise ConfigError(f"no label frame k >= {largest} (the largest of ages={list(cfg.ages)}){paired} in split "
+                              f"{cfg.split}: {held}; give smaller ages")
     model = load_model(state, detector, dataset.image_size, path).to(device)
     name = (trained["model"]["name"] + (" (grey image)" if cfg.blank_image else "")
             + (" (streaming)" if cfg.stream else ""))
@@ -235,7 +241,6 @@ def sweep(cfg: DictConfig) -> dict:
     cfg = resolve_config(cfg)
     check_sweep(cfg)
     out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
     device = resolve_device(cfg.device)
     rows, frames, overrides = [], None, {}
     for path in cfg.ckpt:
@@ -243,6 +248,7 @@ def sweep(cfg: DictConfig) -> dict:
         rows += ckpt_rows
         if changed:
             overrides[str(path)] = changed
+    out.mkdir(parents=True, exist_ok=True)  # only once there is something to write
     write_results(out, rows, split=cfg.split, between=cfg.between, blank_image=cfg.blank_image, overrides=overrides,
                   stream=cfg.stream)
     print(format_table(rows), flush=True)

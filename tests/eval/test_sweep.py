@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from dagr_lite.config import compose_config
+from dagr_lite.config import ConfigError, compose_config
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.train import train
 from dagr_lite.eval.sweep import SweepSamples, interpolate_boxes, match_boxes, sweep, sweep_frames, sweep_points
@@ -83,6 +83,12 @@ def test_the_sweep_writes_its_table_plot_and_rows(tmp_path, capsys, monkeypatch)
     assert json.loads((out / "sweep.json").read_text())["overrides"] == {}
     with pytest.raises(FileExistsError, match="earlier sweep"):
         sweep(compose_config("sweep", [f"ckpt=[{ckpts[0]}]", f"out={out}"]))
+    # nothing to score: refused with the frames that exist, and nothing written
+    with pytest.raises(ConfigError, match=r"no label frame k >= 100 \(the largest of ages=\[1, 100\]\) in split "
+                                          r"valid: its videos have \d+ to \d+ frames; give smaller ages"):
+        sweep(compose_config("sweep", [f"ckpt=[{ckpts[0]}]", "split=valid", "ages=[1,100]", f"out={tmp_path / 'none'}",
+                                       "loader.num_workers=0"]))
+    assert not (tmp_path / "none").exists()
     # data.* given on the command line replace a checkpoint's own settings, printed and recorded.
     capsys.readouterr()
     import dagr_lite.eval.sweep as sweep_module
