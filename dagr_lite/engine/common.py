@@ -71,11 +71,18 @@ def run_folder(cfg: DictConfig, kind: str) -> Path:
 
 
 def save_checkpoint(path: Path, state: dict) -> None:
-    """``torch.save`` to a temporary name, then rename: a checkpoint on disk is always whole."""
+    """``torch.save`` to a temporary name, then rename: a checkpoint on disk is always whole. A
+    write that fails (disk full, file size limit) raises :class:`OSError` naming ``path`` and
+    the cause, removes the temporary file and leaves an earlier checkpoint at ``path`` as it was."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temporary_name(path)
-    torch.save({"format": CHECKPOINT_FORMAT, **state}, tmp)
-    os.replace(tmp, path)
+    try:
+        torch.save({"format": CHECKPOINT_FORMAT, **state}, tmp)
+        os.replace(tmp, path)
+    except (OSError, RuntimeError) as err:  # torch reports a failed write as a RuntimeError
+        tmp.unlink(missing_ok=True)
+        kept = f"; the earlier {path.name} is kept as it was" if path.exists() else ""
+        raise OSError(f"{path}: the checkpoint could not be written ({err}){kept}") from err
 
 
 def load_checkpoint(path: Path | str) -> dict:

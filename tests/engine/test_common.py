@@ -170,3 +170,29 @@ def test_loader_workers_run_one_thread_at_a_lower_priority():
         seen = torch.cat(list(loader))
         assert seen[:, 0].tolist() == [want, want] and seen[:, 1].tolist() == [1, 1]
     assert os.nice(0) == base  # this process keeps its own priority
+
+
+def test_a_failed_checkpoint_write_names_the_path_and_keeps_the_earlier_one(tmp_path):
+    """A real write failure: the file size limit (RLIMIT_FSIZE, with SIGXFSZ ignored so the write
+    fails with EFBIG instead of killing the process)."""
+    import resource
+    import signal
+
+    from dagr_lite.engine.common import load_checkpoint, save_checkpoint
+
+    path = tmp_path / "last.pt"
+    save_checkpoint(path, {"model": {"w": torch.zeros(4)}})
+    before = path.read_bytes()
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    old_handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    try:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1 << 20, hard))
+        with pytest.raises(OSError, match=r"last\.pt: the checkpoint could not be written \(.*\); the earlier "
+                                          r"last\.pt is kept as it was"):
+            save_checkpoint(path, {"model": {"w": torch.zeros(1 << 20)}})  # 4 MiB > 1 MiB
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, old_handler)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last.pt"]  # no temporary file left
+    assert path.read_bytes() == before
+    assert load_checkpoint(path)["model"]["w"].shape == (4,)
