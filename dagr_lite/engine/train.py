@@ -11,6 +11,8 @@ import json
 import math
 import os
 import shutil
+import signal
+import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -273,6 +275,7 @@ class TrainLoop:
         if self.offset >= self.epoch_samples:  # saved after an epoch's last batch
             self.epoch, self.offset = self.epoch + 1, 0
         self.saved_at = time.monotonic()
+        self.terminated = False  # set by SIGTERM (see run)
         model_cfg = state.model.cfg
         self.events_first = float(self.trainer.get("events_first", 0.0) or 0.0)
         if not (model_cfg.use_events and model_cfg.use_image):  # a phase of a hybrid only
@@ -290,6 +293,22 @@ class TrainLoop:
         return done < self.events_first
 
     def run(self) -> dict:
+        """Train to the end of the schedule (or ``trainer.max_minutes``); a SIGTERM (a cluster's
+        notice of preemption, ``kill``'s default) ends it after the step under way, with
+        ``last.pt`` saved, by raising :class:`Terminated`."""
+        if threading.current_thread() is not threading.main_thread():  # signals reach the main thread only
+            return self._run()
+
+        def note(signum, frame):
+            self.terminated = True
+
+        previous = signal.signal(signal.SIGTERM, note)
+        try:
+            return self._run()
+        finally:
+            signal.signal(signal.SIGTERM, previous)
+
+    def _run(self) -> dict:
         state = self.state
         self.clock.start(self.resumed_position, state.step)
         by_time = self.clock.by_time  # then the bar counts steps and shows the time left
@@ -315,6 +334,8 @@ class TrainLoop:
             bar.set_postfix(loss=f"{self.losses[-1]:.3f}", lr=f"{state.lr:.2e}",
                             **({"left": f"{self.clock.left_s():.0f}s"} if by_time else {}))
             self.log(out, batch)
+            if broadcast_object(self.terminated, self.place):
+                self.stop_on_signal(bar)
             out_of_time = self.out_of_time()
             if state.step % self.val_every == 0 or state.step == self.total or out_of_time:
                 self.save_and_validate()
@@ -324,6 +345,15 @@ class TrainLoop:
                 break
         bar.close()
         return self.metrics
+
+    def stop_on_signal(self, bar) -> None:
+        self.save("last.pt")
+        bar.close()
+        path = self.checkpoints / "last.pt"
+        if self.place.is_main:
+            print(f"SIGTERM: stopped after step {self.state.step} and saved {path}; continue with resume={path}",
+                  flush=True)
+        raise Terminated(f"stopped by SIGTERM after step {self.state.step} ({path} saved)")
 
     def out_of_time(self) -> bool:
         """Whether ``trainer.max_minutes`` is spent: by this process (``schedule_by=steps``), or by the
@@ -413,6 +443,17 @@ def budget_overrides(minutes: float, steps: int | None = None) -> list[str]:
     rate's cosine follows whichever of the two budgets is further along, so it ends decayed."""
     length = [f"trainer.max_steps={steps}"] if steps else ["trainer.max_steps=null", "trainer.max_epochs=100000"]
     return [f"trainer.max_minutes={minutes}", "trainer.schedule_by=time", *length]
+
+
+class Terminated(SystemExit):
+    """Training stopped by SIGTERM with ``last.pt`` saved; exits with status 143 (128 + SIGTERM)."""
+
+    def __init__(self, message: str):
+        super().__init__(143)
+        self.message = message
+
+    def __str__(self) -> str:
+        return self.message
 
 
 def make_total(cfg: DictConfig, steps_per_epoch: int) -> int:

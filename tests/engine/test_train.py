@@ -342,3 +342,41 @@ def test_a_dataset_with_truncated_frame_times_passes_check_and_trains(tmp_path):
                           "loader.batch_size=4", "loader.num_workers=0", "trainer.max_steps=2",
                           "trainer.image_every=0"))
     assert result["step"] == 2 and METRIC_KEYS <= set(result["metrics"])
+
+
+def test_sigterm_saves_last_and_the_run_resumes_from_it(tmp_path):
+    """A real SIGTERM to ``python train.py`` (what a cluster sends before preemption): the step
+    under way finishes, last.pt is saved and named, the process exits with 143, and resume=
+    continues from that step."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    stub_root()  # made here, not inside the timed wait below
+    run = tmp_path / "run"
+    last = run / "checkpoints" / "last.pt"
+    args = [sys.executable, str(CONF.parent / "train.py"), f"run_dir={run}", "device=cpu", "trainer.amp=false",
+            "loader.batch_size=4", "loader.num_workers=0", "trainer.max_steps=100000", "trainer.max_epochs=null",
+            "trainer.max_minutes=null", "trainer.schedule_by=steps", "trainer.checkpoint_every=1",
+            "trainer.val_every=100000", "trainer.image_every=0", "data.window_us=20000"]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        waited = 0.0
+        while not last.exists() and proc.poll() is None and waited < 600:
+            time.sleep(0.2)
+            waited += 0.2
+        assert last.exists(), "no step was taken"
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 143, out
+    step = torch.load(last, weights_only=False)["step"]
+    assert step >= 1
+    assert f"SIGTERM: stopped after step {step} and saved {last}; continue with resume={last}" in out
+    assert sorted(p.name for p in last.parent.iterdir()) == ["last.pt"]  # no temporary file left
+    resumed = train(small(tmp_path / "resumed", f"resume={last}", f"trainer.max_steps={step + 2}",
+                          "trainer.val_every=1000"))
+    assert resumed["step"] == step + 2 and len(resumed["losses"]) == 2
