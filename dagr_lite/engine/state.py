@@ -102,8 +102,10 @@ class TrainState:
         self.step, self.best_metric = int(state["step"]), float(state["best_metric"])
 
 
-def train_step(state: TrainState, batch: Batch) -> dict[str, torch.Tensor]:
+def train_step(state: TrainState, batch: Batch, *, image: bool = True) -> dict[str, torch.Tensor]:
     """One optimiser step on ``batch`` (already on the model's device); returns the detached losses.
+    ``image=False``: a hybrid's image features are zero and its image branch is not run
+    (:meth:`Detector.forward`).
 
     A non-finite loss raises :class:`FloatingPointError` naming the step and every loss term,
     before any weight changes.
@@ -111,7 +113,7 @@ def train_step(state: TrainState, batch: Batch) -> dict[str, torch.Tensor]:
     model = state.model
     model.train()
     with torch.autocast(state.device.type, dtype=state.amp_dtype, enabled=state.amp):
-        out = (state.forward or model)(batch)
+        out = (state.forward or model)(batch, **({} if image else {"image": False}))
     loss = out["loss"]
     if not torch.isfinite(loss):
         parts = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in out.items())

@@ -14,7 +14,7 @@ import shutil
 import signal
 import threading
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -252,6 +252,14 @@ class TrainLoop:
 
     Where it is in the data is ``(epoch, offset)``, the offset counting samples of the epoch's
     global order, so a run resumed on another number of processes goes on from the same sample.
+
+    ``trainer.events_first`` = f > 0 (a hybrid): for the first fraction f of the schedule the
+    hybrid learns from its events alone. Its weights that read image features start at zero
+    (``Detector.zero_image_weights``) and the steps run with every image feature zero and the
+    image branch idle (``train_step(image=False)``), so those weights stay zero and the hybrid
+    is an events-only model inside the hybrid's layers, validated and saved as the hybrid it is.
+    Then the image joins: the image branch and those weights learn from zero, as after
+    ``init_from`` an events-only checkpoint, in one run.
     """
 
     def __init__(self, cfg: DictConfig, state: TrainState, data: TrainData, run_dir: Path, writer,
@@ -276,10 +284,7 @@ class TrainLoop:
             self.epoch, self.offset = self.epoch + 1, 0
         self.saved_at = time.monotonic()
         self.terminated = False  # set by SIGTERM (see run)
-        model_cfg = state.model.cfg
-        self.events_first = float(self.trainer.get("events_first", 0.0) or 0.0)
-        if not (model_cfg.use_events and model_cfg.use_image):  # a phase of a hybrid only
-            self.events_first = 0.0
+        self.events_first = events_first(cfg)
         self.in_phase = self.events_phase()
 
     def events_phase(self) -> bool:
@@ -319,10 +324,8 @@ class TrainLoop:
             return self.metrics if self.metrics is not None else self.save_and_validate()
         self.data.sampler.start_at(self.epoch, self.offset)
         for batch in self.data.train_loader:  # every epoch from here on, one iterator
-            if self.events_phase():  # mid-grey, as data.augment.image_dropout makes it
-                batch = replace(batch, images=torch.full_like(batch.images, 128))
             batch = batch.to(state.device, non_blocking=True)
-            out = mean_over_ranks(train_step(state, batch), self.place)
+            out = mean_over_ranks(train_step(state, batch, image=not self.events_phase()), self.place)
             self.offset += self.data.global_batch_size
             if self.offset >= self.epoch_samples:
                 self.epoch, self.offset = self.epoch + 1, 0
@@ -456,6 +459,14 @@ class Terminated(SystemExit):
         return self.message
 
 
+def events_first(cfg: DictConfig) -> float:
+    """The fraction of the schedule in which a hybrid learns from its events alone
+    (``trainer.events_first``; 0 for a model with one branch)."""
+    if not (cfg.model.use_events and cfg.model.use_image):
+        return 0.0
+    return float(cfg.trainer.get("events_first", 0.0) or 0.0)
+
+
 def make_total(cfg: DictConfig, steps_per_epoch: int) -> int:
     trainer = cfg.trainer
     return int(trainer.max_steps) if trainer.max_steps is not None else int(trainer.max_epochs) * steps_per_epoch
@@ -540,6 +551,8 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
     init_from = start_weights(cfg, resume_from)
     if init_from is not None:
         start_from(model, init_from, verbose=place.is_main)
+    if events_first(cfg) and resume_from is None:  # the image's weights start at zero (see TrainLoop)
+        model.zero_image_weights()
     if place.enabled:
         model = synchronise_batch_norm(model, device)
         model.loss_normaliser = global_normaliser(place)
@@ -551,7 +564,8 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
         print(f"training on {device} in {precision}", flush=True)
     saved = resume(state, resume_from, run_dir / "checkpoints", place) if resume_from else None
     if place.enabled:
-        state.forward = DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None)
+        state.forward = DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None,
+                                                find_unused_parameters=bool(events_first(cfg)))  # the image branch
     writer = SummaryWriter(str(run_dir / "tensorboard")) if place.is_main else NullWriter()
     try:
         loop = TrainLoop(cfg, state, data, run_dir, writer, clock, position=saved.get("position") if saved else None)

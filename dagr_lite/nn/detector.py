@@ -243,12 +243,24 @@ class Detector(nn.Module):
         """The fused maps the head reads, one per stride."""
         return self._features(batch)[0]
 
-    def _features(self, batch: Batch) -> tuple[list[torch.Tensor], list[torch.Tensor] | None]:
-        """The fused maps, and in training the event and recency maps the event head reads (else None)."""
-        image_maps = self.image(batch.images) if self.image is not None else None
+    def _features(self, batch: Batch, image: bool = True) -> tuple[list[torch.Tensor], list[torch.Tensor] | None]:
+        """The fused maps, and in training the event and recency maps the event head reads (else
+        None). ``image=False``: see :meth:`forward`."""
+        if self.image is None:
+            image_maps = None
+        elif image or self.events is None:
+            image_maps = self.image(batch.images)
+        else:  # every image feature zero, the image branch not run
+            image_maps = [torch.zeros(len(batch), c, math.ceil(self.cfg.height / s), math.ceil(self.cfg.width / s),
+                                      device=batch.events.device) for c, s in zip(self.image.channels, self.image.strides)]
         if self.events is None:
             return image_maps[1:], None
-        sampler = self.node_sampler(self.node_maps(image_maps)) if image_maps is not None else None
+        if image_maps is None:
+            sampler = None
+        elif image:
+            sampler = self.node_sampler(self.node_maps(image_maps))
+        else:
+            sampler = self.blank_sampler
         event_maps = self.events(batch.events, batch.batch_index, len(batch), image_sampler=sampler,
                                  edge_index=batch.edge_index)
         recency = [recency_maps(batch.events, batch.batch_index, batch.age_us, batch_size=len(batch), stride=stride,
@@ -287,6 +299,33 @@ class Detector(nn.Module):
         x, _, _ = self.events.event_nodes(batch.events, batch.batch_index, sampler, batch.edge_index)
         return x
 
+    def blank_sampler(self, xy: torch.Tensor, node_batch: torch.Tensor, level: int) -> torch.Tensor:
+        """Zero image features at the nodes (``forward(image=False)``)."""
+        return xy.new_zeros(len(xy), self.cfg.fuse_channels)
+
+    def zero_image_weights(self) -> None:
+        """Zero every weight through which an image feature reaches the output: the columns of the
+        event branch's level inputs that read the image features at the nodes, and those of the
+        fusion's 1x1 convolutions that read the image maps. The hybrid then answers exactly what
+        ``forward(image=False)`` answers, whatever its image, until training moves those weights:
+        the start of ``trainer.events_first``, in which they stay zero because every image
+        feature is zero (no gradient reaches them, and weight decay keeps a zero at zero)."""
+        if self.image is None or self.events is None:
+            raise ValueError("only a hybrid (use_events and use_image) has weights that read the image")
+        with torch.no_grad():
+            for level, stage in enumerate(self.events.stages):
+                k = self.events.image_channels[level]
+                if not k:
+                    continue
+                first = stage[0]
+                if not isinstance(first.skip, nn.Linear):  # an identity skip would pass the image on
+                    raise ValueError(f"event level {level}: its input is as wide as its output, so its skip "
+                                     f"passes the image features on unweighted")
+                first.conv.weight[-k:].zero_()  # (in, out): the last k inputs are the image's
+                first.skip.weight[:, -k:].zero_()  # (out, in)
+            for fuse, c in zip(self.fuse, self.image.channels[1:]):
+                fuse[0].weight[:, :c].zero_()  # the fusion reads [image map, event map, age]
+
     def node_maps(self, image_maps: list[torch.Tensor]) -> list[torch.Tensor]:
         """The image maps projected to the channels joined at the event nodes, one per level."""
         return [proj(m) for proj, m in zip(self.to_nodes, image_maps)]
@@ -300,8 +339,13 @@ class Detector(nn.Module):
 
         return sampler
 
-    def forward(self, batch: Batch, *, conf_threshold: float = 0.001, nms_threshold: float = 0.65):
-        fused, event_inputs = self._features(batch)
+    def forward(self, batch: Batch, *, conf_threshold: float = 0.001, nms_threshold: float = 0.65,
+                image: bool = True):
+        """Losses in training, detections in evaluation. ``image=False`` (a hybrid): the image
+        branch is not run and every image feature the model reads is zero, at the nodes and in
+        the fusion (the ``trainer.events_first`` phase; with :meth:`zero_image_weights` this is
+        what the hybrid computes with any image)."""
+        fused, event_inputs = self._features(batch, image=image)
         raw, shapes = self.head(fused)
         if self.training:
             out = yolox_losses(raw, shapes, self.strides, batch.boxes, batch.labels, normaliser=self.loss_normaliser)

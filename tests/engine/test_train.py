@@ -118,9 +118,9 @@ def six_seconds_a_step(monkeypatch) -> list[float]:
     monkeypatch.setattr(train_module.TrainingClock, "now", staticmethod(lambda: 6.0 * next(readings)))
     lrs, original = [], train_module.train_step
 
-    def recording_step(state, batch):
+    def recording_step(state, batch, **kwargs):
         lrs.append(state.lr)
-        return original(state, batch)
+        return original(state, batch, **kwargs)
 
     monkeypatch.setattr(train_module, "train_step", recording_step)
     return lrs
@@ -166,29 +166,42 @@ def test_a_time_budget_run_resumes_on_its_own_clock(tmp_path, monkeypatch):
     assert spent["step"] == 11 and spent["losses"] == [] and lrs == []
 
 
-def grey_steps(monkeypatch) -> list[bool]:
-    """Records, for each training step, whether every image of its batch is mid-grey."""
-    greys, original = [], train_module.train_step
+def image_steps(monkeypatch) -> list[tuple[bool, float, float]]:
+    """Records, for each training step: whether it reads the image, and the sums of the absolute
+    image-reading weights (the event branch's and the fusion's) and of the image branch's weights
+    before it."""
+    seen, original = [], train_module.train_step
 
-    def recording_step(state, batch):
-        greys.append(bool((batch.images == 128).all()))
-        return original(state, batch)
+    @torch.no_grad()
+    def sums(model):
+        reading = model.fuse[0][0].weight[:, :model.image.channels[1]].abs().sum() if model.image is not None else 0
+        if model.image is not None and model.events is not None:
+            reading = reading + model.events.stages[0][0].conv.weight[-model.events.image_channels[0]:].abs().sum()
+        branch = sum(p.abs().sum() for p in model.image.parameters()) if model.image is not None else 0
+        return float(reading), float(branch)
+
+    def recording_step(state, batch, *, image=True):
+        seen.append((image, *sums(state.model)))
+        return original(state, batch, image=image)
 
     monkeypatch.setattr(train_module, "train_step", recording_step)
-    return greys
+    return seen
 
 
-def test_events_first_greys_the_first_fraction_of_the_schedule(tmp_path, monkeypatch):
-    """trainer.events_first=0.5 over 6 steps: steps 1-3 see mid-grey images only, then the stub's
-    own frames (none of them all grey); an events-only model is left as it is."""
-    greys = grey_steps(monkeypatch)
+def test_events_first_learns_from_the_events_alone_then_the_image_joins(tmp_path, monkeypatch):
+    """trainer.events_first=0.5 over 6 steps: steps 1-3 read no image, the weights that read it
+    stay exactly zero and the image branch does not move; from step 4 it learns. An events-only
+    model is left as it is."""
+    seen = image_steps(monkeypatch)
     train(small(tmp_path / "hybrid", "trainer.max_steps=6", "trainer.events_first=0.5", "trainer.val_every=1000",
                 "data.augment.image_dropout=0"))
-    assert greys == [True] * 3 + [False] * 3
-    greys.clear()
+    assert [image for image, _, _ in seen] == [False] * 3 + [True] * 3
+    assert [reading for _, reading, _ in seen[:4]] == [0.0] * 4 and seen[5][1] > 0
+    assert len({branch for _, _, branch in seen[:4]}) == 1 and seen[5][2] != seen[0][2]
+    seen.clear()
     train(small(tmp_path / "events", "model=events_only", "trainer.max_steps=2", "trainer.events_first=0.5",
                 "trainer.val_every=1000"))
-    assert greys == [False, False]
+    assert [image for image, _, _ in seen] == [True, True]
     with pytest.raises(ConfigError, match=r"trainer\.events_first must be a number in \[0, 1\)"):
         train(small(tmp_path / "bad", "trainer.events_first=1.0"))
 
@@ -196,13 +209,13 @@ def test_events_first_greys_the_first_fraction_of_the_schedule(tmp_path, monkeyp
 def test_events_first_follows_a_time_budget(tmp_path, monkeypatch):
     """With schedule_by=time at 6 s a step (warm-up of 2 steps, 48 s of cosine after it), the phase
     ends where the time spent after the warm-up reaches half: step k runs after the reading of
-    6 (k - 1) s, grey while (6 (k - 1) - 12) / 48 < 0.5, so steps 1-6 are grey and 7-11 not."""
+    6 (k - 1) s, events alone while (6 (k - 1) - 12) / 48 < 0.5, so steps 1-6 read no image and 7-11 do."""
     six_seconds_a_step(monkeypatch)
-    greys = grey_steps(monkeypatch)
+    seen = image_steps(monkeypatch)
     train(small(tmp_path / "run", "trainer.max_steps=null", "trainer.max_epochs=100000", "trainer.max_minutes=1",
                 "trainer.schedule_by=time", "trainer.warmup_steps=2", "trainer.val_every=1000",
                 "trainer.events_first=0.5", "data.augment.image_dropout=0"))
-    assert greys == [True] * 6 + [False] * 5
+    assert [image for image, _, _ in seen] == [False] * 6 + [True] * 5
 
 
 def test_a_time_schedule_needs_a_time_budget(tmp_path):
