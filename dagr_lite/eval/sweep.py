@@ -179,12 +179,25 @@ def score_point(cfg: DictConfig, model, dataset: EventEgoHands, frames: list[tup
 OVERRIDABLE = tuple(key for key in SAMPLE_KEYS if key != "image_age")
 
 
-def sweep_checkpoint(cfg: DictConfig, path: str, frames: list[tuple[int, int]] | None, device: torch.device
-                     ) -> tuple[list[dict], list[tuple[int, int]], dict]:
+def read_checkpoint(path: str) -> dict:
+    """A checkpoint the sweep can score: readable, of this format, with a model and a sample it
+    can rebuild (else an error naming ``path``)."""
+    state = load_checkpoint(path)
+    try:
+        DetectorConfig.from_dict(state["detector"])
+        trained_sample(state)
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"{path}: its model or sample settings cannot be read ({err})") from err
+    return state
+
+
+def sweep_checkpoint(cfg: DictConfig, path: str, frames: list[tuple[int, int]] | None, device: torch.device,
+                     state: dict | None = None) -> tuple[list[dict], list[tuple[int, int]], dict]:
     """The rows of one checkpoint at every sweep point, with its own data settings (image age
     aside) unless ``data.*`` overrides them; the frames are found on first use and shared by
-    every later checkpoint. Also returns the overrides (``{"data.key": {"checkpoint", "used"}}``)."""
-    state = load_checkpoint(path)
+    every later checkpoint. Also returns the overrides (``{"data.key": {"checkpoint", "used"}}``).
+    ``state``: the checkpoint already read (:func:`read_checkpoint`)."""
+    state = read_checkpoint(path) if state is None else state
     detector = DetectorConfig.from_dict(state["detector"])
     trained = state["config"]
     overrides: dict = {}
@@ -243,8 +256,9 @@ def sweep(cfg: DictConfig) -> dict:
     out = Path(cfg.out)
     device = resolve_device(cfg.device)
     rows, frames, overrides = [], None, {}
-    for path in cfg.ckpt:
-        ckpt_rows, frames, changed = sweep_checkpoint(cfg, path, frames, device)
+    states = [read_checkpoint(path) for path in cfg.ckpt]  # every one, before any is scored
+    for path, state in zip(cfg.ckpt, states):
+        ckpt_rows, frames, changed = sweep_checkpoint(cfg, path, frames, device, state)
         rows += ckpt_rows
         if changed:
             overrides[str(path)] = changed

@@ -89,9 +89,19 @@ def test_the_sweep_writes_its_table_plot_and_rows(tmp_path, capsys, monkeypatch)
         sweep(compose_config("sweep", [f"ckpt=[{ckpts[0]}]", "split=valid", "ages=[1,100]", f"out={tmp_path / 'none'}",
                                        "loader.num_workers=0"]))
     assert not (tmp_path / "none").exists()
+    # a truncated checkpoint after a good one: refused by name before anything is scored
+    truncated = tmp_path / "truncated.pt"
+    truncated.write_bytes(open(ckpts[1], "rb").read()[:5000])
+    import dagr_lite.eval.sweep as sweep_module
+    scored = []
+    monkeypatch.setattr(sweep_module, "score_point", lambda *args, **kwargs: scored.append(1))
+    with pytest.raises(ValueError, match=f"{truncated}: cannot read as a dagr_lite checkpoint"):
+        sweep(compose_config("sweep", [f"ckpt=[{ckpts[0]},{truncated}]", "split=valid", "ages=[1]",
+                                       f"out={tmp_path / 'truncated'}", "loader.num_workers=0"]))
+    assert scored == [] and not (tmp_path / "truncated").exists()
+    monkeypatch.undo()
     # data.* given on the command line replace a checkpoint's own settings, printed and recorded.
     capsys.readouterr()
-    import dagr_lite.eval.sweep as sweep_module
     built, real_build = [], sweep_module.build_dataset
 
     def recording_build(cfg, *args, **kwargs):
