@@ -105,14 +105,25 @@ def evaluate_version(root: Path, checkpoint: Path, out: Path) -> dict:
                                                 "split=test", f"run_dir={out}"]))["metrics"]
 
 
+def check_versions(versions: list[str], minutes: float, steps: int | None) -> None:
+    """The experiment's own arguments, checked before any work (rendering, building, training)."""
+    if not versions:
+        raise ValueError(f"--versions: expected some of {sorted(VERSIONS)}, comma-separated, got none")
+    unknown = [v for v in versions if v not in VERSIONS]
+    if unknown:
+        raise ValueError(f"--versions: unknown {unknown}; expected some of {sorted(VERSIONS)}")
+    if not minutes > 0:
+        raise ValueError(f"--budget-minutes: expected a positive number of minutes, got {minutes}")
+    if steps is not None and steps <= 0:
+        raise ValueError(f"--steps: expected a positive number of steps, got {steps}")
+
+
 def run_versions(frames: Path, out: Path, versions: list[str], *, minutes: float, labels: Path | None = None,
                  splits: Path | None = None, steps: int | None = None, seed: int = 0,
                  train_overrides: list[str] = ()) -> list[dict]:
     """Build, train and evaluate each version; returns the table's rows (also written to ``out``).
     ``train_overrides``: more training settings (e.g. ``loader.batch_size=4`` for a tiny source)."""
-    unknown = [v for v in versions if v not in VERSIONS]
-    if unknown:
-        raise ValueError(f"unknown versions {unknown}; expected some of {sorted(VERSIONS)}")
+    check_versions(versions, minutes, steps)
     jobs = folder_jobs(frames, labels=labels, splits=splits)
     rows = []
     for version in versions:
@@ -163,6 +174,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
+    versions = [v.strip() for v in args.versions.split(",") if v.strip()]
+    try:
+        check_versions(versions, args.budget_minutes, args.steps)
+    except ValueError as err:
+        raise SystemExit(str(err)) from None
     frames, labels, splits = args.source, args.labels, args.splits
     if args.stub_source:
         width, height = parse_numbers(args.stub_source, "x", 2, "--stub-source", "WxH, e.g. 1280x720")
@@ -172,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
         frames, labels, splits = write_stub_source(args.out / "source", height, width, seconds=args.stub_seconds,
                                                    splits=dict(zip(("train", "valid", "test"), counts)))
     started = time.monotonic()
-    rows = run_versions(frames, args.out, [v.strip() for v in args.versions.split(",") if v.strip()],
+    rows = run_versions(frames, args.out, versions,
                         minutes=args.budget_minutes, labels=labels, splits=splits, steps=args.steps, seed=args.seed)
     print(write_results(args.out, rows, args.budget_minutes))
     print(f"{(time.monotonic() - started) / 60:.1f} minutes; {args.out / 'versions.md'}")

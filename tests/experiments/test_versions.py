@@ -57,6 +57,17 @@ def test_bad_stub_source_options_are_named(tmp_path, option, value, expected):
     assert not (tmp_path / "source").exists()
 
 
+@pytest.mark.parametrize("option, value, expected", [("--versions", "v9", r"--versions: unknown \['v9'\]"),
+                                                     ("--versions", "", "--versions: expected some of"),
+                                                     ("--budget-minutes", "0", "--budget-minutes: expected a positive"),
+                                                     ("--steps", "0", "--steps: expected a positive")])
+def test_the_experiment_checks_its_arguments_before_any_work(tmp_path, option, value, expected):
+    args = {"--stub-source": "64x36", "--stub-videos": "1,1,1", "--budget-minutes": "1", option: value}
+    with pytest.raises(SystemExit, match=expected):
+        main([*(x for kv in args.items() for x in kv), "--out", str(tmp_path)])
+    assert list(tmp_path.iterdir()) == []  # nothing rendered, built or trained
+
+
 def test_versions_train_with_the_stub_recipe_itself(tmp_path):
     """Every key the stub recipe sets has the recipe's value in a version's training config, but
     the length, which the budget replaces (and the validation and picture intervals)."""
