@@ -2,12 +2,14 @@
 import hydra
 from omegaconf import DictConfig
 
+from dagr_lite.cli import user_errors
 from dagr_lite.engine.evaluate import evaluate
 
 
 @hydra.main(config_path="conf", config_name="evaluate", version_base=None)
 def main(cfg: DictConfig) -> None:
-    evaluate(cfg)
+    with user_errors():
+        evaluate(cfg)
 
 
 if __name__ == "__main__":

@@ -21,6 +21,7 @@ from omegaconf import DictConfig
 from PIL import Image, ImageDraw
 from tqdm import tqdm
 
+from dagr_lite.cli import user_errors
 from dagr_lite.config import ConfigError, dataset_root
 from dagr_lite.data import format as fmt
 from dagr_lite.data.reader import EventFile, list_frames, list_videos, read_frame
@@ -162,7 +163,8 @@ def demo(cfg: DictConfig) -> dict:
 
 @hydra.main(config_path="../conf", config_name="demo", version_base=None)
 def main(cfg: DictConfig) -> None:
-    demo(cfg)
+    with user_errors():
+        demo(cfg)
 
 
 if __name__ == "__main__":

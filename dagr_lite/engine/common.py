@@ -40,14 +40,14 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def run_folder(cfg: DictConfig, kind: str) -> Path:
+def run_folder(cfg: DictConfig, kind: str, *, make: bool = True) -> Path:
     """The run's own folder: ``cfg.run_dir``, else Hydra's, else a new ``runs/<kind>/<time>``.
 
     An existing folder holding a run (checkpoints, metrics or its config) is never reused: the
-    check comes before anything is written. The resolved config and the command-line overrides
-    are then written into the folder as ``config.yaml`` and ``overrides.yaml``.
+    check comes before anything is written. The folder is then made, with the resolved config
+    and the command-line overrides in it (:func:`write_run_files`); ``make=False`` checks only,
+    for a caller that checks more before it writes anything.
     """
-    overrides: list[str] = []
     if cfg.get("run_dir"):
         path = Path(cfg.run_dir)
     else:
@@ -56,18 +56,26 @@ def run_folder(cfg: DictConfig, kind: str) -> Path:
             path = Path(HydraConfig.get().runtime.output_dir)
         except (ImportError, ValueError):
             path = Path("runs") / kind / time.strftime("%Y-%m-%d/%H-%M-%S") / f"{os.getpid()}"
+    for name in RUN_FILES:
+        if (path / name).exists():
+            raise FileExistsError(f"{path}: holds an earlier run ({name}); choose a new run_dir")
+    if make:
+        write_run_files(path, cfg)
+    return path
+
+
+def write_run_files(path: Path, cfg: DictConfig) -> None:
+    """Make the run folder ``path`` and write ``config.yaml`` (resolved) and ``overrides.yaml``
+    (the command line's overrides) into it."""
+    overrides: list[str] = []
     try:
         from hydra.core.hydra_config import HydraConfig
         overrides = list(HydraConfig.get().overrides.task)
     except (ImportError, ValueError):
         pass
-    for name in RUN_FILES:
-        if (path / name).exists():
-            raise FileExistsError(f"{path}: holds an earlier run ({name}); choose a new run_dir")
     path.mkdir(parents=True, exist_ok=True)
     write_text_atomically(path / "config.yaml", OmegaConf.to_yaml(cfg))
     write_text_atomically(path / "overrides.yaml", OmegaConf.to_yaml(OmegaConf.create(overrides)))
-    return path
 
 
 def save_checkpoint(path: Path, state: dict) -> None:

@@ -27,7 +27,8 @@ from tqdm import tqdm
 from dagr_lite.config import build_dataset, build_model, build_optimizer, check_values, resolve_config
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.common import (EpochSampler, RunSampler, ShardSampler, load_checkpoint, make_loader,
-                                     resolve_device, run_folder, save_checkpoint, seed_everything)
+                                     resolve_device, run_folder, save_checkpoint, seed_everything,
+                                     write_run_files)
 from dagr_lite.engine.distributed import (Distributed, broadcast_object, cleanup, gather_objects, global_normaliser,
                                           mean_over_ranks, setup, synchronise_batch_norm)
 from dagr_lite.engine.state import TrainState, train_step, validate
@@ -488,14 +489,15 @@ def train(cfg: DictConfig) -> dict:
 
 
 def shared_run_folder(cfg: DictConfig, place: Distributed) -> tuple[Path, Path | None]:
-    """The run folder, checked and made by rank 0 and shared with every rank, and the checkpoint
-    to resume from: ``resume=``, or, when torchrun restarts a failed group, the run's own ``last.pt``."""
+    """The run folder, checked by rank 0 and shared with every rank (nothing is written yet:
+    :func:`_train` makes it once the data, model and state are built), and the checkpoint to
+    resume from: ``resume=``, or, when torchrun restarts a failed group, the run's own ``last.pt``."""
     restarted = int(os.environ.get("TORCHELASTIC_RESTART_COUNT", "0") or 0) > 0
     outcome = None
     if place.is_main:
         try:
             own = own_last_checkpoint(cfg) if restarted else None
-            outcome = ("ok", str(own.parent.parent if own else run_folder(cfg, "train")), own and str(own))
+            outcome = ("ok", str(own.parent.parent if own else run_folder(cfg, "train", make=False)), own and str(own))
         except Exception as err:  # rank 0 refuses the run: every rank must stop, not wait
             outcome = ("error", f"{type(err).__name__}: {err}", None)
             broadcast_object(outcome, place)
@@ -563,6 +565,8 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
         precision = "float32" if state.amp_dtype is None else f"mixed precision {str(state.amp_dtype).split('.')[-1]}"
         print(f"training on {device} in {precision}", flush=True)
     saved = resume(state, resume_from, run_dir / "checkpoints", place) if resume_from else None
+    if place.is_main and not (run_dir / "config.yaml").exists():  # all checked: the run folder is made now
+        write_run_files(run_dir, cfg)
     if place.enabled:
         state.forward = DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None,
                                                 find_unused_parameters=bool(events_first(cfg)))  # the image branch

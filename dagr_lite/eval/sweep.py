@@ -27,6 +27,7 @@ from scipy.optimize import linear_sum_assignment
 from torch.utils.data import Dataset
 from tqdm import tqdm
 
+from dagr_lite.cli import user_errors
 from dagr_lite.config import ConfigError, build_dataset, resolve_config
 from dagr_lite.data import format as fmt
 from dagr_lite.data.dataset import EventEgoHands, Sample
@@ -325,7 +326,8 @@ def plot_sweep(rows: list[dict], path: Path, *, between: int) -> None:
 
 @hydra.main(config_path="../../conf", config_name="sweep", version_base=None)
 def main(cfg: DictConfig) -> None:
-    sweep(cfg)
+    with user_errors():
+        sweep(cfg)
 
 
 if __name__ == "__main__":

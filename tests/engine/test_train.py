@@ -299,6 +299,41 @@ def test_bad_values_stop_before_the_run_folder_is_made(tmp_path):
         assert not (tmp_path / f"run{i}").exists()
 
 
+def test_a_run_that_fails_on_its_dataset_leaves_no_folder_and_the_corrected_command_runs(tmp_path):
+    """The dataset is read before the run folder is written, so the corrected command is not
+    refused as "holds an earlier run"."""
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ValueError, match=str(empty)):
+        train(small(tmp_path / "run", "dataset=custom", f"dataset.root={empty}"))
+    assert not (tmp_path / "run").exists()
+    assert train(small(tmp_path / "run", "model=image_only", "trainer.max_steps=1"))["step"] == 1
+
+
+def test_a_mistake_on_the_command_line_is_one_line_and_leaves_no_folder(tmp_path):
+    """No traceback, exit status 1, and the empty folders Hydra made (runs/train/<date>/<time>)
+    are gone; with HYDRA_FULL_ERROR=1 the traceback is shown."""
+    import os
+    import subprocess
+    import sys
+    repo = Path(__file__).resolve().parents[2]
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    run = subprocess.run([sys.executable, str(repo / "train.py"), "loader.batch_size=0"], capture_output=True,
+                         text=True, cwd=tmp_path, env=env)
+    assert run.returncode == 1
+    assert run.stderr.strip() == "error: loader.batch_size must be a positive integer, got 0"
+    assert list(tmp_path.iterdir()) == []
+    full = subprocess.run([sys.executable, str(repo / "train.py"), "loader.batch_size=0"], capture_output=True,
+                          text=True, cwd=tmp_path, env={**env, "HYDRA_FULL_ERROR": "1"})
+    assert full.returncode == 1 and "Traceback" in full.stderr and "ConfigError" in full.stderr
+    sweep = subprocess.run([sys.executable, "-m", "dagr_lite.eval.sweep", f"out={tmp_path / 'sweep'}"],
+                           capture_output=True, text=True, cwd=tmp_path, env=env)
+    assert sweep.returncode == 1
+    assert sweep.stderr.strip() == ("error: invalid configuration: Missing mandatory value: ckpt; "
+                                    "give it on the command line: ckpt=...")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_refused_run_writes_nothing_into_the_earlier_one(tmp_path):
     import subprocess
     import sys

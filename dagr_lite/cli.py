@@ -1,0 +1,67 @@
+"""What the Hydra commands share (``train.py``, ``evaluate.py``, the sweep, the demo): a user's
+mistake (a bad value, a missing or foreign file, a folder that holds an earlier run) is one line
+on stderr, ``error: <message>``, and exit status 1, not a traceback; and the output folder
+Hydra made for the command is removed when the command failed with nothing in it.
+``HYDRA_FULL_ERROR=1`` shows the traceback as well.
+
+    @hydra.main(config_path="conf", config_name="train", version_base=None)
+    def main(cfg):
+        with user_errors():
+            train(cfg)
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import sys
+from pathlib import Path
+
+from omegaconf.errors import MissingMandatoryValue
+
+# What a user's mistake raises here: every check of a value, file or folder raises one of these
+# (ConfigError, ResumeError and DatasetFormatError are ValueErrors; FileNotFoundError and
+# FileExistsError are OSErrors), with a message that names the key, file or value.
+USER_ERRORS = (ValueError, OSError, MissingMandatoryValue)
+OMEGACONF_DETAIL = re.compile(r"\s+(full_key|object_type|reference_type)[:=]")
+
+
+@contextlib.contextmanager
+def user_errors():
+    """Run a command's body; a user's mistake exits with one line (see the module notes)."""
+    try:
+        yield
+    except USER_ERRORS as err:
+        remove_empty_output_folder()
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        print(f"error: {user_message(err)}", file=sys.stderr, flush=True)
+        raise SystemExit(1) from None
+
+
+def user_message(err: BaseException) -> str:
+    """The error's message without omegaconf's detail lines (``full_key: ...``, ``object_type=...``);
+    a missing mandatory value says how to give it."""
+    lines = [line for line in str(err).splitlines() if not OMEGACONF_DETAIL.match(line)]
+    message = "\n".join(lines)
+    missing = re.search(r"Missing mandatory value: ([\w.]+)", message)
+    if missing:
+        message += f"; give it on the command line: {missing.group(1)}=..."
+    return message
+
+
+def remove_empty_output_folder() -> None:
+    """Remove the folder Hydra made for this command when it is empty, and, for a folder of the
+    default layout ``runs/<kind>/<date>/<time>``, its parents up to ``runs`` that are then empty
+    too; a folder with anything in it stays."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        folder = Path(HydraConfig.get().runtime.output_dir).absolute()
+    except (ImportError, ValueError):  # not run by Hydra
+        return
+    default = len(folder.parents) > 3 and folder.parents[2].name == "runs"
+    for path in [folder, *(folder.parents[:3] if default else [])]:
+        try:
+            path.rmdir()  # only an empty folder
+        except OSError:
+            break
