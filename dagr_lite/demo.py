@@ -106,6 +106,8 @@ def demo(cfg: DictConfig) -> dict:
     paths and the update latencies (seconds)."""
     if cfg.rate_hz <= 0:
         raise ConfigError(f"rate_hz must be positive, got {cfg.rate_hz}")
+    if cfg.seconds is not None and not cfg.seconds > 0:
+        raise ConfigError(f"seconds must be a positive number of seconds (null: the whole video), got {cfg.seconds}")
     rec = Recording(dataset_root(cfg.dataset), cfg.split, cfg.video)
     out = Path(cfg.out if cfg.out is not None else f"runs/demo/{rec.video}.webp")
     check_output(out)

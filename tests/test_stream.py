@@ -302,3 +302,7 @@ def test_demo_writes_a_playable_animation_and_a_strip(hybrid_checkpoint, tmp_pat
         demo(cfg)  # nothing is overwritten
     with pytest.raises(ConfigError, match="not in"):
         demo(config("demo", f"ckpt={hybrid_checkpoint}", f"out={tmp_path / 'b.gif'}", "video=nope"))
+    for seconds in (0, -1):
+        with pytest.raises(ConfigError, match=rf"seconds must be a positive number of seconds .*got {seconds}"):
+            demo(config("demo", f"ckpt={hybrid_checkpoint}", f"out={tmp_path / 'c.gif'}", f"seconds={seconds}"))
+    assert not (tmp_path / "c.gif").exists()

@@ -204,16 +204,24 @@ def dataset_stats(root: Path | str, out: Path | str, *, videos: list[str] | None
                   fps: float = fmt.DEFAULT_FPS, pictures: bool = True) -> dict:
     """Compute, write and return the statistics of the dataset at ``root`` (see the module's text)."""
     root, out = Path(root), Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    if (out / "stats.json").exists():
+        raise FileExistsError(f"{out}: holds earlier statistics (stats.json); choose a new --out")
     labels = read_labels(root)
     found = {v: s for s in fmt.SPLITS if (root / s).is_dir() for v in list_videos(root, s)}
     chosen = list(found) if not videos else videos
     unknown = [v for v in chosen if v not in found]
     if unknown:
         raise ValueError(f"{root}: videos {unknown} are not in the dataset (it holds {sorted(found)})")
-    per_video, names = {}, []
+    per_video, all_counts, names = {}, {}, []
     for video in tqdm(chosen, desc="videos", unit="video"):
-        per_video[video], counts = video_stats(root, found[video], video, labels.get(video, {}), fps)
+        per_video[video], all_counts[video] = video_stats(root, found[video], video, labels.get(video, {}), fps)
+    short = {v: r["frames"] for v, r in per_video.items() if frame is not None and not 0 <= frame < r["frames"]}
+    if pictures and short:  # checked before anything is written
+        raise ValueError(f"--frame {frame}: past the end of {', '.join(f'{v} ({n} frames)' for v, n in short.items())}; "
+                         f"give a frame below {min(short.values())}")
+    out.mkdir(parents=True, exist_ok=True)
+    for video in chosen:
+        counts = all_counts[video]
         if pictures:
             rate_picture(out / f"event_rate_{video}.png", video, counts)
             labelled = sorted(k for k, b in labels.get(video, {}).items() if len(b) and k < per_video[video]["frames"])
@@ -237,7 +245,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frame", type=int, help="the frame of the pictures (default: each video's middle labelled frame)")
     parser.add_argument("--fps", type=float, default=fmt.DEFAULT_FPS)
     args = parser.parse_args(argv)
-    stats = dataset_stats(args.root, args.out, videos=args.videos, frame=args.frame, fps=args.fps)
+    try:
+        stats = dataset_stats(args.root, args.out, videos=args.videos, frame=args.frame, fps=args.fps)
+    except (ValueError, OSError) as err:  # a user's mistake: one line, no traceback
+        raise SystemExit(f"error: {err}") from None
     for split, row in stats["splits"].items():
         print(f"{split}: {row['videos']} videos, {row['events']:,} events over {row['duration_s']:.1f} s "
               f"(mean {row['mean_rate'] / 1e3:.0f}k/s, peak {row['peak_rate'] / 1e3:.0f}k/s), "

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.stats import BIN_US, SIZE_EDGES, dataset_stats
+from dagr_lite.data.stats import BIN_US, SIZE_EDGES, dataset_stats, main
 from tests.conftest import make_dataset
 
 
@@ -46,3 +46,17 @@ def test_pictures_and_index_for_chosen_videos(tmp_path):
         assert (tmp_path / "out" / name).stat().st_size > 1000 and name in index
     with pytest.raises(ValueError, match="not in the dataset"):
         dataset_stats(written.root, tmp_path / "other", videos=["nope"])
+
+
+def test_a_frame_past_the_video_or_an_earlier_out_is_refused_before_writing(tmp_path, capsys):
+    written = make_dataset(tmp_path / "data", num_frames=8, events_per_video=2000)
+    video = sorted(written.events)[0]
+    with pytest.raises(SystemExit, match=rf"error: --frame 500: past the end of {video} \(8 frames\); "
+                                         r"give a frame below 8"):
+        main([str(written.root), "--out", str(tmp_path / "late"), "--videos", video, "--frame", "500"])
+    assert not (tmp_path / "late").exists()
+    main([str(written.root), "--out", str(tmp_path / "out"), "--videos", video, "--frame", "4"])
+    before = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "out").iterdir()}
+    with pytest.raises(SystemExit, match=r"holds earlier statistics \(stats\.json\); choose a new --out"):
+        main([str(written.root), "--out", str(tmp_path / "out"), "--videos", video, "--frame", "2"])
+    assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "out").iterdir()} == before
