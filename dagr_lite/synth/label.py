@@ -169,9 +169,21 @@ def label_dataset(root: Path | str, out: Path | str, *, hide: float | None = Non
         raise ValueError(f"fill must be predicted or interpolated, got {fill!r}")
     if (out / "bounding_boxes.json").exists():
         raise FileExistsError(f"{out}: holds labels already; choose a new --out")
+    option, share = ("--hide", hide) if hide is not None else ("--hold-out", hold_out)
+    if not 0 < share < 1:
+        raise ValueError(f"{option}: expected a share of the labelled frames in (0, 1), got {share:g} (the labels "
+                         "are measured on the frames held out, so some must be and some kept)")
+    if not minutes > 0:
+        raise ValueError(f"--minutes: expected a positive training budget in minutes, got {minutes:g}")
+    if steps is not None and steps <= 0:
+        raise ValueError(f"--steps: expected a positive number of steps, got {steps}")
     videos = {v: s for s in fmt.SPLITS if (root / s).is_dir() for v in list_videos(root, s)}
     labels = read_labels(root)
-    kept, held = split_labels(labels, share=hide if hide is not None else hold_out, seed=seed)
+    kept, held = split_labels(labels, share=share, seed=seed)
+    if not any(held.values()):
+        labelled = sum(len(frames) for frames in labels.values())
+        raise ValueError(f"{option} {share:g}: of the {labelled} labelled frames of {root} none is held out (the "
+                         "share of each video's frames rounds to none); give a larger share")
     working_root(root, out / "work", kept)
     samples = sum(len(kept.get(v, {})) for v, split in videos.items() if split == "train")
     if samples == 0:
@@ -216,8 +228,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fill", choices=("predicted", "interpolated"), default="predicted")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    report = label_dataset(args.root, args.out, hide=args.hide, hold_out=args.hold_out, minutes=args.minutes,
-                           steps=args.steps, fill=args.fill, seed=args.seed)
+    try:
+        report = label_dataset(args.root, args.out, hide=args.hide, hold_out=args.hold_out, minutes=args.minutes,
+                               steps=args.steps, fill=args.fill, seed=args.seed)
+    except (ValueError, OSError) as err:  # a user's mistake: one line, no traceback
+        raise SystemExit(f"error: {err}") from None
     print(f"held-out frames: {report['predicted']['frames']} ({report['held_out']}, share {report['share']:g})")
     for method in ("predicted", "interpolated"):
         row = report[method]

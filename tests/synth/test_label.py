@@ -2,9 +2,10 @@
 import json
 
 import numpy as np
+import pytest
 
 from dagr_lite.data.reader import read_labels
-from dagr_lite.synth.label import interpolate_frame, label_dataset, split_labels
+from dagr_lite.synth.label import interpolate_frame, label_dataset, main, split_labels
 from tests.conftest import make_dataset
 
 
@@ -43,3 +44,18 @@ def test_every_frame_gets_a_label_with_its_source(tmp_path):
     assert 0 < report["threshold"] < 1
     assert json.loads((tmp_path / "out" / "label_quality.json").read_text()) == json.loads(json.dumps(report))
     assert (written.root / "bounding_boxes.json").read_text() != (tmp_path / "out" / "bounding_boxes.json").read_text()
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["--hide", "1.5"], r"--hide: expected a share of the labelled frames in \(0, 1\), got 1.5"),
+    (["--hide", "0", "--hold-out", "0"], r"--hide: expected a share .* got 0"),
+    (["--hold-out", "0"], r"--hold-out: expected a share .* got 0"),
+    (["--hold-out", "0.01"], r"--hold-out 0.01: of the \d+ labelled frames of .* none is held out"),
+    (["--minutes", "0"], r"--minutes: expected a positive training budget in minutes, got 0"),
+    (["--steps", "0"], r"--steps: expected a positive number of steps, got 0"),
+])
+def test_bad_options_are_refused_by_name_before_any_work(tmp_path, args, expected):
+    written = make_dataset(tmp_path / "data", num_frames=10, events_per_video=500)
+    with pytest.raises(SystemExit, match=f"error: {expected}"):
+        main([str(written.root), "--out", str(tmp_path / "out"), *args])
+    assert not (tmp_path / "out").exists()
