@@ -212,8 +212,23 @@ def check_dataset(root: Path | str, *, fps: float = fmt.DEFAULT_FPS, decode_fram
         if conventions is not None:
             conventions[events_path] = convention
         videos[video] = (count, hw)
+    problems += size_problems(root, videos)
     problems += check_labels(root, videos)
     return problems
+
+
+def size_problems(root: Path, videos: dict[str, tuple[int, tuple[int, int] | None]]) -> list[Problem]:
+    """One problem when the videos' frames are of several sizes (a model takes one)."""
+    by_size: dict[tuple[int, int], list[str]] = {}
+    for video, (_, hw) in videos.items():
+        if hw is not None:
+            by_size.setdefault(hw, []).append(video)
+    if len(by_size) < 2:
+        return []
+    sizes = ", ".join(f"{w}x{h} ({', '.join(sorted(names))})" for (h, w), names in
+                      sorted(by_size.items(), key=lambda item: -len(item[1])))
+    return [Problem(root, "", f"frames of {len(by_size)} sizes (WxH): {sizes}; a dataset's videos share one "
+                              "frame size")]
 
 
 def check_labels(root: Path, videos: dict[str, tuple[int, tuple[int, int] | None]]) -> list[Problem]:

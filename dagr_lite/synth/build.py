@@ -168,6 +168,10 @@ def _start_build(jobs: list[VideoJob], out: Path, settings: BuildSettings) -> di
             raise ValueError(f"{fmt.events_path(out, done, job.name)}: video {job.name} was built into {done}, "
                              f"but is now assigned to {job.split}; keep the split or choose a new --out")
     info_path = out / BUILD_INFO
+    foreign = [p.name for p in (*(out / split for split in fmt.SPLITS), fmt.labels_path(out)) if p.exists()]
+    if foreign and not info_path.exists():
+        raise ValueError(f"{out}: holds a dataset this builder did not make ({', '.join(foreign)}, no {BUILD_INFO}); "
+                         "choose a new --out")
     info = _read_json(info_path, {"settings": settings.as_dict(), "videos": {}, "skipped": {}})
     if info["settings"] != settings.as_dict():
         raise ValueError(f"{info_path}: {out} was built with settings {info['settings']}, not "

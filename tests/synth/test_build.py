@@ -77,6 +77,31 @@ def test_build_resumes_and_refuses_other_settings(tmp_path):
     assert events_a.stat().st_mtime_ns == stamp
 
 
+def test_the_builder_refuses_a_dataset_it_did_not_make_and_check_names_mixed_sizes(tmp_path, capsys):
+    """An --out holding a release-format dataset without build_info.json is refused with nothing
+    written; two datasets of different frame sizes put together are reported by check."""
+    write_moving_square_videos(tmp_path / "frames", ["a"])
+    out = tmp_path / "out"
+    assert main(["--frames", str(tmp_path / "frames"), "--out", str(out), "--version", "v4", "--scale", "1"]) == 0
+    (out / BUILD_INFO).unlink()  # as a dataset made elsewhere
+    before = sorted(str(p.relative_to(out)) for p in out.rglob("*"))
+    write_moving_square_videos(tmp_path / "other", ["c"], height=12, width=16)
+    assert main(["--frames", str(tmp_path / "other"), "--out", str(out), "--version", "v4", "--scale", "1"]) == 2
+    assert f"{out}: holds a dataset this builder did not make (train, bounding_boxes.json, no {BUILD_INFO})" \
+        in capsys.readouterr().err
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == before
+    mixed = tmp_path / "mixed"
+    assert main(["--frames", str(tmp_path / "other"), "--out", str(mixed), "--version", "v4", "--scale", "1"]) == 0
+    for video in ("a",):  # the 32x24 video joins the 16x12 one
+        for part in (fmt.events_path(out, "train", video), fmt.frames_dir(out, "train", video)):
+            target = mixed / part.relative_to(out)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            part.rename(target)
+    messages = [str(p) for p in check_dataset(mixed)]
+    assert f"{mixed}: frames of 2 sizes (WxH): " in "".join(messages)
+    assert any("32x24 (a)" in m and "16x12 (c)" in m for m in messages)
+
+
 def test_egohands_input(tmp_path):
     names = ["CARDS_COURTYARD_B_T", "JENGA_OFFICE_S_T"]
     write_moving_square_videos(tmp_path / "frames", names, num_frames=8, height=720, width=1280, first_number=1,
