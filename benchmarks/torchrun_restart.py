@@ -33,8 +33,8 @@ def worker(fail_at: int, overrides: list[str]) -> None:
     original = train_module.train_step
     first_attempt = os.environ.get("TORCHELASTIC_RESTART_COUNT", "0") == "0"
 
-    def failing_step(state, batch):
-        out = original(state, batch)
+    def failing_step(state, batch, **kwargs):
+        out = original(state, batch, **kwargs)
         if first_attempt and os.environ.get("RANK") == "1" and state.step == fail_at:
             print(f"rank 1: dying after step {state.step} (fault check)", flush=True)
             os._exit(1)

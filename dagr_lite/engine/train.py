@@ -462,8 +462,9 @@ class Terminated(SystemExit):
 
 def events_first(cfg: DictConfig) -> float:
     """The fraction of the schedule in which a hybrid learns from its events alone
-    (``trainer.events_first``; 0 for a model with one branch)."""
-    if not (cfg.model.use_events and cfg.model.use_image):
+    (``trainer.events_first``; 0 for a model with one branch, and for a run started from
+    ``init_from``, whose weights, an events-only model's or a hybrid's, are what it starts from)."""
+    if not (cfg.model.use_events and cfg.model.use_image) or cfg.get("init_from") is not None:
         return 0.0
     return float(cfg.trainer.get("events_first", 0.0) or 0.0)
 

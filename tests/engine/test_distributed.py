@@ -33,8 +33,8 @@ def run_training(rank: int, world: int, port: int, run_dir: str, overrides: list
 
     sums, original_step, original_save = [], train_module.train_step, train_module.save_checkpoint
 
-    def recording_step(state, batch):
-        result = original_step(state, batch)
+    def recording_step(state, batch, **kwargs):
+        result = original_step(state, batch, **kwargs)
         sums.append([float(p.detach().double().sum()) for p in state.model.parameters()])
         return result
 

@@ -202,6 +202,10 @@ def test_events_first_learns_from_the_events_alone_then_the_image_joins(tmp_path
     train(small(tmp_path / "events", "model=events_only", "trainer.max_steps=2", "trainer.events_first=0.5",
                 "trainer.val_every=1000"))
     assert [image for image, _, _ in seen] == [True, True]
+    seen.clear()  # a run started from init_from starts from those weights: no phase, nothing zeroed
+    train(small(tmp_path / "started", "trainer.max_steps=2", "trainer.events_first=0.5", "trainer.val_every=1000",
+                f"init_from={tmp_path / 'events' / 'checkpoints' / 'last.pt'}"))
+    assert [image for image, _, _ in seen] == [True, True] and seen[0][1] > 0
     with pytest.raises(ConfigError, match=r"trainer\.events_first must be a number in \[0, 1\)"):
         train(small(tmp_path / "bad", "trainer.events_first=1.0"))
 
