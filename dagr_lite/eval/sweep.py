@@ -284,6 +284,13 @@ def write_results(out: Path, rows: list[dict], *, split: str, between: int, blan
     plot_sweep(rows, out / "sweep.png", between=between)
 
 
+def checkpoint_name(ckpt: str) -> str:
+    """A checkpoint's short name: its run's folder and file (``run/best.pt``), so two runs' ``best.pt`` differ."""
+    path = Path(ckpt)
+    run = path.parent.parent.name if path.parent.name == "checkpoints" else path.parent.name
+    return f"{run}/{path.name}" if run else path.name
+
+
 def format_table(rows: list[dict]) -> str:
     """AP50 and mAP per checkpoint (rows) and image age (columns)."""
     ages = sorted({r["age_ms"] for r in rows})
@@ -292,7 +299,7 @@ def format_table(rows: list[dict]) -> str:
         lines.append(f"{metric:<10s} {'checkpoint':<40s} " + " ".join(f"{a:7.1f}" for a in ages) + "   (image age, ms)")
         for ckpt in dict.fromkeys(r["ckpt"] for r in rows):
             mine = {r["age_ms"]: r for r in rows if r["ckpt"] == ckpt}
-            name = f"{mine[ages[0]]['model']} {Path(ckpt).name}"
+            name = f"{mine[ages[0]]['model']} {checkpoint_name(ckpt)}"
             lines.append(f"{'':<10s} {name[-40:]:<40s} " + " ".join(f"{mine[a][metric]:7.3f}" for a in ages))
     return "\n".join(lines)
 
@@ -306,7 +313,7 @@ def plot_sweep(rows: list[dict], path: Path, *, between: int) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.8), sharex=True)
     for ckpt in dict.fromkeys(r["ckpt"] for r in rows):
         mine = sorted((r for r in rows if r["ckpt"] == ckpt), key=lambda r: r["age_ms"])
-        label = f"{mine[0]['model']} ({Path(ckpt).parent.parent.name}/{Path(ckpt).name})"
+        label = f"{mine[0]['model']} ({checkpoint_name(ckpt)})"
         for ax, metric in zip(axes, ("mAP", "AP50")):
             ax.plot([r["age_ms"] for r in mine], [max(r[metric], 0.0) for r in mine], marker="." if between else "o",
                     label=label)
