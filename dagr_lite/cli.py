@@ -1,7 +1,8 @@
-"""What the Hydra commands share (``train.py``, ``evaluate.py``, the sweep, the demo): a user's
-mistake (a bad value, a missing or foreign file, a folder that holds an earlier run) is one line
-on stderr, ``error: <message>``, and exit status 1, not a traceback; and the output folder
-Hydra made for the command is removed when the command failed with nothing in it.
+"""What the commands share (``train.py``, ``evaluate.py``, the sweep, the demo, dataset statistics,
+labelling): a user's mistake (a bad value, a missing or foreign file, a folder that holds an
+earlier run) is one line on stderr, ``error: <message>``, and exit status 1, not a traceback; and
+under Hydra the output folder it made for the command is removed when the command failed with
+nothing in it.
 ``HYDRA_FULL_ERROR=1`` shows the traceback as well.
 
     @hydra.main(config_path="conf", config_name="train", version_base=None)

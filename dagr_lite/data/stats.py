@@ -28,6 +28,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from dagr_lite.cli import user_errors  # noqa: E402
 from dagr_lite.data import format as fmt  # noqa: E402
 from dagr_lite.data.reader import EventFile, list_frames, list_videos, read_frame, read_labels  # noqa: E402
 
@@ -245,10 +246,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frame", type=int, help="the frame of the pictures (default: each video's middle labelled frame)")
     parser.add_argument("--fps", type=float, default=fmt.DEFAULT_FPS)
     args = parser.parse_args(argv)
-    try:
+    with user_errors():  # a user's mistake: one line, no traceback
         stats = dataset_stats(args.root, args.out, videos=args.videos, frame=args.frame, fps=args.fps)
-    except (ValueError, OSError) as err:  # a user's mistake: one line, no traceback
-        raise SystemExit(f"error: {err}") from None
     for split, row in stats["splits"].items():
         print(f"{split}: {row['videos']} videos, {row['events']:,} events over {row['duration_s']:.1f} s "
               f"(mean {row['mean_rate'] / 1e3:.0f}k/s, peak {row['peak_rate'] / 1e3:.0f}k/s), "

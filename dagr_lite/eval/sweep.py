@@ -192,13 +192,12 @@ def read_checkpoint(path: str) -> dict:
     return state
 
 
-def sweep_checkpoint(cfg: DictConfig, path: str, frames: list[tuple[int, int]] | None, device: torch.device,
-                     state: dict | None = None) -> tuple[list[dict], list[tuple[int, int]], dict]:
+def sweep_checkpoint(cfg: DictConfig, path: str, state: dict, frames: list[tuple[int, int]] | None,
+                     device: torch.device) -> tuple[list[dict], list[tuple[int, int]], dict]:
     """The rows of one checkpoint at every sweep point, with its own data settings (image age
     aside) unless ``data.*`` overrides them; the frames are found on first use and shared by
     every later checkpoint. Also returns the overrides (``{"data.key": {"checkpoint", "used"}}``).
-    ``state``: the checkpoint already read (:func:`read_checkpoint`)."""
-    state = read_checkpoint(path) if state is None else state
+    ``state``: the checkpoint at ``path``, already read (:func:`read_checkpoint`)."""
     detector = DetectorConfig.from_dict(state["detector"])
     trained = state["config"]
     overrides: dict = {}
@@ -259,7 +258,7 @@ def sweep(cfg: DictConfig) -> dict:
     rows, frames, overrides = [], None, {}
     states = [read_checkpoint(path) for path in cfg.ckpt]  # every one, before any is scored
     for path, state in zip(cfg.ckpt, states):
-        ckpt_rows, frames, changed = sweep_checkpoint(cfg, path, frames, device, state)
+        ckpt_rows, frames, changed = sweep_checkpoint(cfg, path, state, frames, device)
         rows += ckpt_rows
         if changed:
             overrides[str(path)] = changed

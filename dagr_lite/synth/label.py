@@ -28,6 +28,7 @@ import torch
 from scipy.optimize import linear_sum_assignment
 from tqdm import tqdm
 
+from dagr_lite.cli import user_errors
 from dagr_lite.data import format as fmt
 from dagr_lite.data.reader import list_frames, list_videos, read_frame, read_labels
 from dagr_lite.data.writer import write_labels, write_text_atomically
@@ -228,11 +229,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fill", choices=("predicted", "interpolated"), default="predicted")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    try:
+    with user_errors():  # a user's mistake: one line, no traceback
         report = label_dataset(args.root, args.out, hide=args.hide, hold_out=args.hold_out, minutes=args.minutes,
                                steps=args.steps, fill=args.fill, seed=args.seed)
-    except (ValueError, OSError) as err:  # a user's mistake: one line, no traceback
-        raise SystemExit(f"error: {err}") from None
     print(f"held-out frames: {report['predicted']['frames']} ({report['held_out']}, share {report['share']:g})")
     for method in ("predicted", "interpolated"):
         row = report[method]
