@@ -1,19 +1,20 @@
 """The causal radius graph from cell chains, compiled with numba (docs/design.md, "The event graph").
 
-Events are binned into square cells of side ``s`` in (x, y): one pixel wherever the grid fits
-(:data:`GRID_BUDGET`). Each event links to the previous event of its cell (``prev``) and each
-cell to its latest event (``last``), so a cell's events form a chain back in time. Node ``i``
-(events taken in index order, sorted by time) walks, for every cell offset that can hold a
-point within ``r`` (nearest offsets first), its chain from the latest event before ``i`` back
-until the time gap alone exceeds ``r``, tests the exact distance and keeps the ``k`` nearest by
-(distance, index); then ``i`` joins its own cell's chain. Two bounds stop the walk early without
-changing the answer once ``k`` are held: a chain ends where its time gap alone is beyond the
-``k``-th distance, and the offsets end where their nearest possible point is.
+Events are binned into square cells of side ``s`` in (x, y): one pixel for integer positions,
+two for fractional ones, larger where the grid would not fit (:data:`GRID_BUDGET`). Each event
+links to the previous event of its cell (``prev``) and each cell to its latest event (``last``),
+so a cell's events form a chain back in time. Node ``i`` (events taken in index order, sorted by
+time) walks, for every cell offset that can hold a point within ``r`` (nearest offsets first),
+its chain from the latest event before ``i`` back until the time gap puts the cell beyond the
+bound, tests the exact distance and keeps the ``k`` nearest by (distance, index); then ``i``
+joins its own cell's chain. The bound is ``r``, then the ``k``-th distance once ``k`` are held.
 
 The distance is computed as the KD-tree builder computes it (float64, ``sqrt(dx^2 + dy^2 +
-dz^2)`` summed in that order) and every bound errs towards looking further, so the edge set is
-the KD-tree's, ties included. Work per event is the cells around it plus the events in its
-reach, independent of history: streaming insertion (:class:`CellChains`) costs what arrives.
+dz^2)`` summed in that order). Every skip compares a lower bound of that computed sum of squares
+against ``bound^2 * SQUARE_MARGIN``, above which its rounded root is certainly beyond the bound,
+so the edge set is the KD-tree's, ties included. Work per event is the cells around it plus the
+events in its reach, independent of history: streaming insertion (:class:`CellChains`) costs what
+arrives.
 """
 from __future__ import annotations
 
@@ -24,34 +25,36 @@ from concurrent.futures import ThreadPoolExecutor
 import numba
 import numpy as np
 
-CELL_SIZE = 1.0
+# Cell side: one pixel for integer positions (a cell's least distance is then exact and no point
+# needs its own), two for fractional ones (a point then reaches 3 cells each way instead of 6:
+# 37 cells instead of 129, the fewer reads outweighing the longer chains; measured in
+# benchmarks/graph.py on the loader's zoomed samples).
+CELL_SIZE, FRACTIONAL_CELL_SIZE = 1.0, 2.0
 GRID_BUDGET = 1 << 24  # most cells in the grid; wider clouds get cells of more than a pixel
 PARALLEL_MIN = 1 << 15  # fewer events than this build on one thread
 REACH_MARGIN = 1e-9  # relative: the time gap beyond which no event can be within r, with room for rounding
-OFFSET_MARGIN = 1e-9  # relative: the nearest possible distance of a cell offset, rounded down by this
+SQUARE_MARGIN = 1.0 + 1e-12  # a squared distance above bound^2 x this has a (rounded) root above the bound
 NODE = np.dtype([("x", np.float64), ("y", np.float64), ("z", np.float64), ("prev", np.int64)])  # one cache line half
 
 
 def cell_offsets(r: float, s: float, integer: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The cell offsets ``(a, b)`` that can hold a point within ``r``, nearest first.
 
-    With ``integer`` (every x, y an integer and ``s == 1``) points sit on their cell's corner, so
-    an offset's nearest point is ``sqrt(a^2 + b^2)`` away, computed as the distance is. Otherwise
-    it is ``s * sqrt(max(|a| - 1, 0)^2 + max(|b| - 1, 0)^2)``, lowered by :data:`OFFSET_MARGIN`.
-    Returns ``a``, ``b`` (int64) and those nearest distances (float64), sorted by distance.
+    Returns ``a``, ``b`` (int64) and ``flat2`` (float64): the least ``dx^2 + dy^2`` between a
+    point and one in the offset cell, as the distance computes it. With ``integer`` (every x, y an
+    integer and ``s == 1``) points sit on their cell's corner, so it is exactly ``a^2 + b^2``;
+    otherwise ``s^2 ((|a| - 1)^2 + (|b| - 1)^2)`` (positive parts), which the computed squares
+    cannot undercut: ``|dx|`` is at least ``(|a| - 1) s``, a number held exactly, and rounding is
+    monotone.
     """
     reach = int(math.floor(r / s)) + (0 if integer else 1)
     a, b = np.meshgrid(np.arange(-reach, reach + 1), np.arange(-reach, reach + 1), indexing="xy")
     a, b = a.ravel(), b.ravel()
-    if integer:
-        nearest = np.sqrt((a * a + b * b).astype(np.float64))
-        keep = nearest <= r * (1 + OFFSET_MARGIN)
-    else:
-        ga, gb = np.maximum(np.abs(a) - 1, 0), np.maximum(np.abs(b) - 1, 0)
-        nearest = s * np.sqrt((ga * ga + gb * gb).astype(np.float64)) * (1 - OFFSET_MARGIN)
-        keep = nearest <= r
-    order = np.lexsort((a[keep], b[keep], nearest[keep]))
-    return a[keep][order].astype(np.int64), b[keep][order].astype(np.int64), nearest[keep][order]
+    ga, gb = (a, b) if integer else (np.maximum(np.abs(a) - 1, 0), np.maximum(np.abs(b) - 1, 0))
+    flat2 = (s * s) * (ga * ga + gb * gb).astype(np.float64)
+    keep = np.sqrt(flat2) <= r
+    order = np.lexsort((a[keep], b[keep], flat2[keep]))
+    return a[keep][order].astype(np.int64), b[keep][order].astype(np.int64), flat2[keep][order]
 
 
 class Grid:
@@ -63,19 +66,19 @@ class Grid:
     """
 
     def __init__(self, lo_xy, hi_xy, r: float, integer: bool, slack: int = 0):
-        s = CELL_SIZE
+        s = CELL_SIZE if integer else FRACTIONAL_CELL_SIZE
         span = np.floor(np.asarray(hi_xy, dtype=np.float64)) - np.floor(np.asarray(lo_xy, dtype=np.float64)) + 1
         while float((span[0] / s + 2 * (slack + r / s + 2)) * (span[1] / s + 2 * (slack + r / s + 2))) > GRID_BUDGET:
             s *= 2.0
         self.s, self.integer = s, bool(integer and s == 1.0)
-        a, b, self.nearest = cell_offsets(r, s, self.integer)
+        a, b, self.flat2 = cell_offsets(r, s, self.integer)
         self.pad = int(max(np.abs(a).max(), np.abs(b).max()))
         inner_lo = [int(math.floor(v / s)) - slack for v in lo_xy]
         inner_hi = [int(math.floor(v / s)) + slack for v in hi_xy]
         self.x0, self.y0 = inner_lo[0] - self.pad, inner_lo[1] - self.pad
         self.width = inner_hi[0] + self.pad - self.x0 + 1
         self.height = inner_hi[1] + self.pad - self.y0 + 1
-        self.offsets = b * self.width + a
+        self.offsets = np.stack([b * self.width + a, a + self.pad, b + self.pad])  # (3, n): cell step, a, b
         self.frame = np.array([s, self.x0, self.y0, self.width, *inner_lo, *inner_hi], dtype=np.float64)
 
     @property
@@ -83,49 +86,73 @@ class Grid:
         return self.width * self.height
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _cell(x, y, frame):
     s = frame[0]
     return (int(math.floor(y / s)) - int(frame[2])) * int(frame[3]) + int(math.floor(x / s)) - int(frame[1])
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _nearest_earlier(i, mask, lo, nodes, last, home, offsets, nearest, r, reach, k, best_d, best_j):
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _nearest_earlier(i, mask, lo, nodes, last, home, offsets, flat2, integer, frame, r, k, best_d, best_j, gap2):
     """The ``k`` nearest nodes ``lo <= j < i`` within ``r`` into ``best_d`` / ``best_j`` (by
-    distance, then index); returns how many. ``nodes`` is indexed by ``id & mask``."""
+    distance, then index); returns how many. ``nodes`` is indexed by ``id & mask``; ``gap2`` is
+    scratch, ``(2, 2 * pad + 1)``."""
     node = nodes[i & mask]
     xi, yi, zi = node.x, node.y, node.z
+    if not integer:  # the least dx^2 (dy^2) from this point to a cell a (b) columns (rows) away
+        s = frame[0]
+        pad = (gap2.shape[1] - 1) // 2
+        cx, cy = math.floor(xi / s), math.floor(yi / s)
+        for a in range(-pad, pad + 1):
+            gx = (cx + a) * s - xi if a > 0 else (xi - (cx + a + 1) * s if a < 0 else 0.0)
+            gy = (cy + a) * s - yi if a > 0 else (yi - (cy + a + 1) * s if a < 0 else 0.0)
+            gap2[0, a + pad] = gx * gx
+            gap2[1, a + pad] = gy * gy
     count = 0
-    for o in range(len(offsets)):
-        if count == k and nearest[o] > best_d[k - 1]:
-            break  # this offset and every later one lie beyond the k-th distance
-        j = last[np.uint64(home + offsets[o])]  # unsigned: no negative-index wrap-around in the loop
+    bound = r  # r, then the k-th distance once k are held
+    bound2 = r * r * SQUARE_MARGIN  # a squared distance above this has its root above the bound
+    for o in range(offsets.shape[1]):
+        f2 = flat2[o]
+        if f2 > bound2:
+            break  # this offset and every later one lie beyond the bound
+        if not integer:
+            f2 = gap2[0, offsets[1, o]] + gap2[1, offsets[2, o]]  # this point's own least, at least flat2[o]
+            if f2 > bound2:
+                continue
+        j = last[np.uint64(home + offsets[0, o])]  # unsigned: no negative-index wrap-around in the loop
         while j >= lo:
             other = nodes[np.uint64(j & mask)]
             dz = zi - other.z
-            if dz > reach:
-                break  # the chain runs back in time: the rest are further still
             dz2 = dz * dz
-            if count == k and math.sqrt(dz2) > best_d[k - 1]:
-                break  # the time gap alone is beyond the k-th distance
-            dx = xi - other.x
-            dy = yi - other.y
-            d = math.sqrt(dx * dx + dy * dy + dz2)
-            if d <= r and (count < k or d < best_d[k - 1] or (d == best_d[k - 1] and j < best_j[k - 1])):
-                m = count if count < k else k - 1
-                while m > 0 and (best_d[m - 1] > d or (best_d[m - 1] == d and best_j[m - 1] > j)):
-                    best_d[m] = best_d[m - 1]
-                    best_j[m] = best_j[m - 1]
-                    m -= 1
-                best_d[m] = d
-                best_j[m] = j
-                if count < k:
-                    count += 1
+            least2 = f2 + dz2  # no event of this cell is nearer; the chain only gets further
+            if least2 > bound2:
+                break
+            if integer:
+                d2 = least2  # on integer pixels the least distance of the cell is the distance
+            else:
+                dx = xi - other.x
+                dy = yi - other.y
+                d2 = dx * dx + dy * dy + dz2
+            if d2 <= bound2:
+                d = math.sqrt(d2)
+                if d <= bound and (count < k or d < bound or j < best_j[k - 1]):
+                    m = count if count < k else k - 1
+                    while m > 0 and (best_d[m - 1] > d or (best_d[m - 1] == d and best_j[m - 1] > j)):
+                        best_d[m] = best_d[m - 1]
+                        best_j[m] = best_j[m - 1]
+                        m -= 1
+                    best_d[m] = d
+                    best_j[m] = j
+                    if count < k:
+                        count += 1
+                    if count == k:
+                        bound = best_d[k - 1]
+                        bound2 = bound * bound * SQUARE_MARGIN
             j = other.prev
     return count
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _sort_ids(best_j, count):
     for m in range(1, count):
         value = best_j[m]
@@ -136,18 +163,19 @@ def _sort_ids(best_j, count):
         best_j[n] = value
 
 
-@numba.njit(cache=True, nogil=True)
-def link(start, stop, lo, mask, nodes, last, frame, offsets, nearest, r, reach, k, edges, e):
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def link(start, stop, lo, mask, nodes, last, frame, offsets, flat2, integer, r, reach, k, edges, e):
     """Nodes ``start <= i < stop`` in order: their edges written to ``edges[:, e:]``, then each joins
     its cell's chain. Returns the new ``e``."""
     best_d = np.empty(k, dtype=np.float64)
     best_j = np.empty(k, dtype=np.int64)
+    gap2 = np.empty((2, int(offsets[1].max()) + 1), dtype=np.float64)  # offsets run -pad..pad
     for i in range(start, stop):
         p = i & mask
         while lo < i and nodes[lo & mask].z < nodes[p].z - reach:
             lo += 1  # out of reach from here on: a chain stops there without loading it
         home = _cell(nodes[p].x, nodes[p].y, frame)
-        count = _nearest_earlier(i, mask, lo, nodes, last, home, offsets, nearest, r, reach, k, best_d, best_j)
+        count = _nearest_earlier(i, mask, lo, nodes, last, home, offsets, flat2, integer, frame, r, k, best_d, best_j, gap2)
         _sort_ids(best_j, count)
         for m in range(count):
             edges[0, e] = best_j[m]
@@ -158,19 +186,19 @@ def link(start, stop, lo, mask, nodes, last, frame, offsets, nearest, r, reach, 
     return e
 
 
-@numba.njit(cache=True, nogil=True)
-def link_samples(bounds, nodes, last, frame, offsets, nearest, r, reach, k):
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def link_samples(bounds, nodes, last, frame, offsets, flat2, integer, r, reach, k):
     """:func:`link` over every sample ``[bounds[s], bounds[s + 1])`` on one thread: chains never
     reach back past a sample's first node. Returns the edges ``(2, E)``."""
     edges = np.empty((2, len(nodes) * k), dtype=np.int64)
     e = 0
     for s in range(len(bounds) - 1):
-        e = link(bounds[s], bounds[s + 1], bounds[s], -1, nodes, last, frame, offsets, nearest, r, reach, k,
+        e = link(bounds[s], bounds[s + 1], bounds[s], -1, nodes, last, frame, offsets, flat2, integer, r, reach, k,
                  edges, e)
     return edges[:, :e].copy()
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def chain_all(nodes, grid_size, frame):
     """Each node's cell (returned) and ``prev``: the chains of all nodes, in one pass."""
     n = len(nodes)
@@ -183,8 +211,8 @@ def chain_all(nodes, grid_size, frame):
     return home
 
 
-@numba.njit(cache=True, nogil=True)
-def link_chunk(start, stop, replay, lo, nodes, home, grid_size, offsets, nearest, r, reach, k, neighbours, counts):
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def link_chunk(start, stop, replay, lo, nodes, home, grid_size, frame, offsets, flat2, integer, r, reach, k, neighbours, counts):
     """The neighbours of nodes ``start <= i < stop`` (chains set by :func:`chain_all`) into rows
     ``i`` of ``neighbours`` / ``counts``. ``last`` is rebuilt as it stands at ``start`` from the
     nodes within reach before it (``replay``); ``lo``: each node's sample start. Chunks run on
@@ -194,19 +222,21 @@ def link_chunk(start, stop, replay, lo, nodes, home, grid_size, offsets, nearest
         last[home[j]] = j
     best_d = np.empty(k, dtype=np.float64)
     best_j = np.empty(k, dtype=np.int64)
+    gap2 = np.empty((2, int(offsets[1].max()) + 1), dtype=np.float64)  # offsets run -pad..pad
     near = replay
     for i in range(start, stop):
         near = max(near, lo[i])
         while near < i and nodes[near].z < nodes[i].z - reach:
             near += 1  # out of reach from here on: a chain stops there without loading it
-        count = _nearest_earlier(i, -1, near, nodes, last, home[i], offsets, nearest, r, reach, k, best_d, best_j)
+        count = _nearest_earlier(i, -1, near, nodes, last, home[i], offsets, flat2, integer, frame, r, k, best_d, best_j,
+                                 gap2)
         _sort_ids(best_j, count)
         neighbours[i, :count] = best_j[:count]
         counts[i] = count
         last[home[i]] = i
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def rows_to_edges(neighbours, counts):
     """Rows of neighbours -> ``(2, E)`` edges (sources, destinations = row)."""
     edges = np.empty((2, counts.sum()), dtype=np.int64)
@@ -258,7 +288,7 @@ def build(points: np.ndarray, bounds: np.ndarray, r: float, k: int, workers: int
     reach, threads = reach_of(r), threads_for(workers)
     if threads == 1 or n < PARALLEL_MIN:
         last = np.full(grid.size, -1, dtype=np.int64)
-        return link_samples(bounds.astype(np.int64), nodes, last, grid.frame, grid.offsets, grid.nearest, r, reach, k)
+        return link_samples(bounds.astype(np.int64), nodes, last, grid.frame, grid.offsets, grid.flat2, grid.integer, r, reach, k)
     chunks = np.linspace(0, n, 2 * threads + 1).astype(np.int64)
     lo = bounds[np.searchsorted(bounds, np.arange(n), side="right") - 1].astype(np.int64)
     home = chain_all(nodes, grid.size, grid.frame)
@@ -269,7 +299,7 @@ def build(points: np.ndarray, bounds: np.ndarray, r: float, k: int, workers: int
     def run(c: int) -> None:
         start, stop = int(chunks[c]), int(chunks[c + 1])
         replay = int(lo[start] + np.searchsorted(z[lo[start]:start], z[start] - reach, side="left"))
-        link_chunk(start, stop, replay, lo, nodes, home, grid.size, grid.offsets, grid.nearest, r, reach, k,
+        link_chunk(start, stop, replay, lo, nodes, home, grid.size, grid.frame, grid.offsets, grid.flat2, grid.integer, r, reach, k,
                    neighbours, counts)
 
     with ThreadPoolExecutor(threads) as pool:  # the kernels release the GIL; no threading layer to fork
@@ -282,8 +312,8 @@ LO, COUNT, MASK, INTEGER, STATE_SIZE = 0, 1, 2, 3, 4
 TIME_ORDER, OUTSIDE, FULL = -1, -2, -3  # why an insertion stopped before linking
 
 
-@numba.njit(cache=True, nogil=True)
-def insert_kernel(points, state, last_z, nodes, last, frame, offsets, nearest, r, reach, k):
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def insert_kernel(points, state, last_z, nodes, last, frame, offsets, flat2, integer, r, reach, k):
     """One insertion of ``points (M, 3)``: returns ``(edges (2, E), status)``, status 0 when done,
     else why it did nothing (:data:`TIME_ORDER`, :data:`OUTSIDE` of the grid's inner box or of its
     integer offsets, ring :data:`FULL`). ``state`` and ``last_z[0]`` are updated when done."""
@@ -312,13 +342,13 @@ def insert_kernel(points, state, last_z, nodes, last, frame, offsets, nearest, r
         node = nodes[(count + i) & mask]
         node.x, node.y, node.z = points[i, 0], points[i, 1], points[i, 2]
     edges = np.empty((2, m * k), dtype=np.int64)
-    e = link(count, count + m, lo, mask, nodes, last, frame, offsets, nearest, r, reach, k, edges, 0)
+    e = link(count, count + m, lo, mask, nodes, last, frame, offsets, flat2, integer, r, reach, k, edges, 0)
     state[LO], state[COUNT] = lo, count + m
     last_z[0] = points[m - 1, 2]
     return edges[:, :e], 0
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def relink(lo, count, mask, nodes, last, frame):
     """The chains of the held nodes ``lo <= id < count`` rebuilt on a new grid."""
     for i in range(lo, count):
@@ -383,7 +413,7 @@ class CellChains:
             self._regrid(points)
         while True:
             edges, status = insert_kernel(points, self.state, self.last_z, self.nodes, self.last, self.grid.frame,
-                                          self.grid.offsets, self.grid.nearest, self.r, self.reach, self.k)
+                                          self.grid.offsets, self.grid.flat2, self.grid.integer, self.r, self.reach, self.k)
             if status == 0:
                 return edges
             if status == TIME_ORDER:

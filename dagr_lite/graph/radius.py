@@ -331,7 +331,10 @@ def _nearest_in_chunk(points, order, lo, count, first_node: int, r: float, k: in
     src = order[lo.flatten()[run] + within]  # (T,)
     dst = first_node + torch.div(run, count.shape[1], rounding_mode="floor")  # (T,)
     diff = points[dst] - points[src]
-    dist = torch.sqrt(diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1] + diff[:, 2] * diff[:, 2])
+    squared = diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1] + diff[:, 2] * diff[:, 2]
+    # torch's vectorised float64 square root on a CPU may be an ulp off, which breaks ties unlike the
+    # other builders: numpy's there is correctly rounded, as a CUDA GPU's is
+    dist = torch.from_numpy(np.sqrt(squared.numpy())) if squared.device.type == "cpu" else torch.sqrt(squared)
     keep = dist <= r
     src, dst, dist = src[keep], dst[keep], dist[keep]
     # Sort by (dst, dist, src): stable sorts from the last key to the first.

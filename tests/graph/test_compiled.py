@@ -71,6 +71,42 @@ def test_fractional_positions_as_the_zoom_augmentation_makes_them():
         assert torch.equal(radius_graph(torch.from_numpy(part), 5.0, 16, backend="compiled"), brute_force(part, 5.0, 16))
 
 
+def test_fractional_positions_exactly_r_apart_and_at_cell_borders():
+    """Quarter-pixel positions (pairs exactly r apart across cell borders, ties in time) and points a
+    hair either side of a cell border: each point's own least distance to a cell may never cut a
+    neighbour, and every builder breaks ties between distances an ulp apart alike."""
+    rng = np.random.default_rng(33)
+    for trial in range(12):
+        n = int(rng.integers(50, 600))
+        xy = rng.integers(0, 48, (n, 2)) / 4.0
+        hair = rng.random((n, 2)) < 0.2
+        xy[hair] = np.nextafter(np.round(xy[hair]), rng.choice([-np.inf, np.inf], int(hair.sum())))
+        z = np.sort(rng.integers(0, 12, n) / 4.0)
+        pos = np.concatenate([xy, z[:, None]], 1)
+        for r, k in ((2.5, 16), (1.25, 3), (5.0, 30), (0.75, 1)):
+            got, want = both(pos, r, k)
+            assert torch.equal(got, want), (trial, r, k)
+            assert torch.equal(got, brute_force(pos, r, k)), (trial, r, k)
+            assert torch.equal(got, radius_graph(torch.from_numpy(pos), r, k, backend="torch")), (trial, r, k)
+
+
+@pytest.mark.parametrize("side", [1.0, 2.0, 2.5, 5.0, 8.0])
+def test_any_cell_side_gives_the_same_edges(monkeypatch, side):
+    """The cell side is a speed setting only: at sides below, at and above r (so that cells r apart,
+    whose points are exactly r apart at best, are still visited), integer and fractional."""
+    monkeypatch.setattr(compiled, "FRACTIONAL_CELL_SIZE", side)
+    rng = np.random.default_rng(34)
+    for trial in range(6):
+        pos = event_stream(rng, int(rng.integers(100, 1500)), hot=5, burst=4)
+        if trial % 2:
+            pos[:, :2] = pos[:, :2] * 1.25 + 0.5  # fractional: quarter pixels, pairs exactly 5 apart
+        batch = torch.from_numpy(np.sort(rng.integers(0, 2, len(pos))))
+        for r, k in ((5.0, 16), (2.5, 4), (1.0, 2)):
+            got, want = both(pos, r, k, batch)
+            assert torch.equal(got, want), (trial, r, k)
+        assert torch.equal(both(pos[:300], 5.0, 16)[0], brute_force(pos[:300], 5.0, 16))
+
+
 def test_the_threaded_build_equals_one_thread(monkeypatch):
     """Chunks on threads, each rebuilding the cell heads at its start, with chunks and samples not aligned."""
     monkeypatch.setattr(compiled, "PARALLEL_MIN", 10)
