@@ -1,22 +1,29 @@
 """Streaming detector speed: one update plus ``detect()`` against a full batch pass on the same samples.
 
-    python benchmarks/streaming.py --ckpt runs/train/<run>/checkpoints/best.pt [--seconds 0.5]
-                                   [--sizes 320x180 640x360] [--updates-ms 0.1 1 5] [--threads 2]
+    python benchmarks/streaming.py --ckpt <hybrid>/checkpoints/best.pt [<events_only>/checkpoints/best.pt]
+                                   [--seconds 0.5] [--sizes 320x180 640x360] [--camera 320x240]
+                                   [--camera-rate 450000] [--updates-ms 0.1 1 5] [--threads 2]
 
-Scenes: the stub's first test video (320x180), and a hand scene of the stub's generator rendered
-and emulated at 640x360 (made once into a temporary folder). Images arrive at 30 Hz and are part of
-the update they arrive in. For each update size it prints:
+Scenes: the stub's first test video (320x180); a hand scene of the stub's generator rendered and
+emulated at 640x360; and a camera-rate scene at 320x240 (``--camera``): the same generator
+emulated with contrast thresholds lowered until it emits ``--camera-rate`` events/s (up to 25 %
+more), as a real sensor of one moving hand does (made once into a temporary folder). Images
+arrive at 30 Hz and are part of the update they arrive in. For each checkpoint, scene and update size it prints:
   * the median and p95 latency of one update (push_events, any push_image, detect) against the
     median of full batch passes (graph build, model, decoding) on the samples of the same moments;
-  * the real-time factor: seconds of recording per second of compute, detecting after every update;
+  * the real-time factor: seconds of recording per second of compute, detecting after every update,
+    and the events per second sustained (events in / compute seconds);
   * the multiply-adds per event of the GCN layers (all stages), streaming against a full pass;
   * where an update's time goes.
-The last line reads ``1 ms update: <ratio>x faster than a full pass`` (the stub scene).
+The last three lines read ``1 ms update: <ratio>x faster than a full pass`` (the stub scene),
+``5 ms updates, stub: real-time factor <f>`` and ``5 ms updates, 320x240 at <rate>k events/s:
+real-time factor <f>``, each for every checkpoint given.
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import tempfile
 import time
 from pathlib import Path
@@ -33,7 +40,7 @@ from dagr_lite.engine.common import load_checkpoint
 from dagr_lite.nn.detector import Detector, DetectorConfig
 from dagr_lite.nn.gcn import GCNConv, GraphOperator
 from dagr_lite.stream import StreamingDetector
-from dagr_lite.synth.dvs import preset
+from dagr_lite.synth.dvs import DVSParams, preset
 from dagr_lite.synth.stub import STUB_DVS_MODEL, STUB_UPSAMPLE, HandScene, stub_root
 from dagr_lite.synth.video import emulate_video
 
@@ -47,11 +54,41 @@ def recording(size: tuple[int, int], seconds: float, workdir: Path) -> tuple[str
         root = stub_root()
         video = list_videos(root, "test")[0]
         return f"stub test video {video}", Recording(root, "test", video)
+    return f"hand scene {width}x{height}", emulated(workdir, f"scene{width}x{height}", height, width, seconds,
+                                                    preset(STUB_DVS_MODEL))
+
+
+def emulated(workdir: Path, video: str, height: int, width: int, seconds: float, params: DVSParams) -> Recording:
+    """Hand scene 7 of the stub's generator, emulated with ``params`` into ``workdir``."""
     scene = HandScene(7, height=height, width=width, seconds=seconds + 0.3)
-    with VideoWriter(workdir, "test", "scene", num_frames=scene.num_frames, height=height, width=width,
+    with VideoWriter(workdir, "test", video, num_frames=scene.num_frames, height=height, width=width,
                      compression=None) as writer:
-        emulate_video(scene, writer, params=preset(STUB_DVS_MODEL), upsample=STUB_UPSAMPLE, seed=7)
-    return f"hand scene {width}x{height}", Recording(workdir, "test", "scene")
+        emulate_video(scene, writer, params=params, upsample=STUB_UPSAMPLE, seed=7)
+    return Recording(workdir, "test", video)
+
+
+def camera_recording(size: tuple[int, int], seconds: float, rate: float, workdir: Path) -> tuple[str, Recording]:
+    """A hand scene at ``size`` emitting ``rate`` to ``1.25 rate`` events/s after frame ``FIRST_FRAME``:
+    the stub's DVS model with its contrast thresholds (and their spread) scaled, the scale found by
+    bisection in log scale."""
+    height, width = size
+    base = preset(STUB_DVS_MODEL)
+    low, high = 0.01, 1.0  # threshold scales: the lower emits more than wanted, the higher less (or enough)
+    for attempt in range(12):
+        scale = high if attempt == 0 else math.sqrt(low * high)
+        params = dataclasses.replace(base, pos_threshold=base.pos_threshold * scale,
+                                     neg_threshold=base.neg_threshold * scale,
+                                     sigma_threshold=base.sigma_threshold * scale)
+        rec = emulated(workdir, f"camera{attempt}", height, width, seconds, params)
+        t = rec.events["t"]
+        t0 = float(rec.frame_times[FIRST_FRAME])
+        t1 = min(t0 + seconds * 1e6, float(t[-1]))
+        got = np.count_nonzero((t >= t0) & (t < t1)) / ((t1 - t0) * 1e-6)
+        if rate <= got <= 1.25 * rate:
+            return (f"camera-rate hand scene {width}x{height} (contrast thresholds {params.pos_threshold:.3f})", rec)
+        low, high = (low, scale) if got < rate else (scale, high)
+    raise RuntimeError(f"could not emulate {rate:.0f} to {1.25 * rate:.0f} events/s at {width}x{height} "
+                       f"(the last try gave {got:.0f})")
 
 
 def model_at(state: dict, height: int, width: int) -> Detector:
@@ -145,7 +182,9 @@ def full_pass(model: Detector, rec: Recording, t_query: float, *, context_us: in
     return best, macs, len(events)
 
 
-def bench_scene(state: dict, name: str, rec: Recording, args) -> float | None:
+def bench_scene(state: dict, name: str, rec: Recording, args) -> tuple[float, dict[float, dict]]:
+    """Prints the scene's table and where the time goes; returns its event rate and, per update
+    size, the speed-up, the real-time factor and the events per second sustained."""
     model = model_at(state, rec.height, rec.width)
     data = state["config"]["data"]
     context_us, window_us = data["context_us"], data["window_us"]
@@ -161,9 +200,9 @@ def bench_scene(state: dict, name: str, rec: Recording, args) -> float | None:
     print(f"full batch pass (graph, model, decoding), median of {len(passes)} moments: {1e3 * full_s:.1f} ms, "
           f"{np.median([p[2] for p in passes]):.0f} events per sample")
     header = (f"{'update':>8} {'events':>7} {'median ms':>10} {'p95 ms':>8} {'speed-up':>9} {'real-time':>10} "
-              f"{'GCN MACs/event':>22}")
+              f"{'sustained ev/s':>15} {'GCN MACs/event':>22}")
     print(header + "\n" + "-" * len(header))
-    result, parts = None, {}
+    result, parts = {}, {}
     for update_ms in args.updates_ms:
         seconds = min(t1 - t0, args.seconds * 1e6 * min(1.0, update_ms / 1.0)) if update_ms < 1 else t1 - t0
         run = stream_run(model, rec, update_ms * 1e3, t0, t0 + seconds, context_us=context_us, window_us=window_us)
@@ -172,41 +211,60 @@ def bench_scene(state: dict, name: str, rec: Recording, args) -> float | None:
         speedup = full_s / median
         rtf = run["seconds"] / latency.sum()
         macs = run["macs"] / max(1, run["events"])
+        sustained = run["events"] / latency.sum()
         print(f"{update_ms:>6g}ms {run['events'] / len(latency):>7.0f} {1e3 * median:>10.2f} {1e3 * p95:>8.2f} "
-              f"{speedup:>8.1f}x {rtf:>10.2f} {macs:>10.0f} / {full_macs:<9.0f}")
+              f"{speedup:>8.1f}x {rtf:>10.2f} {sustained:>15,.0f} {macs:>10.0f} / {full_macs:<9.0f}")
         parts[update_ms] = {name: 1e3 * value / len(latency) for name, value in run["timings"].items()}
-        if update_ms == 1:
-            result = speedup
+        result[update_ms] = {"speedup": speedup, "rtf": rtf, "sustained": sustained}
     print("where an update's time goes (ms per update):")
     names = sorted({name for p in parts.values() for name in p}, key=lambda n: -max(p.get(n, 0) for p in parts.values()))
     print("  " + f"{'part':<30}" + "".join(f"{f'{u:g} ms':>10}" for u in parts))
     for name in names:
         print("  " + f"{name:<30}" + "".join(f"{p.get(name, 0.0):>10.2f}" for p in parts.values()))
-    return result
+    return rate, result
+
+
+def size_of(text: str) -> tuple[int, int]:
+    """``"WxH"`` -> ``(H, W)``."""
+    width, height = (int(v) for v in text.lower().split("x"))
+    return height, width
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--ckpt", required=True, help="a trained checkpoint (hybrid or events-only)")
+    parser.add_argument("--ckpt", nargs="+", required=True, help="trained checkpoints (hybrid and/or events-only)")
     parser.add_argument("--seconds", type=float, default=0.5, help="recording streamed per update size "
                         "(updates under 1 ms stream proportionally less)")
     parser.add_argument("--sizes", nargs="+", default=["320x180", "640x360"])
+    parser.add_argument("--camera", default="320x240", help="size of the camera-rate scene ('none': skip it)")
+    parser.add_argument("--camera-rate", type=float, default=450_000, help="least events/s of the camera-rate scene")
     parser.add_argument("--updates-ms", nargs="+", type=float, default=[0.1, 1.0, 5.0])
     parser.add_argument("--full-passes", type=int, default=8, help="moments at which a full pass is timed")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    state = load_checkpoint(args.ckpt)
-    print(f"torch {torch.__version__}, {args.threads} threads, checkpoint {args.ckpt}")
-    stub_ratio = None
+    states = {path: load_checkpoint(path) for path in args.ckpt}
+    print(f"torch {torch.__version__}, {args.threads} threads, checkpoints {', '.join(args.ckpt)}")
+    summary = []  # (line key, model name, value)
     with tempfile.TemporaryDirectory() as workdir:
-        for text in args.sizes:
-            width, height = (int(v) for v in text.lower().split("x"))
-            ratio = bench_scene(state, *recording((height, width), args.seconds, Path(workdir)), args)
-            if (height, width) == (180, 320) or stub_ratio is None:
-                stub_ratio = ratio if (height, width) == (180, 320) or stub_ratio is None else stub_ratio
-    if stub_ratio is not None:
-        print(f"1 ms update: {stub_ratio:.1f}x faster than a full pass")
+        scenes = [recording(size_of(text), args.seconds, Path(workdir)) + (text,) for text in args.sizes]
+        if args.camera != "none":
+            scenes.append(camera_recording(size_of(args.camera), args.seconds, args.camera_rate, Path(workdir))
+                          + ("camera",))
+        for path, state in states.items():
+            model_name = state["config"]["model"]["name"]
+            for name, rec, kind in scenes:
+                rate, result = bench_scene(state, name, rec, args)
+                if kind == "320x180" and 1.0 in result:
+                    summary.append(("1 ms update", model_name, f"{result[1.0]['speedup']:.1f}x faster than a full pass"))
+                if kind == "320x180" and 5.0 in result:
+                    summary.append(("5 ms updates, stub", model_name, f"real-time factor {result[5.0]['rtf']:.2f}"))
+                if kind == "camera" and 5.0 in result:
+                    summary.append((f"5 ms updates, {rec.width}x{rec.height} at {rate / 1e3:.0f}k events/s", model_name,
+                                    f"real-time factor {result[5.0]['rtf']:.2f}"))
+    print()
+    for key in dict.fromkeys(k for k, _, _ in summary):  # one line each, every model's figure on it
+        print(f"{key}: " + ", ".join(f"{value} ({model})" for k, model, value in summary if k == key))
 
 
 if __name__ == "__main__":
