@@ -34,6 +34,8 @@ GRID_BUDGET = 1 << 24  # most cells in the grid; wider clouds get cells of more 
 PARALLEL_MIN = 1 << 15  # fewer events than this build on one thread
 REACH_MARGIN = 1e-9  # relative: the time gap beyond which no event can be within r, with room for rounding
 SQUARE_MARGIN = 1.0 + 1e-12  # a squared distance above bound^2 x this has a (rounded) root above the bound
+# Every kernel: cached on disk, releasing the GIL (threads), no division-by-zero checks.
+KERNEL = {"cache": True, "nogil": True, "error_model": "numpy"}
 NODE = np.dtype([("x", np.float64), ("y", np.float64), ("z", np.float64), ("prev", np.int64)])  # one cache line half
 
 
@@ -86,13 +88,13 @@ class Grid:
         return self.width * self.height
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(**KERNEL)
 def _cell(x, y, frame):
     s = frame[0]
     return (int(math.floor(y / s)) - int(frame[2])) * int(frame[3]) + int(math.floor(x / s)) - int(frame[1])
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@numba.njit(**KERNEL, inline="always")
 def _nearest_earlier(i, mask, lo, nodes, last, home, offsets, flat2, integer, frame, r, k, best_d, best_j, gap2):
     """The ``k`` nearest nodes ``lo <= j < i`` within ``r`` into ``best_d`` / ``best_j`` (by
     distance, then index); returns how many. ``nodes`` is indexed by ``id & mask``; ``gap2`` is
@@ -152,7 +154,7 @@ def _nearest_earlier(i, mask, lo, nodes, last, home, offsets, flat2, integer, fr
     return count
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(**KERNEL)
 def _sort_ids(best_j, count):
     for m in range(1, count):
         value = best_j[m]
@@ -163,7 +165,7 @@ def _sort_ids(best_j, count):
         best_j[n] = value
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(**KERNEL)
 def link(start, stop, lo, mask, nodes, last, frame, offsets, flat2, integer, r, reach, k, edges, e):
     """Nodes ``start <= i < stop`` in order: their edges written to ``edges[:, e:]``, then each joins
     its cell's chain. Returns the new ``e``."""
@@ -186,7 +188,7 @@ def link(start, stop, lo, mask, nodes, last, frame, offsets, flat2, integer, r, 
     return e
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(**KERNEL)
 def link_samples(bounds, nodes, last, frame, offsets, flat2, integer, r, reach, k):
     """:func:`link` over every sample ``[bounds[s], bounds[s + 1])`` on one thread: chains never
     reach back past a sample's first node. Returns the edges ``(2, E)``."""
@@ -198,7 +200,7 @@ def link_samples(bounds, nodes, last, frame, offsets, flat2, integer, r, reach, 
     return edges[:, :e].copy()
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(**KERNEL)
 def chain_all(nodes, grid_size, frame):
     """Each node's cell (returned) and ``prev``: the chains of all nodes, in one pass."""
     n = len(nodes)
@@ -211,7 +213,7 @@ def chain_all(nodes, grid_size, frame):
     return home
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(**KERNEL)
 def link_chunk(start, stop, replay, lo, nodes, home, grid_size, frame, offsets, flat2, integer, r, reach, k, neighbours, counts):
     """The neighbours of nodes ``start <= i < stop`` (chains set by :func:`chain_all`) into rows
     ``i`` of ``neighbours`` / ``counts``. ``last`` is rebuilt as it stands at ``start`` from the
@@ -236,7 +238,7 @@ def link_chunk(start, stop, replay, lo, nodes, home, grid_size, frame, offsets, 
         last[home[i]] = i
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(**KERNEL)
 def rows_to_edges(neighbours, counts):
     """Rows of neighbours -> ``(2, E)`` edges (sources, destinations = row)."""
     edges = np.empty((2, counts.sum()), dtype=np.int64)
@@ -312,7 +314,7 @@ LO, COUNT, MASK, INTEGER, STATE_SIZE = 0, 1, 2, 3, 4
 TIME_ORDER, OUTSIDE, FULL = -1, -2, -3  # why an insertion stopped before linking
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(**KERNEL)
 def insert_kernel(points, state, last_z, nodes, last, frame, offsets, flat2, integer, r, reach, k):
     """One insertion of ``points (M, 3)``: returns ``(edges (2, E), status)``, status 0 when done,
     else why it did nothing (:data:`TIME_ORDER`, :data:`OUTSIDE` of the grid's inner box or of its
@@ -348,7 +350,7 @@ def insert_kernel(points, state, last_z, nodes, last, frame, offsets, flat2, int
     return edges[:, :e], 0
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(**KERNEL)
 def relink(lo, count, mask, nodes, last, frame):
     """The chains of the held nodes ``lo <= id < count`` rebuilt on a new grid."""
     for i in range(lo, count):

@@ -93,7 +93,8 @@ def test_fractional_positions_exactly_r_apart_and_at_cell_borders():
 @pytest.mark.parametrize("side", [1.0, 2.0, 2.5, 5.0, 8.0])
 def test_any_cell_side_gives_the_same_edges(monkeypatch, side):
     """The cell side is a speed setting only: at sides below, at and above r (so that cells r apart,
-    whose points are exactly r apart at best, are still visited), integer and fractional."""
+    whose points are exactly r apart at best, are still visited), for integer and fractional positions."""
+    monkeypatch.setattr(compiled, "CELL_SIZE", side)
     monkeypatch.setattr(compiled, "FRACTIONAL_CELL_SIZE", side)
     rng = np.random.default_rng(34)
     for trial in range(6):
