@@ -107,6 +107,7 @@ _RULES = {
     "data.train_image_age_power": ("a number >= 0 (0: ages drawn uniformly)", lambda v: _number(v) and v >= 0),
     "data.context_us": ("an integer >= 0 (microseconds)", lambda v: _integer(v) and v >= 0),
     "model.event_head_weight": ("a number >= 0 (0: no event head)", lambda v: _number(v) and v >= 0),
+    "model.late_query": ("true or false", lambda v: isinstance(v, bool)),
     "model.image_stem": (f"one of {', '.join(IMAGE_STEMS)}", lambda v: v in IMAGE_STEMS),
     "model.time_scale_us": ("a positive number (microseconds)", lambda v: _number(v) and v > 0),
     "data.window_us": ("a positive integer (microseconds)", lambda v: _integer(v) and v > 0),
@@ -223,7 +224,7 @@ def detector_config(cfg: DictConfig, *, height: int, width: int) -> DetectorConf
                           head_hidden=size.head_hidden, num_classes=model.num_classes,
                           strides=tuple(model.strides), graph=graph_spec(model), time_scale_us=model.time_scale_us,
                           recency_us=tuple(model.recency_us), event_head_weight=float(model.event_head_weight),
-                          image_stem=model.image_stem)
+                          image_stem=model.image_stem, late_query=bool(model.late_query))
 
 
 def build_model(cfg: DictConfig, *, height: int, width: int) -> Detector:

@@ -14,13 +14,15 @@ Work per update: new events get their incoming edges from the streaming graph bu
 first GCN stage computes the new nodes only (reading the cached features of older nodes; a
 node never changes once computed, as the graph is causal). While no event of a hybrid's
 sample has left the horizon, its first pooled cells take the new nodes in (max and mean are
-updated, never recomputed, as the cells only gain members). The pooled stages, the dense maps
-and the head are then run in full: the query time enters every cell through the recency maps
-and the image's age, and the pooled graph has a few hundred cells. Image features are computed
-once per image. Once events leave the horizon, the nodes near its start, whose edges or whose
-neighbours' in-degrees reached the events that left, are recomputed from the events of the
-horizon (a prefix of ``(event_blocks + 1) * radius / beta`` microseconds), and the pooled graph
-is rebuilt from the horizon's nodes.
+updated, never recomputed, as the cells only gain members). The pooled stages are then run in
+full (the pooled graph has a few hundred cells). With ``late_query`` the head's towers are
+rerun only at the cells whose event maps changed and the cells their 3x3 layers reach
+(:class:`_Towers`); the query time enters after the towers, through the recency maps and the
+image's age, in 1x1 layers over every cell. Image features are computed once per image. Once
+events leave the horizon, the nodes near its start, whose edges or whose neighbours'
+in-degrees reached the events that left, are recomputed from the events of the horizon (a
+prefix of ``(event_blocks + 1) * radius / beta`` microseconds), and the pooled graph is
+rebuilt from the horizon's nodes.
 """
 from __future__ import annotations
 
@@ -127,6 +129,154 @@ class _Cells:
                            edge_index=torch.stack([local[src], local[dst]]), cluster=occupied.new_zeros(0))
 
 
+def _dilate(mask: torch.Tensor, steps: int) -> torch.Tensor:
+    """``mask (h, w)`` bool grown by ``steps`` cells in each direction (3x3 neighbourhoods)."""
+    grown = mask[None, None].to(torch.float32)
+    for _ in range(steps):
+        grown = torch.nn.functional.max_pool2d(grown, 3, stride=1, padding=1)
+    return grown[0, 0] > 0
+
+
+def _norm_act(block: torch.nn.Sequential, y: torch.Tensor) -> torch.Tensor:
+    """A ``conv_bn_act`` block's batch norm (evaluation mode) and activation on rows ``y (n, C)``."""
+    bn = block[1]
+    return block[2](torch.nn.functional.batch_norm(y, bn.running_mean, bn.running_var, bn.weight, bn.bias,
+                                                   False, 0.0, bn.eps))
+
+
+def _flat(x: torch.Tensor) -> torch.Tensor:
+    """``(1, C, h, w) -> (h w, C)``, cells row-major (a map channels-last)."""
+    return x[0].permute(1, 2, 0).reshape(-1, x.shape[1])
+
+
+_OFFSETS: dict[int, torch.Tensor] = {}  # per padded map width: the flat offsets of a 3x3 neighbourhood
+
+
+def _conv3x3_at(padded: torch.Tensor, width: int, weight: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+    """A 3x3 convolution ("same" padding, no bias) at some cells of a map, from the map zero-padded
+    by one cell and flattened channels-last, ``padded ((h + 2) (w + 2), C)``: ``cells (n,)`` are
+    indices into it (``(row + 1) (w + 2) + column + 1``), ``weight (C_out, 3 3 C)`` the convolution's
+    weight laid out as ``(C_out, row, column, C)``. Returns ``(n, C_out)``."""
+    offsets = _OFFSETS.get(width)
+    if offsets is None:
+        offsets = _OFFSETS[width] = torch.tensor([dy * (width + 2) + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
+    patches = padded[(cells[:, None] + offsets.to(cells.device)[None, :]).reshape(-1)].reshape(len(cells), -1)
+    return patches @ weight.T
+
+
+class _Towers:
+    """The head over a segment's latest event maps, its towers recomputed where the maps changed.
+
+    With ``late_query`` nothing before the towers' outputs depends on the query time: a cell's
+    fused input changes only where its event map does, a first tower layer's output within one
+    cell of such a cell, the second layer's within two. An update compares the new event maps
+    with the last ones (exact equality), runs the pointwise fusion and stem at the changed cells
+    and each 3x3 layer at the cells it can change, from the cached (zero-padded, channels-last)
+    outputs of the layer before; where that is most of a map, the whole map is run instead. The
+    towers' share of the late 1x1 layers is kept per cell, so an answer adds the query maps'
+    share and runs the normalisation, activation and predictions, all 1x1, over every cell.
+    """
+
+    FULL_FRACTION = 0.5  # run the whole map when the cells to recompute are more than this share of it
+
+    def __init__(self, model: Detector):
+        self.model, head = model, model.head
+        hidden = head.stems[0][0].out_channels
+        self.event_maps: list[torch.Tensor] | None = None
+        self.cache: list[dict] = []  # per stride: flat padded stem and first-layer outputs, late layers' tower share
+        # Weights as matrices over rows of cells: 1x1 as (out, in), 3x3 as (out, row, column, in).
+        def matrix(conv):
+            return conv.weight.permute(0, 2, 3, 1).reshape(conv.out_channels, -1)
+        self.weights = []
+        for i in range(len(head.stems)):
+            w = {"stem": matrix(head.stems[i][0])}
+            if model.image is not None:
+                w["fuse"] = matrix(model.fuse[i][0])
+            for name, branch, late in (("cls", head.cls_branches[i], head.cls_late[i]),
+                                       ("reg", head.reg_branches[i], head.reg_late[i])):
+                w[name + "1"], w[name + "2"] = matrix(branch[0][0]), matrix(branch[1][0])
+                w[name + "_tower"], w[name + "_query"] = matrix(late[0])[:, :hidden], matrix(late[0])[:, hidden:]
+            for name in ("reg", "obj", "cls"):
+                w[name + "_pred"] = matrix(getattr(head, name + "_preds")[i])
+            self.weights.append(w)
+
+    def update(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor]) -> None:
+        """Bring the towers up to the event maps ``(1, C, h, w)`` per stride (the image's are fixed)."""
+        if self.event_maps is None:
+            self.cache = [self._full(i, image_maps, event_maps) for i in range(len(event_maps))]
+        else:
+            for i, (new, old) in enumerate(zip(event_maps, self.event_maps)):
+                if new is old:
+                    continue
+                changed = (new != old).any(dim=1)[0]  # (h, w)
+                if not changed.any():
+                    continue
+                near = _dilate(changed, 1)
+                reach = _dilate(near, 1)
+                if (image_maps is not None and image_maps[i + 1].shape[-2:] != new.shape[-2:]) or \
+                        int(reach.sum()) > self.FULL_FRACTION * reach.numel():
+                    self.cache[i] = self._full(i, image_maps, event_maps)
+                else:
+                    self._partial(i, new, changed, near, reach)
+        self.event_maps = list(event_maps)
+
+    def answer(self, query: list[torch.Tensor]) -> tuple[torch.Tensor, list[tuple[int, int]]]:
+        """The head's raw output ``(1, A, 5 + C)`` and map shapes for the query maps ``(1, q, h, w)``."""
+        head, outputs, shapes = self.model.head, [], []
+        for i, (cache, q) in enumerate(zip(self.cache, query)):
+            w, q = self.weights[i], _flat(q)
+            cls = _norm_act(head.cls_late[i], cache["cls_late"] + q @ w["cls_query"].T)
+            reg = _norm_act(head.reg_late[i], cache["reg_late"] + q @ w["reg_query"].T)
+            linear = torch.nn.functional.linear
+            outputs.append(torch.cat([linear(reg, w["reg_pred"], head.reg_preds[i].bias),
+                                      linear(reg, w["obj_pred"], head.obj_preds[i].bias),
+                                      linear(cls, w["cls_pred"], head.cls_preds[i].bias)], dim=1))  # (h w, 5 + C)
+            shapes.append(cache["shape"])
+        return torch.cat(outputs)[None], shapes
+
+    def _full(self, i: int, image_maps, event_maps) -> dict:
+        head, w = self.model.head, self.weights[i]
+        if image_maps is None:
+            fused = event_maps[i]
+        elif image_maps[i + 1].shape[-2:] == event_maps[i].shape[-2:]:  # this stride's fusion alone
+            fused = self.model.fuse[i](torch.cat([image_maps[i + 1], event_maps[i]], dim=1))
+        else:
+            fused = self.model.fuse_maps(image_maps, event_maps)[i]
+        stem = head.stems[i](fused)
+        h, wd = stem.shape[-2:]
+        cache = {"shape": (h, wd), "width": wd,
+                 "image": None if image_maps is None else _flat(image_maps[i + 1]),
+                 "stem": _flat(torch.nn.functional.pad(stem, (1, 1, 1, 1)))}
+        for name, branch in (("cls", head.cls_branches[i]), ("reg", head.reg_branches[i])):
+            first = branch[0](stem)
+            cache[name + "1"] = _flat(torch.nn.functional.pad(first, (1, 1, 1, 1)))
+            cache[name + "_late"] = _flat(branch[1](first)) @ w[name + "_tower"].T
+        return cache
+
+    def _partial(self, i: int, event_map: torch.Tensor, changed: torch.Tensor, near: torch.Tensor,
+                 reach: torch.Tensor) -> None:
+        """Recompute the stem at the ``changed`` cells, the towers' first layers at the cells ``near``
+        them (one cell away at most) and their second layers within ``reach`` (two)."""
+        head, cache, w = self.model.head, self.cache[i], self.weights[i]
+        width = cache["width"]
+
+        def cells(mask):
+            flat = torch.nonzero(mask.flatten()).flatten()  # row-major cell indices
+            return flat, (flat // width + 1) * (width + 2) + flat % width + 1  # and in the padded map
+        flat, padded = cells(changed)
+        x = event_map[0].reshape(event_map.shape[1], -1).index_select(1, flat).T  # (n, C)
+        if cache["image"] is not None:
+            x = _norm_act(self.model.fuse[i], torch.cat([cache["image"][flat], x], dim=1) @ w["fuse"].T)
+        cache["stem"][padded] = _norm_act(head.stems[i], x @ w["stem"].T)
+        _, padded = cells(near)
+        for name, branch in (("cls", head.cls_branches[i]), ("reg", head.reg_branches[i])):
+            cache[name + "1"][padded] = _norm_act(branch[0], _conv3x3_at(cache["stem"], width, w[name + "1"], padded))
+        flat, padded = cells(reach)
+        for name, branch in (("cls", head.cls_branches[i]), ("reg", head.reg_branches[i])):
+            second = _norm_act(branch[1], _conv3x3_at(cache[name + "1"], width, w[name + "2"], padded))
+            cache[name + "_late"][flat] = second @ w[name + "_tower"].T
+
+
 class _Segment:
     """Everything computed since a time origin: one image's events for a hybrid, or a stretch of an
     events-only stream. Node ids are global (the streaming graph's); row ``i`` of the buffers is
@@ -153,6 +303,8 @@ class _Segment:
                              detector.dtype, detector.device) if detector.hybrid else None)
         self.latest = [like.new_full((2 * h * w,), -math.inf) for h, w in detector.map_sizes]
         self.maps: tuple[int, list[torch.Tensor]] | None = None  # a hybrid's event maps, with the node count they saw
+        # The head over the segment's latest event maps (models whose query maps enter after the towers).
+        self.towers = _Towers(model) if model.cfg.late_query else None
 
 
 class StreamingDetector:
@@ -342,24 +494,30 @@ class StreamingDetector:
         else:
             with self._part("horizon start + pooled stages"):
                 event_maps = self._window_maps(t_start)
-        with self._part("recency + fusion + head"):
-            return self._head(event_maps, t_us, t_start, segment.origin_us)
+        return self._head(event_maps, t_us, t_start, segment.origin_us)
 
     def _sample_start(self, t_us: float) -> float:
         """The start of the events the model reads at ``t_us`` (the batch sample's, :func:`sample_start_us`)."""
         return sample_start_us(t_us, self.window_us, self._t_image if self.hybrid else None, self.context_us)
 
     def _head(self, event_maps: list[torch.Tensor], t_us: float, t_start: float, origin: float):
-        t_query = torch.tensor([t_us - origin], dtype=torch.float64, device=self.device)
-        recency = []
-        for latest, (h, w) in zip(self._segment.latest, self.map_sizes):
-            # A cell whose latest event left the horizon has none in the sample.
-            latest = torch.where(latest >= t_start - origin, latest, torch.full_like(latest, -math.inf))
-            recency.append(recency_from_latest(latest.view(1, 2, h, w), t_query, self.model.cfg.recency_us))
         image_maps = self._image[0] if self.hybrid else None
-        age = torch.tensor([t_us - (self._t_image if self.hybrid else origin)], dtype=torch.float64,
-                           device=self.device)
-        return self.model.head(self.model.combine(image_maps, event_maps, recency, age))
+        model = self.model
+        if model.cfg.late_query:
+            with self._part("head towers (changed cells)"):
+                self._segment.towers.update(image_maps, event_maps)
+        with self._part("recency + query head (all cells)"):
+            t_query = torch.tensor([t_us - origin], dtype=torch.float64, device=self.device)
+            recency = []
+            for latest, (h, w) in zip(self._segment.latest, self.map_sizes):
+                # A cell whose latest event left the horizon has none in the sample.
+                latest = torch.where(latest >= t_start - origin, latest, torch.full_like(latest, -math.inf))
+                recency.append(recency_from_latest(latest.view(1, 2, h, w), t_query, model.cfg.recency_us))
+            age = torch.tensor([t_us - (self._t_image if self.hybrid else origin)], dtype=torch.float64,
+                               device=self.device)
+            if model.cfg.late_query:
+                return self._segment.towers.answer(model.query_maps(recency, age))
+            return model.head(*model.combine(image_maps, event_maps, recency, age))
 
     # ---------------------------------------------------------------- internals
     @contextmanager

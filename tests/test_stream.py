@@ -12,7 +12,7 @@ from dagr_lite.data.collate import collate
 from dagr_lite.data.dataset import Sample, sample_start_us
 from dagr_lite.nn.detector import Detector
 from dagr_lite.nn.head import postprocess
-from dagr_lite.stream import REORIGIN_US, StreamingDetector
+from dagr_lite.stream import REORIGIN_US, StreamingDetector, _conv3x3_at, _Towers
 from tests.models import small_detector_config
 
 H, W = 48, 64
@@ -77,7 +77,7 @@ def check_against_batch(stream: StreamingDetector, model: Detector, events: dict
     sample = sample_of(image, tuple(v[:upto][keep] for v in events.values()), origin, t_query)
     with torch.no_grad():
         raw, shapes = stream.head_outputs(t_query)
-        expected_raw, _ = model.head(model.features(collate([sample])))
+        expected_raw, _ = model.head(*model.features(collate([sample])))
     assert raw.dtype == torch.float64
     torch.testing.assert_close(raw, expected_raw, rtol=0, atol=1e-9)
     answer = stream.detect(t_query)
@@ -136,6 +136,41 @@ def test_streaming_equals_the_batch_model_at_any_moment(variant, weights):
     images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 96_000, 190_000)]
     checks, largest, _ = replay(model, events, images, seed=7)
     assert checks >= 20 and largest >= 300  # many answers, some over large samples
+
+
+@pytest.mark.parametrize("variant", ["hybrid", "events_only"])
+@pytest.mark.parametrize("weights", ["untrained", "trained"])
+def test_towers_recomputed_at_changed_cells_only_equal_the_batch_model(variant, weights, monkeypatch):
+    """Events in a corner of a larger frame, the towers never run whole after an image: each
+    answer recomputes the cells the new event maps can reach, and still equals the batch model."""
+    monkeypatch.setattr(_Towers, "FULL_FRACTION", math.inf)
+    partial = []
+    original = _Towers._partial
+    monkeypatch.setattr(_Towers, "_partial", lambda self, *a: partial.append(1) or original(self, *a))
+    model = small_model(variant, seed=6)
+    if weights == "trained":
+        model = trained(model)
+    rng = np.random.default_rng(8)
+    events = random_stream(rng, 2000, 200_000)
+    events["x"], events["y"] = events["x"] // 3, events["y"] // 3  # a 21 x 16 pixel corner of the 64 x 48 frame
+    images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 120_000)]
+    checks, largest, _ = replay(model, events, images, seed=9, detect_prob=0.5, sizes=(0, 1, 2, 5, 40))
+    assert checks >= 20 and largest >= 300 and len(partial) >= 20
+
+
+def test_conv3x3_at_cells_equals_the_convolution():
+    """A 3x3 layer at chosen cells of a padded channels-last map, against the whole convolution
+    (zero padding at the borders)."""
+    torch.manual_seed(0)
+    conv = torch.nn.Conv2d(5, 7, 3, padding=1, bias=False).double()
+    x = torch.randn(1, 5, 6, 9, dtype=torch.float64)
+    rows, cols = torch.tensor([0, 0, 5, 3, 5]), torch.tensor([0, 8, 8, 4, 0])  # corners, borders, inside
+    padded = torch.nn.functional.pad(x, (1, 1, 1, 1))[0].permute(1, 2, 0).reshape(-1, 5)  # (8 * 11, 5)
+    weight = conv.weight.permute(0, 2, 3, 1).reshape(7, -1)
+    with torch.no_grad():
+        got = _conv3x3_at(padded, 9, weight, (rows + 1) * 11 + cols + 1)
+        want = conv(x)[0][:, rows, cols].T
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
 
 
 def test_streaming_equals_the_batch_model_with_head_strides_from_16():
@@ -255,8 +290,11 @@ def hybrid_checkpoint(trained_checkpoints) -> Path:
     return trained_checkpoints["hybrid"]
 
 
-def test_from_checkpoint_matches_the_batch_model_in_float32(hybrid_checkpoint):
-    """A trained checkpoint, float32: equal to the batch model to 1e-5 (relative)."""
+@pytest.mark.parametrize("full_fraction", [_Towers.FULL_FRACTION, math.inf])
+def test_from_checkpoint_matches_the_batch_model_in_float32(hybrid_checkpoint, full_fraction, monkeypatch):
+    """A trained checkpoint, float32: equal to the batch model to 1e-5 (relative), with the
+    towers run whole where events changed most of a map, or always at the changed cells only."""
+    monkeypatch.setattr(_Towers, "FULL_FRACTION", full_fraction)
     stream = StreamingDetector.from_checkpoint(hybrid_checkpoint, conf_threshold=0.0)
     model = stream.model
     assert stream.context_us == 10_000 and next(model.parameters()).dtype == torch.float32
@@ -278,7 +316,7 @@ def test_from_checkpoint_matches_the_batch_model_in_float32(hybrid_checkpoint):
                         image_frame=0, t_start_us=0, t_end_us=int(t_query), t_image_us=20_000)
         with torch.no_grad():
             raw, _ = stream.head_outputs(t_query)
-            expected, _ = model.head(model.features(collate([sample])))
+            expected, _ = model.head(*model.features(collate([sample])))
         torch.testing.assert_close(raw, expected, rtol=1e-5, atol=1e-5)
 
 

@@ -2,11 +2,14 @@
 
 Fusion happens twice: image features sampled (bilinearly) at the event nodes join the node
 features at the event branch's input and at each pooled stage (beside each node's time since
-the image), and at each head stride the event branch's dense map, the recency maps (how
-recently each cell saw events, at the query time), the image map and the image's age (a
-constant plane, in ``time_scale_us``) are concatenated and mixed by a 1x1 convolution, so the
-head can move from the stale image to the events as the image ages. Only the dense maps depend
-on the query time; node features never do (docs/design.md, "The event graph").
+the image), and at each head stride the event branch's dense map and the image map are
+concatenated and mixed by a 1x1 convolution. What depends on the query time, the recency maps
+(how recently each cell saw events) and the image's age (a constant plane, in
+``time_scale_us``), enters the head after its towers (``late_query``, :class:`YOLOXHead`), so
+the head can move from the stale image to the events as the image ages while its towers see
+only what changes when events arrive; node features never depend on the query time
+(docs/design.md, "The event graph"). Checkpoints saved before ``late_query`` read the query
+maps in the fusion, before the towers.
 ``use_events=False`` or ``use_image=False`` switch a branch off (the events-only and image-only
 variants); nothing else changes.
 """
@@ -141,6 +144,9 @@ class DetectorConfig:
             times this weight, joins the fused head's, so the events learn to detect by
             themselves. Detection always reads the fused head. 0: no such head.
         image_stem: the image branch's stride-4 stem, ``"patch"`` or ``"conv"`` (see :class:`ImageBranch`).
+        late_query: the recency maps and the image's age enter the head after its towers (true),
+            so that a streaming answer recomputes the towers only where event maps changed; false:
+            they join the fusion before the towers (the models of checkpoints saved before).
     """
 
     height: int
@@ -159,6 +165,7 @@ class DetectorConfig:
     recency_us: tuple[float, ...]
     event_head_weight: float = 0.0
     image_stem: str = "patch"
+    late_query: bool = True
 
     def __post_init__(self):
         if not (self.use_events or self.use_image):
@@ -193,7 +200,7 @@ class DetectorConfig:
 
 
 # Config keys newer than some checkpoints, with the value that gives those checkpoints' models.
-_ADDED_LATER = {"event_head_weight": 0.0, "image_stem": "conv"}
+_ADDED_LATER = {"event_head_weight": 0.0, "image_stem": "conv", "late_query": False}
 
 
 class Detector(nn.Module):
@@ -215,16 +222,21 @@ class Detector(nn.Module):
         if cfg.use_image and cfg.use_events:
             # 1x1 projections of the image maps (strides 4, 8, 16, 32) sampled at event nodes.
             self.to_nodes = nn.ModuleList(nn.Conv2d(c, cfg.fuse_channels, 1) for c in self.image.channels)
-            # The fusion also reads the recency maps and the image's age, to move from the image to the events.
-            self.fuse = nn.ModuleList(conv_bn_act(ci + ce + 1 + self.num_recency, ci, k=1) for ci, ce in
+            # The fusion mixes the image and event maps (and, without late_query, the query maps).
+            early = 0 if cfg.late_query else 1 + self.num_recency
+            self.fuse = nn.ModuleList(conv_bn_act(ci + ce + early, ci, k=1) for ci, ce in
                                       zip(self.image.channels[1:], self.events.out_channels))
+        late = self.num_query if cfg.late_query else 0
+        early = 0 if cfg.late_query else self.num_recency
         head_in = (list(self.image.channels[1:]) if cfg.use_image
-                   else [c + self.num_recency for c in self.events.out_channels])
-        self.head = YOLOXHead(head_in, self.strides, hidden=cfg.head_hidden, num_classes=cfg.num_classes)
+                   else [c + early for c in self.events.out_channels])
+        self.head = YOLOXHead(head_in, self.strides, hidden=cfg.head_hidden, num_classes=cfg.num_classes,
+                              late_channels=late)
         # Training only: the events' own head (deep supervision of the event branch in a hybrid), at
         # half the width: a quarter of the main head's cost, and the event maps must do more of the work.
-        self.event_head = (YOLOXHead([c + self.num_recency for c in self.events.out_channels], self.strides,
-                                     hidden=max(cfg.head_hidden // 2, 1), num_classes=cfg.num_classes)
+        self.event_head = (YOLOXHead([c + early for c in self.events.out_channels], self.strides,
+                                     hidden=max(cfg.head_hidden // 2, 1), num_classes=cfg.num_classes,
+                                     late_channels=self.num_recency if cfg.late_query else 0)
                            if cfg.use_image and cfg.use_events and cfg.event_head_weight > 0 else None)
         # Training on several processes sets this: the loss normaliser of the global batch (see yolox_losses).
         self.loss_normaliser = None
@@ -235,16 +247,23 @@ class Detector(nn.Module):
         return 2 * len(self.cfg.recency_us) if self.cfg.use_events else 0
 
     @property
+    def num_query(self) -> int:
+        """Channels of the query maps: the recency maps, and in a hybrid the image's age."""
+        return self.num_recency + (1 if self.cfg.use_image and self.cfg.use_events else 0)
+
+    @property
     def graph_spec(self) -> EventGraphSpec | None:
         """The event graph this model reads (None without an event branch)."""
         return self.cfg.graph
 
-    def features(self, batch: Batch) -> list[torch.Tensor]:
-        """The fused maps the head reads, one per stride."""
-        return self._features(batch)[0]
+    def features(self, batch: Batch) -> tuple[list[torch.Tensor], list[torch.Tensor] | None]:
+        """The head's input, one map per stride, and the query maps it reads after its towers
+        (None without ``late_query``): ``model.head(*model.features(batch))`` gives the raw output."""
+        maps, query, _ = self._features(batch)
+        return maps, query
 
-    def _features(self, batch: Batch, image: bool = True) -> tuple[list[torch.Tensor], list[torch.Tensor] | None]:
-        """The fused maps, and in training the event and recency maps the event head reads (else
+    def _features(self, batch: Batch, image: bool = True):
+        """:meth:`features`, and in training the event head's input (its maps and query maps; else
         None). ``image=False``: see :meth:`forward`."""
         if self.image is None:
             image_maps = None
@@ -254,7 +273,7 @@ class Detector(nn.Module):
             image_maps = [torch.zeros(len(batch), c, math.ceil(self.cfg.height / s), math.ceil(self.cfg.width / s),
                                       device=batch.events.device) for c, s in zip(self.image.channels, self.image.strides)]
         if self.events is None:
-            return image_maps[1:], None
+            return image_maps[1:], None, None
         if image_maps is None:
             sampler = None
         elif image:
@@ -266,29 +285,53 @@ class Detector(nn.Module):
         recency = [recency_maps(batch.events, batch.batch_index, batch.age_us, batch_size=len(batch), stride=stride,
                                 height=m.shape[-2], width=m.shape[-1], taus_us=self.cfg.recency_us)
                    for m, stride in zip(event_maps, self.strides)]
-        event_inputs = [torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)]
-        fused = self._fuse(image_maps, event_inputs, batch.age_us)
-        return fused, event_inputs if self.event_head is not None and self.training else None
+        maps, query = self.combine(image_maps, event_maps, recency, batch.age_us)
+        event_inputs = None
+        if self.event_head is not None and self.training:
+            event_inputs = ((event_maps, recency) if self.cfg.late_query else
+                            ([torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)], None))
+        return maps, query, event_inputs
 
     def combine(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor],
-                recency: list[torch.Tensor], age_us: torch.Tensor) -> list[torch.Tensor]:
-        """The head's input from the event maps, the recency maps (``(B, num_recency, h, w)`` per
-        stride, how recently each cell saw events at the query time) and, in a hybrid, the image
-        maps (all strides of :class:`ImageBranch`) and the image's age ``(B,)`` in microseconds."""
-        return self._fuse(image_maps, [torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)], age_us)
-
-    def _fuse(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor],
-              age_us: torch.Tensor) -> list[torch.Tensor]:
-        """:meth:`combine` on event maps already joined with their recency maps."""
+                recency: list[torch.Tensor], age_us: torch.Tensor
+                ) -> tuple[list[torch.Tensor], list[torch.Tensor] | None]:
+        """The head's input (:meth:`fuse_maps`) and its query maps (:meth:`query_maps`) from the
+        event maps, the recency maps (``(B, num_recency, h, w)`` per stride, how recently each
+        cell saw events at the query time) and, in a hybrid, the image maps (all strides of
+        :class:`ImageBranch`) and the image's age ``(B,)`` in microseconds."""
+        if self.cfg.late_query:
+            return self.fuse_maps(image_maps, event_maps), self.query_maps(recency, age_us)
+        joined = [torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)]
         if image_maps is None:
-            return event_maps
-        age = (age_us.to(image_maps[0].dtype) / self.cfg.time_scale_us)[:, None, None, None]  # (B, 1, 1, 1)
+            return joined, None
+        return self._fuse(image_maps, joined, self._age_planes(age_us, image_maps[1:])), None
+
+    def fuse_maps(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor]) -> list[torch.Tensor]:
+        """With ``late_query``, the head's input: the event maps, fused with the image maps in a
+        hybrid. Nothing here depends on the query time."""
+        return event_maps if image_maps is None else self._fuse(image_maps, event_maps, None)
+
+    def query_maps(self, recency: list[torch.Tensor], age_us: torch.Tensor) -> list[torch.Tensor]:
+        """With ``late_query``, what the head reads after its towers: the recency maps and, in a
+        hybrid, the image's age as a constant plane (in ``time_scale_us``)."""
+        if self.image is None:
+            return list(recency)
+        return [torch.cat([r, a], dim=1) for r, a in zip(recency, self._age_planes(age_us, recency))]
+
+    def _age_planes(self, age_us: torch.Tensor, like: list[torch.Tensor]) -> list[torch.Tensor]:
+        """The image's age ``(B,)`` as a ``(B, 1, h, w)`` plane of each map's size and dtype."""
+        return [(age_us.to(m.dtype) / self.cfg.time_scale_us)[:, None, None, None].expand(-1, 1, *m.shape[-2:])
+                for m in like]
+
+    def _fuse(self, image_maps: list[torch.Tensor], event_maps: list[torch.Tensor],
+              age_planes: list[torch.Tensor] | None) -> list[torch.Tensor]:
+        """The fusion's 1x1 convolutions over ``[image map, event map(, age plane)]`` per stride."""
         fused = []
-        for fuse, image_map, event_map in zip(self.fuse, image_maps[1:], event_maps):
+        for i, (fuse, image_map, event_map) in enumerate(zip(self.fuse, image_maps[1:], event_maps)):
             if event_map.shape[-2:] != image_map.shape[-2:]:  # ceil vs floor on odd sizes
                 event_map = F.interpolate(event_map, size=image_map.shape[-2:], mode="nearest")
-            age_plane = age.expand(-1, 1, *image_map.shape[-2:]).to(image_map.dtype)
-            fused.append(fuse(torch.cat([image_map, event_map, age_plane], dim=1)))
+            parts = [image_map, event_map] if age_planes is None else [image_map, event_map, age_planes[i]]
+            fused.append(fuse(torch.cat(parts, dim=1)))
         return fused
 
     def event_node_features(self, batch: Batch) -> torch.Tensor:
@@ -345,12 +388,12 @@ class Detector(nn.Module):
         branch is not run and every image feature the model reads is zero, at the nodes and in
         the fusion (the ``trainer.events_first`` phase; with :meth:`zero_image_weights` this is
         what the hybrid computes with any image)."""
-        fused, event_inputs = self._features(batch, image=image)
-        raw, shapes = self.head(fused)
+        maps, query, event_inputs = self._features(batch, image=image)
+        raw, shapes = self.head(maps, query)
         if self.training:
             out = yolox_losses(raw, shapes, self.strides, batch.boxes, batch.labels, normaliser=self.loss_normaliser)
             if self.event_head is not None:
-                event_raw, event_shapes = self.event_head(event_inputs)
+                event_raw, event_shapes = self.event_head(*event_inputs)
                 events = yolox_losses(event_raw, event_shapes, self.strides, batch.boxes, batch.labels,
                                       normaliser=self.loss_normaliser)
                 out["loss"] = out["loss"] + self.cfg.event_head_weight * events["loss"]

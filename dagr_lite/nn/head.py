@@ -137,13 +137,19 @@ class YOLOXHead(nn.Module):
     Args:
         in_channels: channels of each input map; hidden: branch width; num_classes: classes.
         strides: the stride of each input map, in pixels.
+        late_channels: > 0: each branch's tower output is joined with ``late_channels`` query
+            maps and mixed by a 1x1 convolution (``late``) before the predictions. What the
+            query maps carry (the query time) then never reaches the 3x3 towers, whose output
+            changes only where the input maps change.
 
     Shapes:
-        maps: list of ``(B, C_s, H_s, W_s)`` -> raw ``(B, A, 5 + num_classes)`` with
-        ``A = sum H_s W_s``: box ``(tx, ty, tw, th)``, objectness logit, class logits.
+        maps: list of ``(B, C_s, H_s, W_s)`` (and query: list of ``(B, late_channels, H_s, W_s)``)
+        -> raw ``(B, A, 5 + num_classes)`` with ``A = sum H_s W_s``: box ``(tx, ty, tw, th)``,
+        objectness logit, class logits.
     """
 
-    def __init__(self, in_channels: list[int], strides: list[int], *, hidden: int, num_classes: int):
+    def __init__(self, in_channels: list[int], strides: list[int], *, hidden: int, num_classes: int,
+                 late_channels: int = 0):
         super().__init__()
         self.strides, self.num_classes = list(strides), num_classes
 
@@ -153,6 +159,10 @@ class YOLOXHead(nn.Module):
         self.stems = nn.ModuleList(conv_bn_act(c, hidden, k=1) for c in in_channels)
         self.cls_branches = nn.ModuleList(branch() for _ in strides)
         self.reg_branches = nn.ModuleList(branch() for _ in strides)
+        self.late_channels = late_channels
+        if late_channels:
+            self.cls_late = nn.ModuleList(conv_bn_act(hidden + late_channels, hidden, k=1) for _ in strides)
+            self.reg_late = nn.ModuleList(conv_bn_act(hidden + late_channels, hidden, k=1) for _ in strides)
         self.cls_preds = nn.ModuleList(nn.Conv2d(hidden, num_classes, 1) for _ in strides)
         self.reg_preds = nn.ModuleList(nn.Conv2d(hidden, 4, 1) for _ in strides)
         self.obj_preds = nn.ModuleList(nn.Conv2d(hidden, 1, 1) for _ in strides)
@@ -160,11 +170,27 @@ class YOLOXHead(nn.Module):
         for layer in (*self.cls_preds, *self.obj_preds):
             nn.init.constant_(layer.bias, prior)
 
-    def forward(self, maps: list[torch.Tensor]) -> tuple[torch.Tensor, list[tuple[int, int]]]:
+    def forward(self, maps: list[torch.Tensor], query: list[torch.Tensor] | None = None
+                ) -> tuple[torch.Tensor, list[tuple[int, int]]]:
+        if (query is not None) != bool(self.late_channels):
+            raise ValueError(f"this head reads {self.late_channels} query channels after its towers, "
+                             f"got {'none' if query is None else 'query maps'}")
+        towers = [self.towers(i, x) for i, x in enumerate(maps)]
+        return self.predict(towers, query)
+
+    def towers(self, i: int, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The class and box towers' outputs ``(B, hidden, H_s, W_s)`` at stride ``i`` for input ``x``."""
+        x = self.stems[i](x)
+        return self.cls_branches[i](x), self.reg_branches[i](x)
+
+    def predict(self, towers: list[tuple[torch.Tensor, torch.Tensor]], query: list[torch.Tensor] | None = None
+                ) -> tuple[torch.Tensor, list[tuple[int, int]]]:
+        """The raw output from the towers' outputs of every stride (and the query maps)."""
         outputs, shapes = [], []
-        for i, x in enumerate(maps):
-            x = self.stems[i](x)
-            cls_feat, reg_feat = self.cls_branches[i](x), self.reg_branches[i](x)
+        for i, (cls_feat, reg_feat) in enumerate(towers):
+            if self.late_channels:
+                cls_feat = self.cls_late[i](torch.cat([cls_feat, query[i]], dim=1))
+                reg_feat = self.reg_late[i](torch.cat([reg_feat, query[i]], dim=1))
             out = torch.cat([self.reg_preds[i](reg_feat), self.obj_preds[i](reg_feat), self.cls_preds[i](cls_feat)], 1)
             shapes.append(tuple(out.shape[-2:]))
             outputs.append(out.flatten(2).transpose(1, 2))  # (B, H_s W_s, 5 + C)
