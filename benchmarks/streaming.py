@@ -195,7 +195,7 @@ def bench_scene(state: dict, name: str, rec: Recording, args) -> tuple[float, di
     context_us, window_us = data["context_us"], data["window_us"]
     t0, t1, rate = streamed(rec, args.seconds)
     print(f"\n{name}: {rec.width}x{rec.height}, {(t1 - t0) / 1e6:.2f} s streamed from frame {FIRST_FRAME}, "
-          f"{rate / 1e3:.0f}k events/s; {state['config']['model']['name']} model, images at 30 Hz")
+          f"{rate / 1e3:.0f}k events/s; {label(state)} model, images at 30 Hz")
     moments = np.linspace(t0 + 2_000, t1 - 1, args.full_passes)
     passes = [full_pass(model, rec, m, context_us=context_us, window_us=window_us) for m in moments]
     full_s = float(np.median([p[0] for p in passes]))
@@ -227,6 +227,12 @@ def bench_scene(state: dict, name: str, rec: Recording, args) -> tuple[float, di
     return rate, result
 
 
+def label(state: dict) -> str:
+    """The checkpoint's model name, with ``late query`` where its query maps join the head after its towers."""
+    late = DetectorConfig.from_dict(state["detector"]).late_query
+    return state["config"]["model"]["name"] + (", late query" if late else "")
+
+
 def size_of(text: str) -> tuple[int, int]:
     """``"WxH"`` -> ``(H, W)``."""
     width, height = (int(v) for v in text.lower().split("x"))
@@ -256,7 +262,7 @@ def main() -> None:
             scenes.append(camera_recording(size_of(args.camera), args.seconds, args.camera_rate, Path(workdir))
                           + ("camera",))
         for path, state in states.items():
-            model_name = state["config"]["model"]["name"]
+            model_name = label(state)
             for name, rec, kind in scenes:
                 rate, result = bench_scene(state, name, rec, args)
                 if kind == "stub" and 1.0 in result:

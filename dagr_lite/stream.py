@@ -15,10 +15,12 @@ first GCN stage computes the new nodes only (reading the cached features of olde
 node never changes once computed, as the graph is causal). While no event of a hybrid's
 sample has left the horizon, its first pooled cells take the new nodes in (max and mean are
 updated, never recomputed, as the cells only gain members). The pooled stages are then run in
-full (the pooled graph has a few hundred cells). With ``late_query`` the head's towers are
-rerun only at the cells whose event maps changed and the cells their 3x3 layers reach
-(:class:`_Towers`); the query time enters after the towers, through the recency maps and the
-image's age, in 1x1 layers over every cell. Image features are computed once per image. Once
+full (the pooled graph has a few hundred cells). Without ``late_query`` the recency maps, the
+fusion and the head run over every cell (the query time reaches every cell through the recency
+maps and the image's age); with it the head's towers are rerun only at the cells whose event
+maps changed and the cells their 3x3 layers reach (:class:`_Towers`), and the query time enters
+after the towers, in 1x1 layers over every cell. Image features (and a ``late_query`` hybrid's
+image towers) are computed once per image. Once
 events leave the horizon, the nodes near its start, whose edges or whose neighbours'
 in-degrees reached the events that left, are recomputed from the events of the horizon (a
 prefix of ``(event_blocks + 1) * radius / beta`` microseconds), and the pooled graph is
@@ -172,9 +174,10 @@ class _Towers:
     cell of such a cell, the second layer's within two. An update compares the new event maps
     with the last ones (exact equality), runs the pointwise fusion and stem at the changed cells
     and each 3x3 layer at the cells it can change, from the cached (zero-padded, channels-last)
-    outputs of the layer before; where that is most of a map, the whole map is run instead. The
-    towers' share of the late 1x1 layers is kept per cell, so an answer adds the query maps'
-    share and runs the normalisation, activation and predictions, all 1x1, over every cell.
+    outputs of the layer before; where that is most of a map, the whole map is run instead. A
+    hybrid's image towers run once per image. An answer runs what reads the query maps, all 1x1
+    (the age gates, the late layers and the predictions), over every cell from the cached tower
+    outputs.
     """
 
     FULL_FRACTION = 0.5  # run the whole map when the cells to recompute are more than this share of it
@@ -183,7 +186,8 @@ class _Towers:
         self.model, head = model, model.head
         hidden = head.stems[0][0].out_channels
         self.event_maps: list[torch.Tensor] | None = None
-        self.cache: list[dict] = []  # per stride: flat padded stem and first-layer outputs, late layers' tower share
+        self.image_towers: list[tuple[torch.Tensor, torch.Tensor]] | None = None  # flat, per stride
+        self.cache: list[dict] = []  # per stride: flat stem and tower outputs (the stem and first layers padded)
         # Weights as matrices over rows of cells: 1x1 as (out, in), 3x3 as (out, row, column, in).
         def matrix(conv):
             return conv.weight.permute(0, 2, 3, 1).reshape(conv.out_channels, -1)
@@ -195,15 +199,23 @@ class _Towers:
             for name, branch, late in (("cls", head.cls_branches[i], head.cls_late[i]),
                                        ("reg", head.reg_branches[i], head.reg_late[i])):
                 w[name + "1"], w[name + "2"] = matrix(branch[0][0]), matrix(branch[1][0])
-                w[name + "_tower"], w[name + "_query"] = matrix(late[0])[:, :hidden], matrix(late[0])[:, hidden:]
+                late_w = matrix(late[0])  # reads [tower, (gated image tower,) query maps]
+                towers = 2 * hidden if head.has_image else hidden
+                w[name + "_tower"], w[name + "_image"], w[name + "_query"] = \
+                    late_w[:, :hidden], late_w[:, hidden:towers], late_w[:, towers:]
             for name in ("reg", "obj", "cls"):
                 w[name + "_pred"] = matrix(getattr(head, name + "_preds")[i])
+            if head.has_image:
+                w["gate"] = matrix(head.gates[i])
             self.weights.append(w)
 
     def update(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor]) -> None:
         """Bring the towers up to the event maps ``(1, C, h, w)`` per stride (the image's are fixed)."""
         if self.event_maps is None:
             self.cache = [self._full(i, image_maps, event_maps) for i in range(len(event_maps))]
+            if self.model.head.has_image:  # once per image
+                self.image_towers = [tuple(_flat(t) for t in self.model.head.image_towers(i, m))
+                                     for i, m in enumerate(image_maps[1:])]
         else:
             for i, (new, old) in enumerate(zip(event_maps, self.event_maps)):
                 if new is old:
@@ -225,8 +237,14 @@ class _Towers:
         head, outputs, shapes = self.model.head, [], []
         for i, (cache, q) in enumerate(zip(self.cache, query)):
             w, q = self.weights[i], _flat(q)
-            cls = _norm_act(head.cls_late[i], cache["cls_late"] + q @ w["cls_query"].T)
-            reg = _norm_act(head.reg_late[i], cache["reg_late"] + q @ w["reg_query"].T)
+            cls = cache["cls2"] @ w["cls_tower"].T + q @ w["cls_query"].T
+            reg = cache["reg2"] @ w["reg_tower"].T + q @ w["reg_query"].T
+            if head.has_image:  # the image towers, scaled by the age's gates (one age at every cell)
+                gate = torch.nn.functional.linear(q[:1, -1:], w["gate"], head.gates[i].bias)
+                cls_gate, reg_gate = (2 * torch.sigmoid(gate)).chunk(2, dim=1)
+                cls = cls + (self.image_towers[i][0] * cls_gate) @ w["cls_image"].T
+                reg = reg + (self.image_towers[i][1] * reg_gate) @ w["reg_image"].T
+            cls, reg = _norm_act(head.cls_late[i], cls), _norm_act(head.reg_late[i], reg)
             linear = torch.nn.functional.linear
             outputs.append(torch.cat([linear(reg, w["reg_pred"], head.reg_preds[i].bias),
                                       linear(reg, w["obj_pred"], head.obj_preds[i].bias),
@@ -250,7 +268,7 @@ class _Towers:
         for name, branch in (("cls", head.cls_branches[i]), ("reg", head.reg_branches[i])):
             first = branch[0](stem)
             cache[name + "1"] = _flat(torch.nn.functional.pad(first, (1, 1, 1, 1)))
-            cache[name + "_late"] = _flat(branch[1](first)) @ w[name + "_tower"].T
+            cache[name + "2"] = _flat(branch[1](first))
         return cache
 
     def _partial(self, i: int, event_map: torch.Tensor, changed: torch.Tensor, near: torch.Tensor,
@@ -273,8 +291,7 @@ class _Towers:
             cache[name + "1"][padded] = _norm_act(branch[0], _conv3x3_at(cache["stem"], width, w[name + "1"], padded))
         flat, padded = cells(reach)
         for name, branch in (("cls", head.cls_branches[i]), ("reg", head.reg_branches[i])):
-            second = _norm_act(branch[1], _conv3x3_at(cache[name + "1"], width, w[name + "2"], padded))
-            cache[name + "_late"][flat] = second @ w[name + "_tower"].T
+            cache[name + "2"][flat] = _norm_act(branch[1], _conv3x3_at(cache[name + "1"], width, w[name + "2"], padded))
 
 
 class _Segment:

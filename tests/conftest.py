@@ -88,15 +88,18 @@ def dataset_copy(tmp_path) -> Written:
 
 @pytest.fixture(scope="session")
 def trained_checkpoints(tmp_path_factory) -> dict[str, Path]:
-    """``last.pt`` of a hybrid and of an events-only model trained for three steps on the stub by
-    the training loop, on the CPU in float32, with the default sample settings."""
+    """``last.pt`` of a hybrid, of an events-only model and of a hybrid whose query maps join its
+    head after the towers (``hybrid_late``) trained for three steps on the stub by the training
+    loop, on the CPU in float32, with the default sample settings."""
     from dagr_lite.config import compose_config
     from dagr_lite.engine.train import train
 
     root = tmp_path_factory.mktemp("trained")
     paths = {}
-    for variant in ("hybrid", "events_only"):
-        train(compose_config("train", [f"run_dir={root / variant}", f"model={variant}", "trainer.max_steps=3", "trainer.schedule_by=steps",
+    for variant, model in (("hybrid", "hybrid"), ("events_only", "events_only"), ("hybrid_late", "hybrid")):
+        late = [f"model.late_query={variant.endswith('_late')}"]
+        train(compose_config("train", [f"run_dir={root / variant}", f"model={model}", *late, "trainer.max_steps=3",
+                                       "trainer.schedule_by=steps",
                                        "device=cpu", "trainer.amp=false", "loader.batch_size=4",
                                        "loader.num_workers=0", "trainer.image_every=0", "trainer.warmup_steps=1",
                                        "optim.lr=3e-3"]))

@@ -19,14 +19,19 @@ H, W = 48, 64
 CONTEXT_US, WINDOW_US = 10_000, 33_333
 
 
-def small_model(variant: str, seed: int = 0) -> Detector:
+def small_model(variant: str, seed: int = 0, **changes) -> Detector:
     torch.manual_seed(seed)
-    cfg = small_detector_config(H, W, variant=variant, image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16)
+    cfg = small_detector_config(H, W, variant=variant, image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16,
+                                **changes)
     model = Detector(cfg).double()
     for module in model.modules():  # batch-norm statistics away from the identity
         if isinstance(module, torch.nn.BatchNorm2d):
             module.running_mean.uniform_(-0.2, 0.2)
             module.running_var.uniform_(0.5, 2.0)
+    if model.head.has_image:  # age gates away from their initial 1
+        for gate in model.head.gates:
+            torch.nn.init.uniform_(gate.weight, -2.0, 2.0)
+            torch.nn.init.uniform_(gate.bias, -1.0, 1.0)
     return model.eval()
 
 
@@ -127,8 +132,11 @@ def replay(model: Detector, events: dict, images: list, seed: int, *, detect_pro
 
 @pytest.mark.parametrize("variant", ["hybrid", "events_only"])
 @pytest.mark.parametrize("weights", ["untrained", "trained"])
-def test_streaming_equals_the_batch_model_at_any_moment(variant, weights):
-    model = small_model(variant)
+@pytest.mark.parametrize("late_query", [False, True])
+def test_streaming_equals_the_batch_model_at_any_moment(variant, weights, late_query):
+    """The query maps joined in the fusion (the head run whole) or after the towers (the towers
+    updated at changed cells, run whole where events changed most of a map)."""
+    model = small_model(variant, late_query=late_query)
     if weights == "trained":
         model = trained(model)
     rng = np.random.default_rng(5)
@@ -147,7 +155,7 @@ def test_towers_recomputed_at_changed_cells_only_equal_the_batch_model(variant, 
     partial = []
     original = _Towers._partial
     monkeypatch.setattr(_Towers, "_partial", lambda self, *a: partial.append(1) or original(self, *a))
-    model = small_model(variant, seed=6)
+    model = small_model(variant, seed=6, late_query=True)
     if weights == "trained":
         model = trained(model)
     rng = np.random.default_rng(8)
@@ -187,9 +195,10 @@ def test_streaming_equals_the_batch_model_with_head_strides_from_16():
 
 
 @pytest.mark.parametrize("variant", ["hybrid", "events_only"])
-def test_streaming_stays_exact_across_long_gaps(variant):
+@pytest.mark.parametrize("late_query", [False, True])
+def test_streaming_stays_exact_across_long_gaps(variant, late_query):
     """Gaps longer than the window (everything leaves it) and than the float32 re-origin span."""
-    model = small_model(variant, seed=3)
+    model = small_model(variant, seed=3, late_query=late_query)
     rng = np.random.default_rng(11)
     events = random_stream(rng, 1500, 120_000, gap_at=0.3, gap_us=150_000)
     events["t"][int(0.7 * 1500):] += REORIGIN_US + 500_000
@@ -199,10 +208,11 @@ def test_streaming_stays_exact_across_long_gaps(variant):
     assert checks >= 20 and stream.origin_us > REORIGIN_US  # the events-only origin moved forward
 
 
-def test_the_hybrid_stays_exact_while_its_events_leave_the_horizon():
+@pytest.mark.parametrize("late_query", [False, True])
+def test_the_hybrid_stays_exact_while_its_events_leave_the_horizon(late_query):
     """One image for a long stretch: events leave the horizon, the forgotten rows are dropped and
     the horizon's own pooled graph serves instead of the cells kept since the image."""
-    model = trained(small_model("hybrid", seed=2))
+    model = trained(small_model("hybrid", seed=2, late_query=late_query))
     rng = np.random.default_rng(12)
     events = random_stream(rng, 8000, 400_000)
     images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), 20_000)]
@@ -290,12 +300,16 @@ def hybrid_checkpoint(trained_checkpoints) -> Path:
     return trained_checkpoints["hybrid"]
 
 
-@pytest.mark.parametrize("full_fraction", [_Towers.FULL_FRACTION, math.inf])
-def test_from_checkpoint_matches_the_batch_model_in_float32(hybrid_checkpoint, full_fraction, monkeypatch):
-    """A trained checkpoint, float32: equal to the batch model to 1e-5 (relative), with the
-    towers run whole where events changed most of a map, or always at the changed cells only."""
+@pytest.mark.parametrize(("name", "full_fraction"), [("hybrid", _Towers.FULL_FRACTION),
+                                                     ("hybrid_late", _Towers.FULL_FRACTION),
+                                                     ("hybrid_late", math.inf)])
+def test_from_checkpoint_matches_the_batch_model_in_float32(trained_checkpoints, name, full_fraction, monkeypatch):
+    """A trained checkpoint, float32: equal to the batch model to 1e-5 (relative); with
+    ``late_query``, the towers run whole where events changed most of a map, or always at the
+    changed cells only."""
     monkeypatch.setattr(_Towers, "FULL_FRACTION", full_fraction)
-    stream = StreamingDetector.from_checkpoint(hybrid_checkpoint, conf_threshold=0.0)
+    stream = StreamingDetector.from_checkpoint(trained_checkpoints[name], conf_threshold=0.0)
+    assert stream.model.cfg.late_query == name.endswith("_late")
     model = stream.model
     assert stream.context_us == 10_000 and next(model.parameters()).dtype == torch.float32
     height, width = model.cfg.height, model.cfg.width

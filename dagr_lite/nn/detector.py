@@ -2,14 +2,14 @@
 
 Fusion happens twice: image features sampled (bilinearly) at the event nodes join the node
 features at the event branch's input and at each pooled stage (beside each node's time since
-the image), and at each head stride the event branch's dense map and the image map are
-concatenated and mixed by a 1x1 convolution. What depends on the query time, the recency maps
-(how recently each cell saw events) and the image's age (a constant plane, in
-``time_scale_us``), enters the head after its towers (``late_query``, :class:`YOLOXHead`), so
-the head can move from the stale image to the events as the image ages while its towers see
-only what changes when events arrive; node features never depend on the query time
-(docs/design.md, "The event graph"). Checkpoints saved before ``late_query`` read the query
-maps in the fusion, before the towers.
+the image), and at each head stride the event branch's dense map, the recency maps (how
+recently each cell saw events, at the query time), the image map and the image's age (a
+constant plane, in ``time_scale_us``) are concatenated and mixed by a 1x1 convolution, so the
+head can move from the stale image to the events as the image ages. With ``late_query`` the
+recency maps and the age (the query maps) join the head after its towers instead, and the
+head gets towers of its own over the image maps, gated by the age (:class:`YOLOXHead`): its
+towers then see nothing that depends on the query time. Only the dense maps depend on the
+query time; node features never do (docs/design.md, "The event graph").
 ``use_events=False`` or ``use_image=False`` switch a branch off (the events-only and image-only
 variants); nothing else changes.
 """
@@ -144,9 +144,10 @@ class DetectorConfig:
             times this weight, joins the fused head's, so the events learn to detect by
             themselves. Detection always reads the fused head. 0: no such head.
         image_stem: the image branch's stride-4 stem, ``"patch"`` or ``"conv"`` (see :class:`ImageBranch`).
-        late_query: the recency maps and the image's age enter the head after its towers (true),
-            so that a streaming answer recomputes the towers only where event maps changed; false:
-            they join the fusion before the towers (the models of checkpoints saved before).
+        late_query: the recency maps and the image's age enter the head after its towers, and a
+            hybrid's head has image towers gated by the age (true), so that a streaming answer
+            recomputes the towers only where event maps changed; false: they join the fusion
+            before the towers (as in checkpoints saved before the key).
     """
 
     height: int
@@ -165,7 +166,7 @@ class DetectorConfig:
     recency_us: tuple[float, ...]
     event_head_weight: float = 0.0
     image_stem: str = "patch"
-    late_query: bool = True
+    late_query: bool = False
 
     def __post_init__(self):
         if not (self.use_events or self.use_image):
@@ -231,7 +232,8 @@ class Detector(nn.Module):
         head_in = (list(self.image.channels[1:]) if cfg.use_image
                    else [c + early for c in self.events.out_channels])
         self.head = YOLOXHead(head_in, self.strides, hidden=cfg.head_hidden, num_classes=cfg.num_classes,
-                              late_channels=late)
+                              late_channels=late, image_channels=(list(self.image.channels[1:]) if late and
+                                                                  cfg.use_image and cfg.use_events else None))
         # Training only: the events' own head (deep supervision of the event branch in a hybrid), at
         # half the width: a quarter of the main head's cost, and the event maps must do more of the work.
         self.event_head = (YOLOXHead([c + early for c in self.events.out_channels], self.strides,
@@ -256,11 +258,11 @@ class Detector(nn.Module):
         """The event graph this model reads (None without an event branch)."""
         return self.cfg.graph
 
-    def features(self, batch: Batch) -> tuple[list[torch.Tensor], list[torch.Tensor] | None]:
-        """The head's input, one map per stride, and the query maps it reads after its towers
-        (None without ``late_query``): ``model.head(*model.features(batch))`` gives the raw output."""
-        maps, query, _ = self._features(batch)
-        return maps, query
+    def features(self, batch: Batch) -> tuple[list[torch.Tensor], list[torch.Tensor] | None,
+                                              list[torch.Tensor] | None]:
+        """The head's inputs (:meth:`combine`): ``model.head(*model.features(batch))`` gives the raw output."""
+        maps, query, image, _ = self._features(batch)
+        return maps, query, image
 
     def _features(self, batch: Batch, image: bool = True):
         """:meth:`features`, and in training the event head's input (its maps and query maps; else
@@ -273,7 +275,7 @@ class Detector(nn.Module):
             image_maps = [torch.zeros(len(batch), c, math.ceil(self.cfg.height / s), math.ceil(self.cfg.width / s),
                                       device=batch.events.device) for c, s in zip(self.image.channels, self.image.strides)]
         if self.events is None:
-            return image_maps[1:], None, None
+            return image_maps[1:], None, None, None
         if image_maps is None:
             sampler = None
         elif image:
@@ -285,26 +287,28 @@ class Detector(nn.Module):
         recency = [recency_maps(batch.events, batch.batch_index, batch.age_us, batch_size=len(batch), stride=stride,
                                 height=m.shape[-2], width=m.shape[-1], taus_us=self.cfg.recency_us)
                    for m, stride in zip(event_maps, self.strides)]
-        maps, query = self.combine(image_maps, event_maps, recency, batch.age_us)
+        maps, query, image_inputs = self.combine(image_maps, event_maps, recency, batch.age_us)
         event_inputs = None
         if self.event_head is not None and self.training:
             event_inputs = ((event_maps, recency) if self.cfg.late_query else
                             ([torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)], None))
-        return maps, query, event_inputs
+        return maps, query, image_inputs, event_inputs
 
     def combine(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor],
-                recency: list[torch.Tensor], age_us: torch.Tensor
-                ) -> tuple[list[torch.Tensor], list[torch.Tensor] | None]:
-        """The head's input (:meth:`fuse_maps`) and its query maps (:meth:`query_maps`) from the
-        event maps, the recency maps (``(B, num_recency, h, w)`` per stride, how recently each
-        cell saw events at the query time) and, in a hybrid, the image maps (all strides of
-        :class:`ImageBranch`) and the image's age ``(B,)`` in microseconds."""
+                recency: list[torch.Tensor], age_us: torch.Tensor):
+        """The head's inputs from the event maps, the recency maps (``(B, num_recency, h, w)`` per
+        stride, how recently each cell saw events at the query time) and, in a hybrid, the image
+        maps (all strides of :class:`ImageBranch`) and the image's age ``(B,)`` in microseconds:
+        the maps its towers read (:meth:`fuse_maps`), the query maps it reads after them
+        (:meth:`query_maps`; None without ``late_query``) and the image maps its own image towers
+        read (a hybrid with ``late_query``; else None)."""
         if self.cfg.late_query:
-            return self.fuse_maps(image_maps, event_maps), self.query_maps(recency, age_us)
+            return (self.fuse_maps(image_maps, event_maps), self.query_maps(recency, age_us),
+                    None if image_maps is None else image_maps[1:])
         joined = [torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)]
         if image_maps is None:
-            return joined, None
-        return self._fuse(image_maps, joined, self._age_planes(age_us, image_maps[1:])), None
+            return joined, None, None
+        return self._fuse(image_maps, joined, self._age_planes(age_us, image_maps[1:])), None, None
 
     def fuse_maps(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor]) -> list[torch.Tensor]:
         """With ``late_query``, the head's input: the event maps, fused with the image maps in a
@@ -348,8 +352,9 @@ class Detector(nn.Module):
 
     def zero_image_weights(self) -> None:
         """Zero every weight through which an image feature reaches the output: the columns of the
-        event branch's level inputs that read the image features at the nodes, and those of the
-        fusion's 1x1 convolutions that read the image maps. The hybrid then answers exactly what
+        event branch's level inputs that read the image features at the nodes, those of the
+        fusion's 1x1 convolutions that read the image maps and (``late_query``) the stems of the
+        head's image towers. The hybrid then answers exactly what
         ``forward(image=False)`` answers, whatever its image, until training moves those weights:
         the start of ``trainer.events_first``, in which they stay zero because every image
         feature is zero (no gradient reaches them, and weight decay keeps a zero at zero)."""
@@ -367,7 +372,10 @@ class Detector(nn.Module):
                 first.conv.weight[-k:].zero_()  # (in, out): the last k inputs are the image's
                 first.skip.weight[:, -k:].zero_()  # (out, in)
             for fuse, c in zip(self.fuse, self.image.channels[1:]):
-                fuse[0].weight[:, :c].zero_()  # the fusion reads [image map, event map, age]
+                fuse[0].weight[:, :c].zero_()  # the fusion reads [image map, event map(, age)]
+            if self.head.has_image:  # the head's image towers: their stems
+                for stem in self.head.image_stems:
+                    stem[0].weight.zero_()
 
     def node_maps(self, image_maps: list[torch.Tensor]) -> list[torch.Tensor]:
         """The image maps projected to the channels joined at the event nodes, one per level."""
@@ -388,8 +396,8 @@ class Detector(nn.Module):
         branch is not run and every image feature the model reads is zero, at the nodes and in
         the fusion (the ``trainer.events_first`` phase; with :meth:`zero_image_weights` this is
         what the hybrid computes with any image)."""
-        maps, query, event_inputs = self._features(batch, image=image)
-        raw, shapes = self.head(maps, query)
+        maps, query, image_inputs, event_inputs = self._features(batch, image=image)
+        raw, shapes = self.head(maps, query, image_inputs)
         if self.training:
             out = yolox_losses(raw, shapes, self.strides, batch.boxes, batch.labels, normaliser=self.loss_normaliser)
             if self.event_head is not None:

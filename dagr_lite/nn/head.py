@@ -141,15 +141,20 @@ class YOLOXHead(nn.Module):
             maps and mixed by a 1x1 convolution (``late``) before the predictions. What the
             query maps carry (the query time) then never reaches the 3x3 towers, whose output
             changes only where the input maps change.
+        image_channels: with ``late_channels``, channels of each map of a second input, the
+            image's, which gets towers of its own; their output is scaled per channel by
+            ``2 sigmoid(w a + b)`` of the image's age ``a`` (the last query map, a constant
+            plane; 1 at initialisation) and joins the late layers. The head can so turn down
+            what a stale image says, while the image's towers run once per image.
 
     Shapes:
-        maps: list of ``(B, C_s, H_s, W_s)`` (and query: list of ``(B, late_channels, H_s, W_s)``)
-        -> raw ``(B, A, 5 + num_classes)`` with ``A = sum H_s W_s``: box ``(tx, ty, tw, th)``,
-        objectness logit, class logits.
+        maps: list of ``(B, C_s, H_s, W_s)`` (query: list of ``(B, late_channels, H_s, W_s)``,
+        image: list of ``(B, image_channels[s], H_s, W_s)``) -> raw ``(B, A, 5 + num_classes)``
+        with ``A = sum H_s W_s``: box ``(tx, ty, tw, th)``, objectness logit, class logits.
     """
 
     def __init__(self, in_channels: list[int], strides: list[int], *, hidden: int, num_classes: int,
-                 late_channels: int = 0):
+                 late_channels: int = 0, image_channels: list[int] | None = None):
         super().__init__()
         self.strides, self.num_classes = list(strides), num_classes
 
@@ -159,10 +164,23 @@ class YOLOXHead(nn.Module):
         self.stems = nn.ModuleList(conv_bn_act(c, hidden, k=1) for c in in_channels)
         self.cls_branches = nn.ModuleList(branch() for _ in strides)
         self.reg_branches = nn.ModuleList(branch() for _ in strides)
-        self.late_channels = late_channels
+        if image_channels is not None and not late_channels:
+            raise ValueError("the head's image towers are gated by the image's age, a query map: "
+                             "image_channels needs late_channels > 0")
+        self.late_channels, self.has_image = late_channels, image_channels is not None
+        if self.has_image:
+            self.image_stems = nn.ModuleList(conv_bn_act(c, hidden, k=1) for c in image_channels)
+            self.image_cls_branches = nn.ModuleList(branch() for _ in strides)
+            self.image_reg_branches = nn.ModuleList(branch() for _ in strides)
+            # Per stride, the age's gates of the class and the box image towers' channels.
+            self.gates = nn.ModuleList(nn.Conv2d(1, 2 * hidden, 1) for _ in strides)
+            for gate in self.gates:
+                nn.init.zeros_(gate.weight)
+                nn.init.zeros_(gate.bias)
         if late_channels:
-            self.cls_late = nn.ModuleList(conv_bn_act(hidden + late_channels, hidden, k=1) for _ in strides)
-            self.reg_late = nn.ModuleList(conv_bn_act(hidden + late_channels, hidden, k=1) for _ in strides)
+            late_in = hidden * (2 if self.has_image else 1) + late_channels
+            self.cls_late = nn.ModuleList(conv_bn_act(late_in, hidden, k=1) for _ in strides)
+            self.reg_late = nn.ModuleList(conv_bn_act(late_in, hidden, k=1) for _ in strides)
         self.cls_preds = nn.ModuleList(nn.Conv2d(hidden, num_classes, 1) for _ in strides)
         self.reg_preds = nn.ModuleList(nn.Conv2d(hidden, 4, 1) for _ in strides)
         self.obj_preds = nn.ModuleList(nn.Conv2d(hidden, 1, 1) for _ in strides)
@@ -170,27 +188,40 @@ class YOLOXHead(nn.Module):
         for layer in (*self.cls_preds, *self.obj_preds):
             nn.init.constant_(layer.bias, prior)
 
-    def forward(self, maps: list[torch.Tensor], query: list[torch.Tensor] | None = None
-                ) -> tuple[torch.Tensor, list[tuple[int, int]]]:
-        if (query is not None) != bool(self.late_channels):
-            raise ValueError(f"this head reads {self.late_channels} query channels after its towers, "
-                             f"got {'none' if query is None else 'query maps'}")
+    def forward(self, maps: list[torch.Tensor], query: list[torch.Tensor] | None = None,
+                image: list[torch.Tensor] | None = None) -> tuple[torch.Tensor, list[tuple[int, int]]]:
+        if (query is not None) != bool(self.late_channels) or (image is not None) != self.has_image:
+            raise ValueError(f"this head reads {self.late_channels} query channels after its towers and "
+                             f"{'an' if self.has_image else 'no'} image input, got "
+                             f"{'no' if query is None else ''} query maps and {'no' if image is None else 'an'} image")
         towers = [self.towers(i, x) for i, x in enumerate(maps)]
-        return self.predict(towers, query)
+        image_towers = None if image is None else [self.image_towers(i, x) for i, x in enumerate(image)]
+        return self.predict(towers, query, image_towers)
 
     def towers(self, i: int, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The class and box towers' outputs ``(B, hidden, H_s, W_s)`` at stride ``i`` for input ``x``."""
         x = self.stems[i](x)
         return self.cls_branches[i](x), self.reg_branches[i](x)
 
-    def predict(self, towers: list[tuple[torch.Tensor, torch.Tensor]], query: list[torch.Tensor] | None = None
+    def image_towers(self, i: int, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The image towers' outputs ``(B, hidden, H_s, W_s)`` at stride ``i`` for the image map ``x``."""
+        x = self.image_stems[i](x)
+        return self.image_cls_branches[i](x), self.image_reg_branches[i](x)
+
+    def predict(self, towers: list[tuple[torch.Tensor, torch.Tensor]], query: list[torch.Tensor] | None = None,
+                image_towers: list[tuple[torch.Tensor, torch.Tensor]] | None = None
                 ) -> tuple[torch.Tensor, list[tuple[int, int]]]:
-        """The raw output from the towers' outputs of every stride (and the query maps)."""
+        """The raw output from the towers' outputs of every stride (and the query maps and image towers)."""
         outputs, shapes = [], []
         for i, (cls_feat, reg_feat) in enumerate(towers):
             if self.late_channels:
-                cls_feat = self.cls_late[i](torch.cat([cls_feat, query[i]], dim=1))
-                reg_feat = self.reg_late[i](torch.cat([reg_feat, query[i]], dim=1))
+                cls_parts, reg_parts = [cls_feat], [reg_feat]
+                if image_towers is not None:
+                    cls_gate, reg_gate = (2 * torch.sigmoid(self.gates[i](query[i][:, -1:]))).chunk(2, dim=1)
+                    cls_parts.append(image_towers[i][0] * cls_gate)
+                    reg_parts.append(image_towers[i][1] * reg_gate)
+                cls_feat = self.cls_late[i](torch.cat([*cls_parts, query[i]], dim=1))
+                reg_feat = self.reg_late[i](torch.cat([*reg_parts, query[i]], dim=1))
             out = torch.cat([self.reg_preds[i](reg_feat), self.obj_preds[i](reg_feat), self.cls_preds[i](cls_feat)], 1)
             shapes.append(tuple(out.shape[-2:]))
             outputs.append(out.flatten(2).transpose(1, 2))  # (B, H_s W_s, 5 + C)

@@ -168,13 +168,15 @@ def test_a_time_budget_run_resumes_on_its_own_clock(tmp_path, monkeypatch):
 
 def image_steps(monkeypatch) -> list[tuple[bool, float, float]]:
     """Records, for each training step: whether it reads the image, and the sums of the absolute
-    image-reading weights (the event branch's and the fusion's) and of the image branch's weights
-    before it."""
+    image-reading weights (the event branch's, the fusion's and the head's image stems') and of
+    the image branch's weights before it."""
     seen, original = [], train_module.train_step
 
     @torch.no_grad()
     def sums(model):
         reading = model.fuse[0][0].weight[:, :model.image.channels[1]].abs().sum() if model.image is not None else 0
+        if model.image is not None and model.head.has_image:  # late_query: the head's image towers
+            reading = reading + sum(stem[0].weight.abs().sum() for stem in model.head.image_stems)
         if model.image is not None and model.events is not None:
             reading = reading + model.events.stages[0][0].conv.weight[-model.events.image_channels[0]:].abs().sum()
         branch = sum(p.abs().sum() for p in model.image.parameters()) if model.image is not None else 0

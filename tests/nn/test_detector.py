@@ -72,7 +72,8 @@ def test_the_event_head_adds_its_weighted_loss_in_training_and_leaves_detection_
         assert Detector(small_detector_config(variant=variant, **sizes, event_head_weight=1.0)).event_head is None
 
 
-def test_with_its_image_weights_zeroed_a_hybrid_answers_what_it_answers_without_an_image():
+@pytest.mark.parametrize("late_query", [False, True])
+def test_with_its_image_weights_zeroed_a_hybrid_answers_what_it_answers_without_an_image(late_query):
     """zero_image_weights: the hybrid's features with any frame (the stub's, or noise) equal, to
     the last bit, those of forward(image=False), which runs no image branch; before zeroing, the
     image changes them (the check can fail). In training the zeroed weights get no gradient."""
@@ -81,7 +82,8 @@ def test_with_its_image_weights_zeroed_a_hybrid_answers_what_it_answers_without_
     noise = collate([dataset[i] for i in (0, 40)])
     noise.images.copy_(torch.randint(0, 256, noise.images.shape, dtype=noise.images.dtype))
     torch.manual_seed(0)
-    model = Detector(small_detector_config(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16)).eval()
+    model = Detector(small_detector_config(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16,
+                                           late_query=late_query)).eval()
     with torch.no_grad():
         blank = model._features(batch, image=False)[0]
         assert any(not torch.equal(a, b) for a, b in zip(model.features(batch)[0], blank))
@@ -99,6 +101,8 @@ def test_with_its_image_weights_zeroed_a_hybrid_answers_what_it_answers_without_
     assert first.conv.weight.grad[-8:].abs().sum() == 0 and first.conv.weight.grad[:-8].abs().sum() > 0
     assert first.skip.weight.grad[:, -8:].abs().sum() == 0
     assert model.fuse[0][0].weight.grad[:, :model.image.channels[1]].abs().sum() == 0
+    if late_query:  # the stems of the head's image towers read the image maps
+        assert all(stem[0].weight.grad.abs().sum() == 0 for stem in model.head.image_stems)
     assert all(p.grad is None for p in [*model.image.parameters(), *model.to_nodes.parameters()])
     for variant in ("events_only", "image_only"):
         with pytest.raises(ValueError, match="only a hybrid"):

@@ -38,9 +38,11 @@ def test_an_events_only_branch_started_in_a_hybrid_computes_the_same_maps_whatev
     # (there, with as many channels in as out, the source's skip is the identity: widened from it)
     assert sorted(report["widened"]) == sorted(f"events.stages.{s}.0.{layer}.weight" for s in range(4)
                                                for layer in ("conv", "skip"))
-    # layers reading more inputs outside the event branch keep their own weights (the head's late
-    # layers read the image's age besides the recency maps)
-    wider = ("image.", "to_nodes.", "fuse.", "head.stems.", "head.cls_late.", "head.reg_late.")
+    # layers reading more inputs outside the event branch, or only the hybrid's, keep their own weights
+    # (the head's late layers read the image's age and image towers besides the recency maps; the image
+    # towers and their age gates are the hybrid's)
+    wider = ("image.", "to_nodes.", "fuse.", "head.stems.", "head.cls_late.", "head.reg_late.", "head.gates.",
+             "head.image_")
     assert all(name.startswith(wider) or name.endswith("num_batches_tracked") for name in report["kept"])
     dataset = EventEgoHands(stub_root(), "valid", image_age=3, window_us=15_000)
     batch = collate([dataset[i] for i in (5, 40)])
