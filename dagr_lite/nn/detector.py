@@ -164,9 +164,9 @@ class DetectorConfig:
     graph: EventGraphSpec | None
     time_scale_us: float
     recency_us: tuple[float, ...]
+    late_query: bool
     event_head_weight: float = 0.0
     image_stem: str = "patch"
-    late_query: bool = False
 
     def __post_init__(self):
         if not (self.use_events or self.use_image):
