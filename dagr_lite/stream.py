@@ -131,12 +131,9 @@ class _Cells:
                            edge_index=torch.stack([local[src], local[dst]]), cluster=occupied.new_zeros(0))
 
 
-def _dilate(mask: torch.Tensor, steps: int) -> torch.Tensor:
-    """``mask (h, w)`` bool grown by ``steps`` cells in each direction (3x3 neighbourhoods)."""
-    grown = mask[None, None].to(torch.float32)
-    for _ in range(steps):
-        grown = torch.nn.functional.max_pool2d(grown, 3, stride=1, padding=1)
-    return grown[0, 0] > 0
+def _grow(mask: torch.Tensor) -> torch.Tensor:
+    """``mask (h, w)`` bool grown by one cell in each direction (its 3x3 neighbourhoods)."""
+    return torch.nn.functional.max_pool2d(mask[None, None].to(torch.float32), 3, stride=1, padding=1)[0, 0] > 0
 
 
 def _norm_act(block: torch.nn.Sequential, y: torch.Tensor) -> torch.Tensor:
@@ -223,8 +220,8 @@ class _Towers:
                 changed = (new != old).any(dim=1)[0]  # (h, w)
                 if not changed.any():
                     continue
-                near = _dilate(changed, 1)
-                reach = _dilate(near, 1)
+                near = _grow(changed)
+                reach = _grow(near)
                 if (image_maps is not None and image_maps[i + 1].shape[-2:] != new.shape[-2:]) or \
                         int(reach.sum()) > self.FULL_FRACTION * reach.numel():
                     self.cache[i] = self._full(i, image_maps, event_maps)
@@ -234,7 +231,7 @@ class _Towers:
 
     def answer(self, query: list[torch.Tensor]) -> tuple[torch.Tensor, list[tuple[int, int]]]:
         """The head's raw output ``(1, A, 5 + C)`` and map shapes for the query maps ``(1, q, h, w)``."""
-        head, outputs, shapes = self.model.head, [], []
+        head, outputs, shapes, linear = self.model.head, [], [], torch.nn.functional.linear
         for i, (cache, q) in enumerate(zip(self.cache, query)):
             w, q = self.weights[i], _flat(q)
             cls = cache["cls2"] @ w["cls_tower"].T + q @ w["cls_query"].T
@@ -245,7 +242,6 @@ class _Towers:
                 cls = cls + (self.image_towers[i][0] * cls_gate) @ w["cls_image"].T
                 reg = reg + (self.image_towers[i][1] * reg_gate) @ w["reg_image"].T
             cls, reg = _norm_act(head.cls_late[i], cls), _norm_act(head.reg_late[i], reg)
-            linear = torch.nn.functional.linear
             outputs.append(torch.cat([linear(reg, w["reg_pred"], head.reg_preds[i].bias),
                                       linear(reg, w["obj_pred"], head.obj_preds[i].bias),
                                       linear(cls, w["cls_pred"], head.cls_preds[i].bias)], dim=1))  # (h w, 5 + C)
@@ -253,13 +249,8 @@ class _Towers:
         return torch.cat(outputs)[None], shapes
 
     def _full(self, i: int, image_maps, event_maps) -> dict:
-        head, w = self.model.head, self.weights[i]
-        if image_maps is None:
-            fused = event_maps[i]
-        elif image_maps[i + 1].shape[-2:] == event_maps[i].shape[-2:]:  # this stride's fusion alone
-            fused = self.model.fuse[i](torch.cat([image_maps[i + 1], event_maps[i]], dim=1))
-        else:
-            fused = self.model.fuse_maps(image_maps, event_maps)[i]
+        head = self.model.head
+        fused = event_maps[i] if image_maps is None else self.model.fuse_at(i, image_maps[i + 1], event_maps[i])
         stem = head.stems[i](fused)
         h, wd = stem.shape[-2:]
         cache = {"shape": (h, wd), "width": wd,
@@ -523,7 +514,7 @@ class StreamingDetector:
         if model.cfg.late_query:
             with self._part("head towers (changed cells)"):
                 self._segment.towers.update(image_maps, event_maps)
-        with self._part("recency + query head (all cells)"):
+        with self._part("recency + query head (all cells)" if model.cfg.late_query else "recency + fusion + head"):
             t_query = torch.tensor([t_us - origin], dtype=torch.float64, device=self.device)
             recency = []
             for latest, (h, w) in zip(self._segment.latest, self.map_sizes):

@@ -330,13 +330,16 @@ class Detector(nn.Module):
     def _fuse(self, image_maps: list[torch.Tensor], event_maps: list[torch.Tensor],
               age_planes: list[torch.Tensor] | None) -> list[torch.Tensor]:
         """The fusion's 1x1 convolutions over ``[image map, event map(, age plane)]`` per stride."""
-        fused = []
-        for i, (fuse, image_map, event_map) in enumerate(zip(self.fuse, image_maps[1:], event_maps)):
-            if event_map.shape[-2:] != image_map.shape[-2:]:  # ceil vs floor on odd sizes
-                event_map = F.interpolate(event_map, size=image_map.shape[-2:], mode="nearest")
-            parts = [image_map, event_map] if age_planes is None else [image_map, event_map, age_planes[i]]
-            fused.append(fuse(torch.cat(parts, dim=1)))
-        return fused
+        return [self.fuse_at(i, image_map, event_map, None if age_planes is None else age_planes[i])
+                for i, (image_map, event_map) in enumerate(zip(image_maps[1:], event_maps))]
+
+    def fuse_at(self, i: int, image_map: torch.Tensor, event_map: torch.Tensor,
+                age_plane: torch.Tensor | None = None) -> torch.Tensor:
+        """The fusion of head stride ``i``: its 1x1 convolution over ``[image map, event map(, age plane)]``."""
+        if event_map.shape[-2:] != image_map.shape[-2:]:  # ceil vs floor on odd sizes
+            event_map = F.interpolate(event_map, size=image_map.shape[-2:], mode="nearest")
+        parts = [image_map, event_map] if age_plane is None else [image_map, event_map, age_plane]
+        return self.fuse[i](torch.cat(parts, dim=1))
 
     def event_node_features(self, batch: Batch) -> torch.Tensor:
         """``(N, C)`` features of the batch's event nodes after the event branch's first stage."""
