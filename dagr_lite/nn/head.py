@@ -193,7 +193,7 @@ class YOLOXHead(nn.Module):
         if (query is not None) != bool(self.late_channels) or (image is not None) != self.has_image:
             raise ValueError(f"this head reads {self.late_channels} query channels after its towers and "
                              f"{'an' if self.has_image else 'no'} image input, got "
-                             f"{'no' if query is None else ''} query maps and {'no' if image is None else 'an'} image")
+                             f"{'no' if query is None else 'some'} query maps and {'no' if image is None else 'an'} image")
         towers = [self.towers(i, x) for i, x in enumerate(maps)]
         image_towers = None if image is None else [self.image_towers(i, x) for i, x in enumerate(image)]
         return self.predict(towers, query, image_towers)
