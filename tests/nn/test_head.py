@@ -261,3 +261,18 @@ def test_yolox_losses_without_boxes_are_objectness_only():
     out["loss"].backward()
     expected = torch.tensor([sigmoid(x) for x in (0.3, -1.0, 2.0, -0.5)])  # d BCE(x, 0) / dx = sigmoid(x)
     assert torch.allclose(raw.grad[0, :, 4], expected) and not raw.grad[0, :, :4].any() and not raw.grad[0, :, 5].any()
+
+
+def test_a_late_head_refuses_missing_or_unexpected_query_maps_and_image():
+    late = YOLOXHead([8], [8], hidden=4, num_classes=1, late_channels=2, image_channels=[6])
+    maps, query, image = [torch.zeros(1, 8, 3, 3)], [torch.zeros(1, 2, 3, 3)], [torch.zeros(1, 6, 3, 3)]
+    raw, shapes = late(maps, query, image)
+    assert raw.shape == (1, 9, 6) and shapes == [(3, 3)]
+    with pytest.raises(ValueError, match="reads 2 query channels after its towers and an image input, got no query"):
+        late(maps, None, image)
+    with pytest.raises(ValueError, match="got some query maps and no image"):
+        late(maps, query)
+    with pytest.raises(ValueError, match="reads 0 query channels .* got some query maps"):
+        YOLOXHead([8], [8], hidden=4, num_classes=1)(maps, query)
+    with pytest.raises(ValueError, match="image_channels needs late_channels > 0"):
+        YOLOXHead([8], [8], hidden=4, num_classes=1, image_channels=[6])
