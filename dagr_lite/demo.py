@@ -18,9 +18,10 @@ from pathlib import Path
 import hydra
 import numpy as np
 from omegaconf import DictConfig
-from PIL import Image, ImageDraw
+from PIL import Image
 from tqdm import tqdm
 
+from dagr_lite.camera.render import render_moment
 from dagr_lite.cli import user_errors
 from dagr_lite.config import ConfigError, dataset_root
 from dagr_lite.data import format as fmt
@@ -30,28 +31,6 @@ from dagr_lite.engine.common import resolve_device
 from dagr_lite.stream import StreamingDetector
 
 FORMATS = {".webp": "WEBP", ".gif": "GIF"}
-TEXT_HEIGHT = 14  # pixels of the caption bar above each frame
-
-
-def render_moment(image: np.ndarray, events: dict[str, np.ndarray], boxes: np.ndarray, scores: np.ndarray,
-                  caption: str) -> np.ndarray:
-    """``(14 + H, 2W, 3)`` uint8: the image with the boxes, beside the events (ON red, OFF blue on
-    white) with the same boxes, under a caption."""
-    height, width = image.shape[:2]
-    canvas = np.full((height, width, 3), 255, np.uint8)
-    if len(events["x"]):
-        on = (events["p"] > 0)[:, None]
-        canvas[events["y"].astype(int), events["x"].astype(int)] = np.where(on, [220, 30, 30], [30, 60, 220])
-    frame = Image.new("RGB", (2 * width, height + TEXT_HEIGHT), (0, 0, 0))
-    for i, array in enumerate((image, canvas)):
-        panel = Image.fromarray(np.ascontiguousarray(array))
-        draw = ImageDraw.Draw(panel)
-        for box, score in zip(boxes.tolist(), scores.tolist()):
-            draw.rectangle(box, outline=(0, 230, 0) if i == 0 else (0, 150, 0), width=2)
-            draw.text((box[0] + 2, box[1] + 1), f"{score:.2f}", fill=(0, 230, 0) if i == 0 else (0, 120, 0))
-        frame.paste(panel, (i * width, TEXT_HEIGHT))
-    ImageDraw.Draw(frame).text((4, 1), caption, fill=(255, 255, 255))
-    return np.asarray(frame)
 
 
 class Recording:

@@ -354,19 +354,38 @@ class StreamingDetector:
         self.reset()
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, device: str | torch.device = "cpu", **kwargs) -> "StreamingDetector":
-        """The EMA weights of a training checkpoint, with the horizon and context it was trained with."""
+    def from_checkpoint(cls, path: str | Path, device: str | torch.device = "cpu",
+                        model_size: tuple[int, int] | None = None, **kwargs) -> "StreamingDetector":
+        """The EMA weights of a training checkpoint, with the horizon and context it was trained with.
+
+        ``model_size = (width, height)`` runs the weights at another input size: they do not depend
+        on it (convolutions, and node coordinates normalised by the input's size), while the graph's
+        radius stays in pixels, so accuracy at another size is for a measurement to say."""
+        import dataclasses
+
         from dagr_lite.engine.common import load_checkpoint
         from dagr_lite.engine.evaluate import load_model, trained_sample
         from dagr_lite.nn.detector import DetectorConfig
 
         state = load_checkpoint(path)
         detector = DetectorConfig.from_dict(state["detector"])
+        if model_size is not None:
+            detector = dataclasses.replace(detector, width=int(model_size[0]), height=int(model_size[1]))
         model = load_model(state, detector, (detector.height, detector.width), str(path))
         data = trained_sample(state)
         kwargs = {"context_us": data["context_us"], "window_us": data["window_us"],
                   "refractory_us": data["refractory_us"], **kwargs}
         return cls(model.to(device), **kwargs)
+
+    @property
+    def ready(self) -> bool:
+        """Whether :meth:`detect` can answer: always for events-only, after an image for a hybrid."""
+        return not self.hybrid or self._t_image is not None
+
+    @property
+    def last_event_us(self) -> float:
+        """The time of the latest event pushed (-inf before any): later pushes may not be earlier."""
+        return self._last_t
 
     def reset(self) -> None:
         """Forget every image and event."""

@@ -1,0 +1,70 @@
+"""``python detect.py``: the config to a source, a sensor and a streaming detector, then :func:`run_detect`."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from dagr_lite.camera.detect import VideoSettings, run_detect
+from dagr_lite.camera.recording import open_recording
+from dagr_lite.camera.sensor import Sensor
+from dagr_lite.camera.udp import UdpSource
+from dagr_lite.config import ConfigError
+from dagr_lite.engine.common import resolve_device
+from dagr_lite.stream import StreamingDetector
+
+MODEL_SIZES = ("model", "sensor")
+
+
+def _pair(value, key: str):
+    if value is None:
+        return None
+    value = list(value)
+    if len(value) != 2:
+        raise ConfigError(f"{key}={value}: expected [width, height]")
+    return int(value[0]), int(value[1])
+
+
+def build_source(cfg: DictConfig):
+    """A recording or a live stream, from ``cfg.input`` and its settings."""
+    size = _pair(cfg.sensor.size, "sensor.size")
+    if str(cfg.input).startswith("udp://"):
+        if size is None:
+            raise ConfigError("a live stream does not say its sensor size; give sensor.size=[width,height]")
+        if cfg.frames is not None:
+            raise ConfigError("frames= goes with a recording; a live stream carries events only")
+        return UdpSource(str(cfg.input), size, fmt=cfg.udp.format, idle_s=cfg.udp.idle_s, seconds=cfg.seconds,
+                         wait_first_s=cfg.udp.wait_first_s)
+    return open_recording(cfg.input, size=size, frames=cfg.frames, frame_times=cfg.frame_times, order=cfg.order,
+                          order_window_us=cfg.order_window_us)
+
+
+def build_sensor(cfg: DictConfig, size: tuple[int, int]) -> Sensor:
+    crop = cfg.sensor.crop
+    return Sensor(size=size, crop=None if crop is None else tuple(int(v) for v in crop), scale=int(cfg.sensor.scale),
+                  rotate=int(cfg.sensor.rotate), flip_x=bool(cfg.sensor.flip_x), flip_y=bool(cfg.sensor.flip_y))
+
+
+def detect(cfg: DictConfig) -> dict:
+    """Run ``cfg.ckpt`` over ``cfg.input``; returns the summary (see :mod:`dagr_lite.camera.detect`)."""
+    if cfg.sensor.model_size not in MODEL_SIZES:
+        raise ConfigError(f"sensor.model_size={cfg.sensor.model_size!r}: expected one of {MODEL_SIZES}")
+    source = build_source(cfg)
+    sensor = build_sensor(cfg, source.size)
+    model_size = sensor.output_size if cfg.sensor.model_size == "sensor" else None
+    stream = StreamingDetector.from_checkpoint(cfg.ckpt, device=resolve_device(cfg.device), model_size=model_size,
+                                               conf_threshold=cfg.conf_threshold,
+                                               nms_threshold=cfg.eval.nms_threshold)
+    out = Path(cfg.out) if cfg.out is not None else Path("runs/detect") / time.strftime("%Y-%m-%d/%H-%M-%S")
+    video = VideoSettings(**OmegaConf.to_container(cfg.video))
+    live = isinstance(source, UdpSource)
+    if live:
+        print(f"listening on {cfg.input} ({source.size[0]}x{source.size[1]} sensor); Ctrl-C stops", flush=True)
+    summary = run_detect(stream, source, sensor, out, rate_hz=cfg.rate_hz, video=video, seconds=cfg.seconds,
+                         live=live, overwrite=cfg.overwrite)
+    rtf = summary["real_time_factor"]
+    print(f"{summary['events_in']} events, {summary['recording_seconds']:.2f} s of recording, {summary['answers']} "
+          f"answers -> {out}\nlatency median {summary['latency_ms_median']:.1f} ms, p95 "
+          f"{summary['latency_ms_p95']:.1f} ms; real-time factor {rtf if rtf is None else round(rtf, 3)}", flush=True)
+    return summary

@@ -1,0 +1,250 @@
+"""A checkpoint over a recording or a live stream: detections in the sensor's pixels, a video, a summary.
+
+:func:`run_detect` feeds the streaming detector in time order: events through the :class:`Sensor`
+to the model's pixels, frames the same way. It answers every ``1 / rate_hz`` seconds of recording
+and at every frame's time, just before that frame is pushed, so an answer at a frame is the
+evaluated sample (the previous image, image age 1, and the events up to the frame). A live source
+(:class:`~dagr_lite.camera.udp.UdpSource`) is answered at most ``rate_hz`` times per second of
+stream, at its latest event, and never drops what arrived while the detector was busy.
+
+Writes into ``out``: ``detections.jsonl`` (one line per answer: ``t_us``, ``boxes`` xyxy in sensor
+pixels, ``scores``, ``latency_ms``), ``detections.mp4`` (recent events, the latest frame, the boxes,
+the time and the update's latency) and ``summary.json``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from dagr_lite.camera.recording import Events, concat, take
+from dagr_lite.camera.render import Mp4Writer, render_moment
+from dagr_lite.camera.sensor import Sensor, fit_sensor
+from dagr_lite.stream import StreamingDetector
+
+SUMMARY = "summary.json"
+DETECTIONS = "detections.jsonl"
+VIDEO = "detections.mp4"
+
+
+@dataclass
+class VideoSettings:
+    """The MP4: ``fps`` frames per second played, ``rate_hz`` pictures per second of recording (at
+    most one per answer; ``rate_hz = fps``: real time), events of the last ``events_ms``."""
+    enabled: bool = True
+    fps: float = 30.0
+    rate_hz: float = 60.0
+    events_ms: float = 10.0
+    max_seconds: float | None = None  # of recording; None: all of it
+
+
+class _Output:
+    """The answers as they are made: the JSON lines, the video, the counts."""
+
+    def __init__(self, out: Path, sensor: Sensor, video: VideoSettings, live: bool):
+        self.out, self.sensor, self.video, self.live = out, sensor, video, live
+        self.lines = open(out / DETECTIONS, "w")
+        self.mp4 = Mp4Writer(out / VIDEO, fps=video.fps) if video.enabled else None
+        self.latencies: list[float] = []
+        self.answers = 0
+        self.last_picture_t = -math.inf
+        self.recent: list[Events] = []  # sensor events of the last events_ms, for the video
+        self.frame: np.ndarray | None = None  # the latest frame, sensor pixels
+        self.frame_t: int | None = None
+
+    def add_events(self, events: Events, now: float) -> None:
+        if self.mp4 is None:
+            return
+        self.recent.append(events)
+        keep_from = now - 1e3 * self.video.events_ms
+        while len(self.recent) > 1 and (not len(self.recent[0]["t"]) or self.recent[0]["t"][-1] < keep_from):
+            self.recent.pop(0)
+
+    def answer(self, t_us: float, result: dict, latency: float, t_start: float) -> None:
+        boxes = self.sensor.boxes_to_sensor(result["boxes"])
+        record = {"t_us": int(round(t_us)), "boxes": np.round(boxes, 2).tolist(),
+                  "scores": np.round(result["scores"].astype(np.float64), 4).tolist(),
+                  "latency_ms": round(1e3 * latency, 3)}
+        self.lines.write(json.dumps(record) + "\n")
+        self.latencies.append(latency)
+        self.answers += 1
+        if self.live:
+            print(f"t {t_us / 1e6:10.4f} s  {len(boxes)} hands  {json.dumps(record['boxes'])}  "
+                  f"({1e3 * latency:.1f} ms)", flush=True)
+        self._picture(t_us, boxes, result["scores"], latency, t_start)
+
+    def _picture(self, t_us, boxes, scores, latency, t_start) -> None:
+        if self.mp4 is None or t_us - self.last_picture_t < 1e6 / self.video.rate_hz:
+            return
+        if self.video.max_seconds is not None and t_us - t_start > 1e6 * self.video.max_seconds:
+            return
+        self.last_picture_t = t_us
+        width, height = self.sensor.size
+        recent = concat(self.recent)
+        recent = take(recent, recent["t"] >= t_us - 1e3 * self.video.events_ms)
+        image = self.frame if self.frame is not None else np.zeros((height, width, 3), np.uint8)
+        age = "no frame" if self.frame_t is None else f"frame age {(t_us - self.frame_t) / 1e3:5.1f} ms"
+        caption = (f"t {(t_us - t_start) / 1e6:7.3f} s  {age}  update {1e3 * latency:5.1f} ms  "
+                   f"{len(boxes)} hands")
+        self.mp4.write(render_moment(image, recent, boxes, scores, caption))
+
+    def close(self) -> Path | None:
+        self.lines.close()
+        return self.mp4.close() if self.mp4 is not None else None
+
+
+def check_out(out: Path, overwrite: bool) -> None:
+    taken = [out / name for name in (SUMMARY, DETECTIONS, VIDEO) if (out / name).exists()]
+    if taken and not overwrite:
+        raise FileExistsError(f"{taken[0]} already exists; choose another out= (or overwrite=true)")
+    out.mkdir(parents=True, exist_ok=True)
+
+
+def run_detect(stream: StreamingDetector, source, sensor: Sensor, out: Path | str, *, rate_hz: float,
+               video: VideoSettings | None = None, seconds: float | None = None, live: bool = False,
+               progress: bool = True, overwrite: bool = False) -> dict:
+    """Run ``stream`` over ``source`` (a :class:`~dagr_lite.camera.recording.Recording` or a
+    :class:`~dagr_lite.camera.udp.UdpSource`); writes into ``out`` (see the module). Returns the summary."""
+    if not rate_hz > 0:
+        raise ValueError(f"rate_hz must be positive, got {rate_hz}")
+    if stream.hybrid and not source.has_frames:
+        raise ValueError(f"{source.path}: the model is a hybrid and needs frames, but the input carries none; give "
+                         "frames=DIR|VIDEO (with timestamps) or use an events-only checkpoint")
+    fit_sensor(sensor, (stream.width, stream.height))
+    out = Path(out)
+    check_out(out, overwrite)
+    output = _Output(out, sensor, video or VideoSettings(), live)
+    runner = _Runner(stream, sensor, output, 1e6 / rate_hz, live)
+    bar = None
+    try:
+        frames = iter(source.frames())
+        runner.next_frame = next(frames, None)
+        runner.frames = frames
+        bar = tqdm(desc=f"detect {Path(str(source.path)).name}", unit=" ev", unit_scale=True,
+                   disable=not progress or live)
+        for chunk in source.events():
+            bar.update(len(chunk["t"]))
+            if seconds is not None and runner.t_first is not None and chunk["t"][0] > runner.t_first + 1e6 * seconds:
+                break
+            runner.feed(chunk)
+        runner.finish()
+    except KeyboardInterrupt:
+        print("stopped; writing what was made", flush=True)
+    finally:
+        if bar is not None:
+            bar.close()
+        video_path = output.close()
+    summary = runner.summary(source, video_path)
+    (out / SUMMARY).write_text(json.dumps(summary, indent=1))
+    return summary
+
+
+class _Runner:
+    """The time-ordered feeding of one source (see :func:`run_detect`)."""
+
+    def __init__(self, stream: StreamingDetector, sensor: Sensor, output: _Output, step_us: float, live: bool):
+        self.stream, self.sensor, self.output, self.step_us, self.live = stream, sensor, output, step_us, live
+        self.pending: list[Events] = []  # model-pixel events read but not yet pushed
+        self.t_first: float | None = None
+        self.next_stop: float | None = None
+        self.frames, self.next_frame = iter(()), None
+        self.events_in = self.events_used = self.frames_used = 0
+        self.late_dropped = 0  # live: events older than those already read (reported, not hidden)
+        self.busy_s = 0.0  # wall time in the detector (push + detect)
+        self.t_last: float | None = None
+        self.wall_start = time.perf_counter()
+
+    def feed(self, chunk: Events) -> None:
+        self.events_in += len(chunk["t"])
+        if self.t_first is None:
+            self.t_first = float(chunk["t"][0])
+            self.next_stop = self.t_first + self.step_us
+        self.t_last = float(chunk["t"][-1])
+        self.output.add_events(chunk, self.t_last)
+        mapped = self.sensor.events(chunk)
+        if self.live:  # a datagram that came late: older than what the detector has read
+            late = mapped["t"] < self.stream.last_event_us
+            if late.any():
+                self.late_dropped += int(late.sum())
+                mapped = take(mapped, ~late)
+        self.events_used += len(mapped["t"])
+        self.pending.append(mapped)
+        if self.live:  # answer at the latest event, at most once per step
+            self._push_frames_until(self.t_last)
+            if self.t_last >= self.next_stop:
+                self._answer(self.t_last + 1, frame_due=False)
+                self.next_stop = self.t_last + self.step_us
+            return
+        self._answer_until(self.t_last)
+
+    def _answer_until(self, t_known: float) -> None:
+        """Answer at every stop before ``t_known`` (events up to it have all been read)."""
+        while True:
+            frame_t = self.next_frame[0] if self.next_frame is not None else math.inf
+            stop = min(self.next_stop, frame_t)
+            if stop > t_known:
+                return
+            self._answer(stop, frame_due=frame_t <= stop)
+            if self.next_stop <= stop:
+                self.next_stop += self.step_us * (1 + math.floor((stop - self.next_stop) / self.step_us))
+
+    def _push_frames_until(self, t_us: float) -> None:
+        while self.next_frame is not None and self.next_frame[0] <= t_us:
+            self._push_frame()
+
+    def _push_frame(self) -> None:
+        t_frame, image = self.next_frame
+        tic = time.perf_counter()
+        self.stream.push_image(self.sensor.frame(image), t_frame)
+        self.busy_s += time.perf_counter() - tic
+        self.output.frame, self.output.frame_t = image, t_frame
+        self.frames_used += 1
+        self.next_frame = next(self.frames, None)
+
+    def _answer(self, stop: float, frame_due: bool) -> None:
+        events = concat(self.pending)
+        cut = int(np.searchsorted(events["t"], stop, side="left"))
+        now_events, rest = take(events, slice(0, cut)), take(events, slice(cut, None))
+        self.pending = [rest]
+        tic = time.perf_counter()
+        self.stream.push_events(**now_events)
+        result = self.stream.detect(stop) if self.stream.ready else None
+        latency = time.perf_counter() - tic
+        self.busy_s += latency
+        if result is not None:
+            self.output.answer(stop, result, latency, self.t_first)
+        if frame_due:
+            self._push_frame()
+
+    def finish(self) -> None:
+        if self.t_first is None:
+            return
+        if not self.live:
+            self._answer_until(self.t_last)
+        if any(len(p["t"]) for p in self.pending):
+            self._answer(self.t_last + 1, frame_due=False)
+
+    def summary(self, source, video_path: Path | None) -> dict:
+        span_s = 0.0 if self.t_first is None else (self.t_last - self.t_first) / 1e6
+        latency = np.array(self.output.latencies) if self.output.latencies else np.zeros(1)
+        result = {"input": str(source.path), "sensor": list(self.sensor.size),
+                  "model_input": list(self.sensor.output_size), "events_in": self.events_in,
+                  "events_in_model_view": self.events_used, "frames": self.frames_used,
+                  "recording_seconds": span_s, "detector_seconds": self.busy_s,
+                  "wall_seconds": time.perf_counter() - self.wall_start,
+                  "events_per_second_sustained": self.events_in / self.busy_s if self.busy_s else None,
+                  "real_time_factor": span_s / self.busy_s if self.busy_s else None,
+                  "answers": self.output.answers, "latency_ms_median": 1e3 * float(np.median(latency)),
+                  "latency_ms_p95": 1e3 * float(np.percentile(latency, 95)),
+                  "video": None if video_path is None else str(video_path)}
+        if getattr(source, "order", None) is not None:
+            result["out_of_order_events_sorted"] = source.order.out_of_order
+        if getattr(source, "stats", None) is not None:
+            result["udp"] = {**dataclasses.asdict(source.stats), "late_events_dropped": self.late_dropped}
+        return result

@@ -1,0 +1,398 @@
+"""Event recordings of any camera, read in time-ordered chunks.
+
+:func:`open_recording` reads, by the file's suffix:
+
+=================  =============================================  ==========================
+suffix             camera / format                                read by
+=================  =============================================  ==========================
+``.aedat4``        iniVation DAVIS, DVXplorer (frame tracks too)  faery
+``.raw``           Prophesee EVT2, EVT2.1, EVT3                   faery
+``.dat``           Prophesee DAT                                  faery
+``.es``            Event Stream (ATIS, DVS)                       faery
+``.csv``           ``t,x,y,on`` text                              faery
+``.h5``            this package's dataset layout                  :class:`~dagr_lite.data.reader.EventFile`
+=================  =============================================  ==========================
+
+Events come as dicts of numpy arrays ``x, y, t, p`` (``t`` int64 microseconds on the recording's own
+clock, which need not start at 0; ``p`` 0 or 1), a chunk at a time, so a recording of hundreds of
+millions of events never sits in memory whole. Real recordings are not always in time order: with
+``order="sort"`` events are sorted within a buffer of ``order_window_us``, and an event later than
+that is an error naming where it is; with ``order="refuse"`` the first disorder is an error that
+says how many events are out of order and where the first is.
+
+Frames come from the recording's own frame track (AEDAT4), from a frame folder (``frames=DIR``
+with ``timestamps.txt``, one time in microseconds per image in name order) or a video file
+(``frames=FILE.mp4``; times from ``frame_times=FILE`` or else the video's own clock), as
+``(t_us, (H, W, 3) uint8)`` in time order, one frame in memory at a time.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from dagr_lite.data import format as fmt
+from dagr_lite.data.reader import EventFile, list_frames, read_frame
+
+FAERY_SUFFIXES = {".aedat4": "aedat", ".raw": "evt", ".dat": "dat", ".es": "es", ".csv": "csv"}
+H5_SUFFIXES = (".h5", ".hdf5")
+SUFFIXES = tuple(FAERY_SUFFIXES) + H5_SUFFIXES
+ORDERS = ("sort", "refuse")
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
+TIMESTAMPS_FILE = "timestamps.txt"
+H5_CHUNK = 1 << 18  # events per chunk read from an h5 file
+
+Events = dict  # {"x", "y", "t", "p"}: 1-D numpy arrays of one length
+
+
+class RecordingError(ValueError):
+    """A recording that cannot be read as asked; the message names the file."""
+
+
+def empty_events() -> Events:
+    return {"x": np.zeros(0, np.int64), "y": np.zeros(0, np.int64), "t": np.zeros(0, np.int64),
+            "p": np.zeros(0, np.int64)}
+
+
+def concat(chunks: list[Events]) -> Events:
+    return empty_events() if not chunks else {k: np.concatenate([c[k] for c in chunks]) for k in "xytp"}
+
+
+def take(events: Events, index) -> Events:
+    return {k: v[index] for k, v in events.items()}
+
+
+@dataclass
+class OrderStats:
+    """What the time-order check saw: events read and events found earlier than one read before."""
+    events: int = 0
+    out_of_order: int = 0
+    first_at: int | None = None  # index (in the recording) of the first event out of order
+    first_t: int | None = None
+    first_after: int | None = None
+
+
+class TimeOrder:
+    """Puts chunks of events in time order within a bounded buffer, or refuses disorder.
+
+    ``push`` takes a chunk as read and returns the events now certain to be in order: those at
+    least ``window_us`` older than the latest time seen (sorted, stable); ``flush`` returns the
+    rest. An event arriving after events ``window_us`` or more later than it were already given
+    out raises; ``order="refuse"`` raises at the first disorder (after ``count_rest`` has counted
+    the rest of the recording, so the message says how many).
+    """
+
+    def __init__(self, where: str, order: str, window_us: int):
+        if order not in ORDERS:
+            raise RecordingError(f"order={order!r}: expected one of {ORDERS}")
+        if window_us < 0:
+            raise RecordingError(f"order_window_us must be >= 0, got {window_us}")
+        self.where, self.order, self.window_us = where, order, int(window_us)
+        self.stats = OrderStats()
+        self._pending: list[Events] = []
+        self._max_t = -math.inf  # latest time read
+        self._given_t = -math.inf  # latest time given out
+
+    def _check(self, t: np.ndarray) -> np.ndarray:
+        """Indices in ``t`` of events earlier than an event read before them; updates the counts."""
+        running = np.maximum.accumulate(np.concatenate([[self._max_t], t.astype(np.float64)]))
+        late = np.flatnonzero(t < running[:-1])
+        if len(late) and self.stats.first_at is None:
+            i = int(late[0])
+            self.stats.first_at, self.stats.first_t = self.stats.events + i, int(t[i])
+            self.stats.first_after = int(running[i])
+        self.stats.out_of_order += len(late)
+        self.stats.events += len(t)
+        self._max_t = float(running[-1])
+        return late
+
+    def refused(self) -> RecordingError:
+        s = self.stats
+        return RecordingError(
+            f"{self.where}: {s.out_of_order} of {s.events} events are out of time order; the first is event "
+            f"{s.first_at} at t={s.first_t} us, after an event at t={s.first_after} us (order=sort sorts them "
+            f"within order_window_us)")
+
+    def push(self, chunk: Events) -> Events:
+        t = np.asarray(chunk["t"], np.int64)
+        chunk = {k: np.asarray(chunk[k]) for k in "xyp"} | {"t": t}
+        late = self._check(t)
+        if self.order == "refuse":
+            if len(late):
+                raise self.refused()
+            self._given_t = self._max_t
+            return chunk
+        if len(t) and t.min() < self._given_t:
+            i = int(np.argmax(t < self._given_t))
+            raise RecordingError(
+                f"{self.where}: event {self.stats.events - len(t) + i} at t={int(t[i])} us arrives after events "
+                f"up to t={int(self._given_t)} us were read: it is more than order_window_us={self.window_us} "
+                "late; raise order_window_us")
+        self._pending.append(chunk)
+        return self._release(self._max_t - self.window_us)
+
+    def flush(self) -> Events:
+        return self._release(math.inf)
+
+    def _release(self, before: float) -> Events:
+        pending = concat(self._pending)
+        if not len(pending["t"]):
+            self._pending = []
+            return pending
+        order = np.argsort(pending["t"], kind="stable")
+        pending = take(pending, order)
+        cut = int(np.searchsorted(pending["t"], before, side="right")) if math.isfinite(before) else len(order)
+        ready = take(pending, slice(0, cut))
+        self._pending = [take(pending, slice(cut, None))]
+        if cut:
+            self._given_t = max(self._given_t, float(ready["t"][-1]))
+        return ready
+
+
+@dataclass
+class Recording:
+    """An event recording: its sensor ``size = (width, height)``, its event chunks and its frames.
+
+    ``events()`` and ``frames()`` each read the recording afresh; ``order`` (the
+    :class:`OrderStats` of the last ``events()`` pass) says what the time-order check saw.
+    """
+    path: Path
+    kind: str
+    size: tuple[int, int]
+    _chunks: Callable[[], Iterator[Events]] = field(repr=False)
+    _frames: Callable[[], Iterator[tuple[int, np.ndarray]]] | None = field(repr=False, default=None)
+    order_mode: str = "sort"
+    order_window_us: int = 10_000
+    order: OrderStats = field(default_factory=OrderStats)
+
+    @property
+    def has_frames(self) -> bool:
+        return self._frames is not None
+
+    def events(self) -> Iterator[Events]:
+        """Chunks of events in time order (no chunk is empty)."""
+        sorter = TimeOrder(str(self.path), self.order_mode, self.order_window_us)
+        self.order = sorter.stats
+        read = 0
+        try:
+            for raw in self._chunks():
+                read += len(raw["t"])
+                try:
+                    ready = sorter.push(raw)
+                except RecordingError:
+                    if self.order_mode == "refuse":
+                        for rest in self._chunks_after(read):
+                            sorter._check(np.asarray(rest["t"], np.int64))
+                        raise sorter.refused() from None
+                    raise
+                if len(ready["t"]):
+                    yield self._checked(ready)
+        except RecordingError:
+            raise
+        except Exception as err:  # a decoder's own error: truncated or corrupt data
+            raise RecordingError(f"{self.path}: cannot read it as {self.kind} after {read} events ({err}); the file "
+                                 "may be truncated or corrupt") from err
+        ready = sorter.flush()
+        if len(ready["t"]):
+            yield self._checked(ready)
+
+    def _chunks_after(self, read: int) -> Iterator[Events]:
+        """The chunks after the first ``read`` events (to count disorder in the rest of the file)."""
+        seen = 0
+        for raw in self._chunks():
+            seen += len(raw["t"])
+            if seen > read:
+                yield raw
+
+    def _checked(self, events: Events) -> Events:
+        width, height = self.size
+        bad = (events["x"] < 0) | (events["x"] >= width) | (events["y"] < 0) | (events["y"] >= height)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise RecordingError(f"{self.path}: event at t={int(events['t'][i])} us lies at ({int(events['x'][i])}, "
+                                 f"{int(events['y'][i])}), outside the {width}x{height} sensor its header declares")
+        return {"x": events["x"].astype(np.int64), "y": events["y"].astype(np.int64), "t": events["t"],
+                "p": (events["p"] > 0).astype(np.int64)}
+
+    def frames(self) -> Iterator[tuple[int, np.ndarray]]:
+        """``(t_us, (H, W, 3) uint8)`` in time order; nothing if the recording has no frames."""
+        if self._frames is None:
+            return iter(())
+        return self._frames()
+
+
+def _faery_chunks(path: Path, kind: str, size: tuple[int, int] | None) -> tuple[tuple[int, int], Callable]:
+    import faery
+
+    kwargs = {"dimensions_fallback": tuple(size)} if size is not None else {}
+    try:
+        decoder = faery.events_stream_from_file(path, **kwargs)
+        dimensions = tuple(int(v) for v in decoder.dimensions())
+    except Exception as err:
+        raise RecordingError(f"{path}: cannot open it as {kind} ({err}); the file may be truncated, corrupt or "
+                             "of another format") from err
+    if size is not None and kind in ("aedat", "es") and tuple(size) != dimensions:
+        raise RecordingError(f"{path}: its header declares a {dimensions[0]}x{dimensions[1]} sensor, but "
+                             f"sensor.size={list(size)} was given")
+
+    def chunks() -> Iterator[Events]:
+        for packet in faery.events_stream_from_file(path, **kwargs):
+            if len(packet):
+                yield {"x": packet["x"], "y": packet["y"], "t": packet["t"].astype(np.int64), "p": packet["on"]}
+
+    return dimensions, chunks
+
+
+def _aedat_frames(path: Path, size: tuple[int, int]) -> Callable | None:
+    from faery.extension import aedat
+
+    with aedat.Decoder(path) as decoder:
+        tracks = [track for track in decoder.tracks() if track.data_type == "frame"]
+    if not tracks:
+        return None
+    track = tracks[0]
+    if track.dimensions is not None and tuple(track.dimensions) != tuple(size):
+        raise RecordingError(f"{path}: its frame track {track.id} is {track.dimensions[0]}x{track.dimensions[1]}, "
+                             f"its events {size[0]}x{size[1]}; frames and events must share the sensor")
+
+    def frames() -> Iterator[tuple[int, np.ndarray]]:
+        with aedat.Decoder(path) as decoder:
+            for packet_track, packet in decoder:
+                if packet_track.id == track.id:
+                    yield int(packet.t), _rgb(packet.pixels, f"{path} frame at {packet.t} us", size)
+
+    return frames
+
+
+def _rgb(pixels: np.ndarray, what: str, size: tuple[int, int]) -> np.ndarray:
+    pixels = np.asarray(pixels)
+    if pixels.dtype != np.uint8:  # 16-bit grey frames: keep the top byte
+        pixels = (pixels >> 8).astype(np.uint8) if pixels.dtype == np.uint16 else pixels.astype(np.uint8)
+    if pixels.ndim == 2:
+        pixels = np.repeat(pixels[..., None], 3, axis=2)
+    pixels = pixels[..., :3]
+    if pixels.shape[:2] != (size[1], size[0]):
+        raise RecordingError(f"{what} is {pixels.shape[1]}x{pixels.shape[0]}, the events' sensor "
+                             f"{size[0]}x{size[1]}; frames and events must share the sensor")
+    return np.ascontiguousarray(pixels)
+
+
+def read_frame_times(path: Path, count: int | None = None) -> np.ndarray:
+    """Frame times in microseconds from a text file, one per line (``#`` comments allowed)."""
+    if not path.is_file():
+        raise RecordingError(f"{path}: the frame timestamp file is missing")
+    try:
+        times = np.loadtxt(path, dtype=np.float64, comments="#", ndmin=1)
+    except ValueError as err:
+        raise RecordingError(f"{path}: expected one time in microseconds per line ({err})") from err
+    if count is not None and len(times) != count:
+        raise RecordingError(f"{path}: {len(times)} times for {count} frames")
+    if np.any(np.diff(times) < 0):
+        i = int(np.argmax(np.diff(times) < 0))
+        raise RecordingError(f"{path}: frame times must not decrease; line {i + 2} ({times[i + 1]:g}) is earlier "
+                             f"than line {i + 1} ({times[i]:g})")
+    return times.astype(np.int64)
+
+
+def _folder_frames(folder: Path, times_file: Path | None, size: tuple[int, int]) -> Callable:
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    numbered = list_frames(folder)
+    if numbered and len(numbered) == len(files):  # frame_<k>.jpg: order by k, not by name
+        files = [folder / numbered[k] for k in sorted(numbered)]
+    if not files:
+        raise RecordingError(f"{folder}: no images ({', '.join(IMAGE_SUFFIXES)}) in the frame folder")
+    times = read_frame_times(times_file or folder / TIMESTAMPS_FILE, len(files))
+
+    def frames() -> Iterator[tuple[int, np.ndarray]]:
+        for t_us, file in zip(times, files):
+            yield int(t_us), _rgb(read_frame(file), str(file), size)
+
+    return frames
+
+
+def _video_frames(video: Path, times_file: Path | None, size: tuple[int, int]) -> Callable:
+    import av
+
+    times = read_frame_times(times_file) if times_file is not None else None
+
+    def frames() -> Iterator[tuple[int, np.ndarray]]:
+        try:
+            container = av.open(str(video))
+        except Exception as err:
+            raise RecordingError(f"{video}: cannot open it as a video ({err})") from err
+        with container:
+            stream = container.streams.video[0]
+            for k, frame in enumerate(container.decode(stream)):
+                if times is not None and k >= len(times):
+                    raise RecordingError(f"{times_file}: {len(times)} times, but {video} has more frames")
+                t_us = int(times[k]) if times is not None else int(round(float(frame.time) * 1e6))
+                yield t_us, _rgb(frame.to_ndarray(format="rgb24"), f"{video} frame {k}", size)
+
+    return frames
+
+
+def _h5_recording(path: Path, size: tuple[int, int] | None) -> tuple[tuple[int, int], Callable, Callable | None]:
+    """A video of this package's layout: ``<root>/<split>/events/<video>.h5`` and its frame folder."""
+    frames_dir = path.parent.parent / fmt.FRAMES_DIR / path.stem
+    count = len(list_frames(frames_dir)) if frames_dir.is_dir() else None
+    file = EventFile(path, num_frames=count)
+    if count:
+        height, width = read_frame(frames_dir / list_frames(frames_dir)[0]).shape[:2]
+        size = size or (width, height)
+    elif size is None:
+        raise RecordingError(f"{path}: no frame folder at {frames_dir} to take the sensor size from; give "
+                             "sensor.size=[width,height]")
+
+    def chunks() -> Iterator[Events]:
+        for start in range(0, file.num_events, H5_CHUNK):
+            yield file.read(start, start + H5_CHUNK)
+        file.close()
+
+    def frames() -> Iterator[tuple[int, np.ndarray]]:
+        for k in range(count):
+            yield int(file.frame_time_us(k)), _rgb(read_frame(fmt.frame_path(path.parent.parent.parent,
+                                                                              path.parent.parent.name, path.stem, k)),
+                                                   f"{frames_dir} frame {k}", size)
+
+    return tuple(size), chunks, (frames if count else None)
+
+
+def open_recording(path: Path | str, *, size: tuple[int, int] | None = None, frames: Path | str | None = None,
+                   frame_times: Path | str | None = None, order: str = "sort",
+                   order_window_us: int = 10_000) -> Recording:
+    """Open an event recording (see the module's table); ``size = (width, height)`` is needed where
+    the file does not say it (CSV, and EVT/DAT files without a size in their header); ``frames`` a
+    frame folder or video file whose frames go with the events."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in SUFFIXES:
+        raise RecordingError(f"{path}: unknown recording format {suffix or '(no suffix)'!r}; expected one of "
+                             f"{', '.join(SUFFIXES)}")
+    if not path.is_file():
+        raise RecordingError(f"{path}: no such file")
+    if size is not None:
+        size = (int(size[0]), int(size[1]))
+        if min(size) <= 0:
+            raise RecordingError(f"sensor.size={list(size)}: width and height must be positive")
+    if suffix == ".csv" and size is None:
+        raise RecordingError(f"{path}: a CSV recording does not say its sensor size; give sensor.size=[width,height]")
+    if suffix in H5_SUFFIXES:
+        kind = "h5"
+        size, chunks, frame_source = _h5_recording(path, size)
+    else:
+        kind = FAERY_SUFFIXES[suffix]
+        size, chunks = _faery_chunks(path, kind, size)
+        frame_source = _aedat_frames(path, size) if kind == "aedat" else None
+    if frames is not None:
+        frames = Path(frames)
+        times = Path(frame_times) if frame_times is not None else None
+        if frames.is_dir():
+            frame_source = _folder_frames(frames, times, size)
+        elif frames.is_file():
+            frame_source = _video_frames(frames, times, size)
+        else:
+            raise RecordingError(f"frames={frames}: no such folder or video file")
+    return Recording(path, kind, size, chunks, frame_source, order, int(order_window_us))
