@@ -18,7 +18,9 @@ clock, which need not start at 0; ``p`` 0 or 1), a chunk at a time, so a recordi
 millions of events never sits in memory whole. Real recordings are not always in time order: with
 ``order="sort"`` events are sorted within a buffer of ``order_window_us``, and an event later than
 that is an error naming where it is; with ``order="refuse"`` the first disorder is an error that
-says how many events are out of order and where the first is.
+says how many events are out of order and where the first is. faery's decoders (every format but
+``.h5``) already hold the clock non-decreasing: an event earlier than the one before it comes out at
+that one's time, so disorder there is never seen here.
 
 Frames come from the recording's own frame track (AEDAT4), from a frame folder (``frames=DIR``
 with ``timestamps.txt``, one time in microseconds per image in name order) or a video file
@@ -224,6 +226,37 @@ class Recording:
         return self._frames()
 
 
+def _payload_start(data: bytes, dat: bool) -> int:
+    """Where the events of an EVT or DAT file begin: after the ``%`` header lines (and, in DAT, the
+    event type and size bytes)."""
+    at = 0
+    while data.startswith(b"%", at):
+        end = data.find(b"\n", at)
+        if end < 0:
+            return len(data)
+        at = end + 1
+    return at + 2 if dat else at
+
+
+def truncation_problem(path: Path, kind: str) -> str | None:
+    """Why the file must have been cut short, or None: a CSV whose last line has no end, an EVT or
+    DAT file whose payload stops inside a word (a cut at a word boundary cannot be told from a
+    shorter recording)."""
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(4096)
+        if kind == "csv":
+            f.seek(max(0, size - 1))
+            return None if size == 0 or f.read(1) == b"\n" else "its last line is incomplete"
+    if kind not in ("evt", "dat"):
+        return None
+    word = 8 if kind == "dat" else (4 if b"evt 2" in head.lower() or b"evt2" in head.lower() else 2)
+    payload = size - _payload_start(head, kind == "dat")
+    if payload % word:
+        return f"its {payload}-byte payload is not a whole number of {word}-byte words"
+    return None
+
+
 def _faery_chunks(path: Path, kind: str, size: tuple[int, int] | None) -> tuple[tuple[int, int], Callable]:
     import faery
 
@@ -234,6 +267,9 @@ def _faery_chunks(path: Path, kind: str, size: tuple[int, int] | None) -> tuple[
     except Exception as err:
         raise RecordingError(f"{path}: cannot open it as {kind} ({err}); the file may be truncated, corrupt or "
                              "of another format") from err
+    problem = truncation_problem(path, kind)
+    if problem is not None:
+        raise RecordingError(f"{path}: {problem}; the file is truncated")
     if size is not None and kind in ("aedat", "es") and tuple(size) != dimensions:
         raise RecordingError(f"{path}: its header declares a {dimensions[0]}x{dimensions[1]} sensor, but "
                              f"sensor.size={list(size)} was given")

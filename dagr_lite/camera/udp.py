@@ -4,8 +4,8 @@
 ``t32_x16_y15_on1``: 8-byte events, ``<u4`` t (wrapping), ``<u2`` x, ``<u2`` y << 1 | on.
 
 :class:`UdpSource` receives on a thread into a queue, so no datagram waits on the detector; the
-detector drains the queue when it is ready. Events that arrived while it was busy are counted
-(``backlog_max``, ``waited``), never dropped: the summary says how far behind it fell. The
+detector drains the queue when it is ready. Events that arrived while it was busy wait there, never
+dropped: the summary says how many waited at most (``backlog_max``) and for how long (``wait_ms_max``). The
 operating system can still drop datagrams when its receive buffer overflows; the source asks for
 a large buffer and counts packets whose time runs backwards (``packets_out_of_order``).
 """
@@ -63,7 +63,7 @@ class UdpStats:
     packets: int = 0
     events: int = 0
     backlog_max: int = 0  # most events waiting in the queue when the detector came to read it
-    waited: int = 0  # events that arrived while the detector was busy (read later than they came)
+    wait_ms_max: float = 0.0  # longest a packet waited in the queue for the detector
     packets_out_of_order: int = 0  # packets whose first time is earlier than the previous packet's last
 
 
@@ -83,7 +83,7 @@ class UdpSource:
         self.order = None
         self.has_frames = False
         self.path = url
-        self._queue: collections.deque[bytes] = collections.deque()
+        self._queue: collections.deque[tuple[float, bytes]] = collections.deque()  # (arrival, payload)
         self._running = False
         self.ready = threading.Event()
 
@@ -98,7 +98,7 @@ class UdpSource:
             except socket.timeout:
                 continue
             if n:
-                self._queue.append(bytes(buffer[:n]))
+                self._queue.append((time.monotonic(), bytes(buffer[:n])))
 
     def events(self) -> Iterator[dict]:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -127,8 +127,10 @@ class UdpSource:
                 if not waiting:
                     time.sleep(0.002)
                     continue
-                payloads = [self._queue.popleft() for _ in range(waiting)]
+                arrived = [self._queue.popleft() for _ in range(waiting)]
                 last_packet = time.monotonic()
+                self.stats.wait_ms_max = max(self.stats.wait_ms_max, 1e3 * (last_packet - arrived[0][0]))
+                payloads = [payload for _, payload in arrived]
                 chunks = []
                 for payload in payloads:
                     events = decode(payload, self.fmt, t_high)
@@ -143,8 +145,6 @@ class UdpSource:
                 self.stats.packets += len(payloads)
                 count = sum(len(c["t"]) for c in chunks)
                 self.stats.events += count
-                if waiting > 1:
-                    self.stats.waited += count
                 self.stats.backlog_max = max(self.stats.backlog_max, count)
                 if chunks:
                     yield {k: np.concatenate([c[k] for c in chunks]) for k in "xytp"}

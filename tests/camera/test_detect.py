@@ -1,0 +1,148 @@
+"""``detect`` over a written recording answers what the batch model answers on the same samples; on a
+larger sensor with a declared crop and scale it answers the same, in the sensor's pixels; the UDP
+path on loopback receives every event it is sent."""
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from dagr_lite.camera.aedat import write_aedat4
+from dagr_lite.camera.detect import VideoSettings, run_detect
+from dagr_lite.camera.recording import concat, open_recording, take
+from dagr_lite.camera.sensor import Sensor, SensorError
+from dagr_lite.camera.udp import UdpSource, send
+from dagr_lite.data.collate import collate
+from dagr_lite.data.dataset import EventEgoHands
+from dagr_lite.engine.common import load_checkpoint
+from dagr_lite.engine.evaluate import trained_sample
+from dagr_lite.stream import StreamingDetector
+
+FRAMES = 10  # frames of the stub's first test video used
+CONF = 0.0
+
+
+@pytest.fixture(scope="module")
+def stub_video(trained_checkpoints):
+    """The first test video of the stub (the data the checkpoints were trained on), cut to FRAMES frames."""
+    from dagr_lite.synth.stub import stub_root
+
+    root = stub_root()
+    path = sorted((root / "test" / "events").glob("*.h5"))[0]
+    rec = open_recording(path)
+    frames = list(rec.frames())[:FRAMES + 1]
+    events = concat(list(rec.events()))
+    events = take(events, events["t"] < frames[-1][0])
+    return {"root": root, "video": path.stem, "events": events, "frames": frames, "size": rec.size}
+
+
+def lines(out) -> list[dict]:
+    return [json.loads(line) for line in (out / "detections.jsonl").read_text().splitlines()]
+
+
+def test_detect_on_a_written_aedat4_answers_what_the_batch_model_answers(stub_video, trained_checkpoints, tmp_path):
+    ckpt = trained_checkpoints["hybrid"]
+    path = write_aedat4(tmp_path / "davis.aedat4", stub_video["events"], stub_video["size"], stub_video["frames"])
+    stream = StreamingDetector.from_checkpoint(ckpt, conf_threshold=CONF)
+    summary = run_detect(stream, open_recording(path), Sensor(stub_video["size"]), tmp_path / "out", rate_hz=1,
+                         video=VideoSettings(enabled=False), progress=False)
+    answers = {a["t_us"]: a for a in lines(tmp_path / "out")}
+    assert summary["answers"] == len(answers) and summary["events_in"] == len(stub_video["events"]["t"])
+
+    data = trained_sample(load_checkpoint(ckpt))
+    dataset = EventEgoHands(stub_video["root"], "test", image_age=1, window_us=data["window_us"],
+                            context_us=data["context_us"], refractory_us=data["refractory_us"],
+                            videos=[stub_video["video"]])
+    model = stream.model
+    checked = 0
+    for index in range(len(dataset)):
+        video, k = dataset.sample_name(index)
+        if not 1 <= k < FRAMES:
+            continue
+        sample = dataset[index]
+        with torch.no_grad():
+            expected = model(collate([sample]), conf_threshold=CONF, nms_threshold=stream.nms_threshold)[0]
+        answer = answers[int(sample.t_end_us)]
+        assert len(answer["boxes"]) == len(expected["boxes"]) > 0, k
+        order = np.argsort(-np.asarray(answer["scores"]))
+        np.testing.assert_allclose(np.asarray(answer["boxes"])[order], expected["boxes"].numpy(), atol=0.02)
+        np.testing.assert_allclose(np.asarray(answer["scores"])[order], expected["scores"].numpy(), atol=2e-4)
+        checked += 1
+    assert checked == FRAMES - 1
+
+
+def test_a_larger_camera_with_a_declared_crop_and_scale_gives_the_same_detections(stub_video, trained_checkpoints,
+                                                                                 tmp_path):
+    """The stub seen by a 640x480 camera: each event at one of its 2x2 sensor pixels, 60 rows down;
+    frames upsampled into the sensor. With ``crop=[0,60,640,360] scale=2`` the detector reads exactly
+    the stub, and its boxes come out doubled and shifted by the crop."""
+    rng = np.random.default_rng(0)
+    events = dict(stub_video["events"])
+    events["x"] = 2 * events["x"] + rng.integers(0, 2, len(events["x"]))
+    events["y"] = 60 + 2 * events["y"] + rng.integers(0, 2, len(events["y"]))
+    frames = []
+    for t, image in stub_video["frames"]:
+        big = rng.integers(0, 256, (480, 640, 3), dtype=np.uint8)
+        big[60:420] = np.kron(image, np.ones((2, 2, 1), np.uint8))
+        frames.append((t, big))
+    ckpt = trained_checkpoints["hybrid"]
+    small = write_aedat4(tmp_path / "small.aedat4", stub_video["events"], stub_video["size"], stub_video["frames"])
+    large = write_aedat4(tmp_path / "large.aedat4", events, (640, 480), frames)
+    for name, path, sensor in (("small", small, Sensor(stub_video["size"])),
+                               ("large", large, Sensor((640, 480), crop=(0, 60, 640, 360), scale=2))):
+        run_detect(StreamingDetector.from_checkpoint(ckpt, conf_threshold=CONF), open_recording(path), sensor,
+                   tmp_path / name, rate_hz=200, video=VideoSettings(enabled=name == "large", max_seconds=0.1),
+                   progress=False)
+    small_answers, large_answers = lines(tmp_path / "small"), lines(tmp_path / "large")
+    assert [a["t_us"] for a in small_answers] == [a["t_us"] for a in large_answers]
+    for a, b in zip(small_answers, large_answers):
+        expected = np.asarray(a["boxes"]).reshape(-1, 4) * 2 + [0, 60, 0, 60]
+        np.testing.assert_allclose(np.asarray(b["boxes"]).reshape(-1, 4), expected, atol=0.05)
+    assert (tmp_path / "large" / "detections.mp4").stat().st_size > 0
+    with pytest.raises(SensorError, match=r"the 640x480 sensor gives 640x480.*sensor.scale=2 sensor.crop=\[0,60,640,360\]"):
+        run_detect(StreamingDetector.from_checkpoint(ckpt), open_recording(large), Sensor((640, 480)),
+                   tmp_path / "refused", rate_hz=100, progress=False)
+    with pytest.raises(FileExistsError, match="small/summary.json already exists; choose another out="):
+        run_detect(StreamingDetector.from_checkpoint(ckpt), open_recording(small), Sensor(stub_video["size"]),
+                   tmp_path / "small", rate_hz=100, progress=False)
+
+
+def test_a_hybrid_needs_frames_and_says_so(stub_video, trained_checkpoints, tmp_path):
+    path = write_aedat4(tmp_path / "events_only.aedat4", stub_video["events"], stub_video["size"])
+    with pytest.raises(ValueError, match="events_only.aedat4: the model is a hybrid and needs frames"):
+        run_detect(StreamingDetector.from_checkpoint(trained_checkpoints["hybrid"]), open_recording(path),
+                   Sensor(stub_video["size"]), tmp_path / "out", rate_hz=100, progress=False)
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def test_a_live_udp_stream_on_loopback_is_read_whole_and_answered(stub_video, trained_checkpoints, tmp_path):
+    url = f"udp://127.0.0.1:{free_port()}"
+    events = take(stub_video["events"], stub_video["events"]["t"] < 150_000)
+    source = UdpSource(url, stub_video["size"], idle_s=1.0, wait_first_s=30)
+    sent = []
+
+    def sender():
+        source.ready.wait(30)
+        time.sleep(0.2)
+        sent.append(send([events], url, speed=1.0))
+
+    thread = threading.Thread(target=sender)
+    thread.start()
+    stream = StreamingDetector.from_checkpoint(trained_checkpoints["events_only"], conf_threshold=CONF)
+    summary = run_detect(stream, source, Sensor(stub_video["size"]), tmp_path / "live", rate_hz=100, live=True,
+                         video=VideoSettings(enabled=False))
+    thread.join()
+    assert sent == [len(events["t"])]
+    assert summary["udp"]["events"] == summary["events_in"] == len(events["t"])
+    assert summary["udp"]["packets_out_of_order"] == 0 and summary["udp"]["late_events_dropped"] == 0
+    assert summary["answers"] == len(lines(tmp_path / "live")) >= 3

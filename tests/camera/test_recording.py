@@ -1,0 +1,181 @@
+"""Recordings of every format faery writes read back what was written; bad files are refused by name."""
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from dagr_lite.camera.aedat import write_aedat4
+from dagr_lite.camera.recording import (RecordingError, TimeOrder, concat, open_recording, truncation_problem)
+
+WIDTH, HEIGHT = 64, 48
+T0 = 1_700_000_000_000  # a camera clock that does not start at 0 (microseconds)
+
+
+def camera_events(seed: int = 0, n: int = 20_000) -> dict:
+    """Events with several per pixel and microsecond, as real sensors give them."""
+    rng = np.random.default_rng(seed)
+    t = T0 + np.sort(rng.integers(0, 50_000, n))
+    burst = slice(n // 2, n // 2 + 40)
+    t[burst] = t[n // 2]  # a burst: 40 events in one microsecond
+    x, y = rng.integers(0, WIDTH, n), rng.integers(0, HEIGHT, n)
+    x[burst], y[burst] = 5, 7  # ... at one pixel
+    return {"x": x, "y": y, "t": t, "p": rng.integers(0, 2, n)}
+
+
+def faery_write(path, events, **kwargs):
+    import faery
+
+    packed = np.zeros(len(events["t"]), faery.EVENTS_DTYPE)
+    packed["t"], packed["x"], packed["y"], packed["on"] = events["t"], events["x"], events["y"], events["p"] > 0
+    return faery.events_stream_from_array(packed, dimensions=(WIDTH, HEIGHT)).to_file(str(path), **kwargs)
+
+
+FORMATS = [("rec.aedat4", {}), ("evt2.raw", {"version": "evt2"}), ("evt3.raw", {"version": "evt3"}),
+           ("rec.dat", {}), ("rec.es", {}), ("rec.csv", {})]
+
+
+@pytest.mark.parametrize(("name", "kwargs"), FORMATS, ids=[f[0] for f in FORMATS])
+def test_every_format_faery_writes_reads_back_what_was_written(tmp_path, name, kwargs):
+    events = camera_events()
+    faery_write(tmp_path / name, events, **kwargs)
+    rec = open_recording(tmp_path / name, size=(WIDTH, HEIGHT) if name.endswith(".csv") else None)
+    chunks = list(rec.events())
+    got = concat(chunks)
+    assert rec.size == (WIDTH, HEIGHT)
+    for key in "xyp":
+        np.testing.assert_array_equal(got[key], events[key], err_msg=key)
+    if name.endswith(".es"):  # ES stores times from the first event (faery returns that offset)
+        np.testing.assert_array_equal(got["t"] - got["t"][0], events["t"] - events["t"][0])
+    else:
+        np.testing.assert_array_equal(got["t"], events["t"])
+    assert all(len(c["t"]) for c in chunks) and not rec.has_frames
+
+
+def test_aedat4_frame_track_reads_back_exactly_and_in_time_with_the_events(tmp_path):
+    events = camera_events(1)
+    rng = np.random.default_rng(2)
+    frames = [(T0 + k * 20_000, rng.integers(0, 256, (HEIGHT, WIDTH, 3), dtype=np.uint8)) for k in range(3)]
+    frames.append((T0 + 60_000, rng.integers(0, 256, (HEIGHT, WIDTH), dtype=np.uint8)))  # a grey DAVIS frame
+    write_aedat4(tmp_path / "davis.aedat4", events, (WIDTH, HEIGHT), frames)
+    rec = open_recording(tmp_path / "davis.aedat4")
+    got = concat(list(rec.events()))
+    for key in "xytp":
+        np.testing.assert_array_equal(got[key], events[key])
+    read = list(rec.frames())
+    assert [t for t, _ in read] == [t for t, _ in frames]
+    for (_, image), (_, expected) in zip(read, frames):
+        expected = expected if expected.ndim == 3 else np.repeat(expected[..., None], 3, axis=2)
+        np.testing.assert_array_equal(image, expected)
+    with pytest.raises(FileExistsError, match="nothing is overwritten"):
+        write_aedat4(tmp_path / "davis.aedat4", events, (WIDTH, HEIGHT), frames)
+
+
+def test_h5_recording_is_read_in_chunks_with_its_frames(monkeypatch, dataset):
+    import dagr_lite.camera.recording as recording
+
+    monkeypatch.setattr(recording, "H5_CHUNK", 1000)
+    video = next(iter(dataset.events))
+    split = dataset.splits[video]
+    rec = open_recording(dataset.root / split / "events" / f"{video}.h5")
+    chunks = list(rec.events())
+    assert len(chunks) > 1 and max(len(c["t"]) for c in chunks) <= 1000
+    for key in "xytp":
+        np.testing.assert_array_equal(concat(chunks)[key], dataset.events[video][key])
+    frames = list(rec.frames())
+    assert len(frames) == len(dataset.frames[video])
+    np.testing.assert_array_equal(frames[1][1].shape, dataset.frames[video][1].shape)
+
+
+def test_frame_folder_with_timestamps_goes_with_the_events(tmp_path):
+    from PIL import Image
+
+    events = camera_events(3, 500)
+    faery_write(tmp_path / "rec.es", events)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    images = [np.full((HEIGHT, WIDTH, 3), 40 * k, np.uint8) for k in range(3)]
+    for k, image in enumerate(images):
+        Image.fromarray(image).save(folder / f"img_{k:02d}.png")
+    (folder / "timestamps.txt").write_text("0\n33333\n66667\n")
+    rec = open_recording(tmp_path / "rec.es", frames=folder)
+    got = list(rec.frames())
+    assert [t for t, _ in got] == [0, 33333, 66667]
+    np.testing.assert_array_equal(got[2][1], images[2])
+    (folder / "timestamps.txt").write_text("0\n33333\n")
+    with pytest.raises(RecordingError, match="timestamps.txt: 2 times for 3 frames"):
+        open_recording(tmp_path / "rec.es", frames=folder)
+
+
+def test_time_order_sorts_within_its_window_and_says_where_disorder_is():
+    rng = np.random.default_rng(5)
+    t = np.sort(rng.integers(0, 100_000, 3000))
+    jitter = t + rng.integers(-400, 400, len(t))  # events up to 800 us out of order
+    events = {"x": np.arange(len(t)), "y": np.zeros(len(t), int), "t": jitter, "p": np.ones(len(t), int)}
+    order = TimeOrder("cam.h5", "sort", window_us=1000)
+    parts = [order.push({k: v[i:i + 250] for k, v in events.items()}) for i in range(0, len(t), 250)]
+    got = concat(parts + [order.flush()])
+    expected = np.argsort(jitter, kind="stable")
+    np.testing.assert_array_equal(got["x"], expected)  # the same events, now in stable time order
+    running = np.maximum.accumulate(jitter)
+    assert order.stats.out_of_order == int(np.sum(jitter[1:] < running[:-1])) > 0
+
+    tight = TimeOrder("cam.h5", "sort", window_us=10)
+    with pytest.raises(RecordingError, match=r"cam.h5: event \d+ at t=\d+ us arrives after .*raise order_window_us"):
+        for i in range(0, len(t), 250):
+            tight.push({k: v[i:i + 250] for k, v in events.items()})
+
+
+def test_refused_disorder_counts_every_late_event_of_the_file(tmp_path):
+    t = np.array([10, 20, 15, 30, 40, 5, 50, 60])
+    with h5py.File(tmp_path / "cam.h5", "w") as h5:
+        for key, values in (("x", np.arange(8)), ("y", np.zeros(8)), ("t", t), ("p", np.ones(8))):
+            h5[f"events/{key}"] = values.astype(np.int64)
+        h5["timeidx"] = np.array([0], np.int64)
+    rec = open_recording(tmp_path / "cam.h5", size=(8, 8), order="refuse")
+    with pytest.raises(RecordingError, match=r"cam.h5: 2 of 8 events are out of time order; the first is event 2 "
+                                             r"at t=15 us, after an event at t=20 us"):
+        list(rec.events())
+    rec = open_recording(tmp_path / "cam.h5", size=(8, 8), order="sort", order_window_us=100)
+    assert concat(list(rec.events()))["t"].tolist() == sorted(t.tolist())
+
+
+@pytest.mark.parametrize(("name", "kwargs", "cut", "message"), [
+    ("rec.csv", {}, -3, "its last line is incomplete"),
+    ("evt2.raw", {"version": "evt2"}, -2, "not a whole number of 4-byte words"),
+    ("evt3.raw", {"version": "evt3"}, -1, "not a whole number of 2-byte words"),
+    ("rec.dat", {}, -5, "not a whole number of 8-byte words"),
+    ("rec.aedat4", {}, 0.5, "cannot read it as aedat after"),
+])
+def test_a_truncated_recording_is_refused_naming_the_file(tmp_path, name, kwargs, cut, message):
+    faery_write(tmp_path / name, camera_events(4), **kwargs)
+    data = (tmp_path / name).read_bytes()
+    (tmp_path / name).write_bytes(data[:int(len(data) * cut)] if isinstance(cut, float) else data[:cut])
+    with pytest.raises(RecordingError, match=rf"{name}: .*{message}"):
+        rec = open_recording(tmp_path / name, size=(WIDTH, HEIGHT))
+        list(rec.events())
+    assert truncation_problem(tmp_path / name, "es") is None
+
+
+def test_unknown_missing_and_mismatched_inputs_are_refused(tmp_path):
+    (tmp_path / "rec.mp4").write_bytes(b"")
+    with pytest.raises(RecordingError, match=r"rec.mp4: unknown recording format '.mp4'; expected one of .aedat4"):
+        open_recording(tmp_path / "rec.mp4")
+    with pytest.raises(RecordingError, match="gone.raw: no such file"):
+        open_recording(tmp_path / "gone.raw")
+    faery_write(tmp_path / "rec.csv", camera_events(5, 100))
+    with pytest.raises(RecordingError, match="does not say its sensor size; give sensor.size"):
+        open_recording(tmp_path / "rec.csv")
+    (tmp_path / "junk.aedat4").write_bytes(b"not an aedat file at all")
+    with pytest.raises(RecordingError, match="junk.aedat4: cannot open it as aedat"):
+        open_recording(tmp_path / "junk.aedat4")
+    # A frame track of another size than the events: the header's second sizeX says 65.
+    write_aedat4(tmp_path / "davis.aedat4", camera_events(6, 100), (WIDTH, HEIGHT),
+                 [(T0, np.zeros((HEIGHT, WIDTH, 3), np.uint8))])
+    data = bytearray((tmp_path / "davis.aedat4").read_bytes())
+    marker = b'<attr key="sizeX" type="int">64</attr>'
+    second = data.index(marker, data.index(marker) + 1)
+    data[second:second + len(marker)] = marker.replace(b"64", b"65")
+    (tmp_path / "bad_frames.aedat4").write_bytes(bytes(data))
+    with pytest.raises(RecordingError, match="bad_frames.aedat4: its frame track 1 is 65x48, its events 64x48"):
+        open_recording(tmp_path / "bad_frames.aedat4")
