@@ -240,12 +240,25 @@ def dataset_stats(root: Path | str, out: Path | str, *, videos: list[str] | None
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m dagr_lite.data.stats", description=__doc__.splitlines()[0])
-    parser.add_argument("root", help="dataset folder in the EventEgoHands layout")
+    parser.add_argument("root", help="dataset folder in the EventEgoHands layout, or one event recording "
+                                     "(.aedat4 .raw .dat .es .csv .h5)")
     parser.add_argument("--out", required=True, help="folder for stats.json, the pictures and index.html")
+    parser.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="a recording's sensor size, where "
+                                                                              "its file does not say it (CSV)")
     parser.add_argument("--videos", nargs="+", help="only these videos (default: all)")
     parser.add_argument("--frame", type=int, help="the frame of the pictures (default: each video's middle labelled frame)")
     parser.add_argument("--fps", type=float, default=fmt.DEFAULT_FPS)
     args = parser.parse_args(argv)
+    if Path(args.root).is_file():
+        from dagr_lite.camera.stats import recording_stats
+
+        with user_errors():
+            stats = recording_stats(args.root, args.out, size=args.size)
+        print(f"{stats['events']:,} events over {stats['duration_s']:.2f} s (mean {stats['mean_rate'] / 1e3:.0f}k/s, "
+              f"peak {stats['peak_rate'] / 1e3:.0f}k/s), ON {stats['on_fraction']:.2f}, {stats['frames']} frames; "
+              f"the {len(stats['hot_pixels'])} hottest pixels hold {100 * stats['hot_pixels_share']:.1f}% of the "
+              f"events\nwritten to {args.out}")
+        return 0
     with user_errors():  # a user's mistake: one line, no traceback
         stats = dataset_stats(args.root, args.out, videos=args.videos, frame=args.frame, fps=args.fps)
     for split, row in stats["splits"].items():

@@ -179,3 +179,35 @@ def test_unknown_missing_and_mismatched_inputs_are_refused(tmp_path):
     (tmp_path / "bad_frames.aedat4").write_bytes(bytes(data))
     with pytest.raises(RecordingError, match="bad_frames.aedat4: its frame track 1 is 65x48, its events 64x48"):
         open_recording(tmp_path / "bad_frames.aedat4")
+
+
+def test_export_writes_every_format_that_reads_back_the_dataset(dataset, tmp_path):
+    from dagr_lite.camera.export import export_dataset
+
+    video = next(iter(dataset.events))
+    written = export_dataset(dataset.root, tmp_path / "out", ["aedat4", "evt3", "csv", "mp4"], videos=[video])
+    assert [p.name for p in written] == [f"{video}.aedat4", f"{video}.evt3.raw", f"{video}.csv", f"{video}.mp4"]
+    height, width = dataset.frames[video][0].shape[:2]
+    for path in written[:3]:
+        got = concat(list(open_recording(path, size=(width, height)).events()))
+        for key in "xytp":
+            np.testing.assert_array_equal(got[key], dataset.events[video][key], err_msg=f"{path.name} {key}")
+    frames = list(open_recording(written[0]).frames())
+    assert len(frames) == len(dataset.frames[video])
+    assert written[3].stat().st_size > 0
+    with pytest.raises(FileExistsError, match="nothing is overwritten"):
+        export_dataset(dataset.root, tmp_path / "out", ["csv"], videos=[video])
+
+
+def test_recording_statistics_count_bursts_and_hot_pixels(tmp_path):
+    from dagr_lite.camera.stats import recording_stats
+
+    events = camera_events(7, 5000)
+    faery_write(tmp_path / "rec.evt3.raw", events, version="evt3")
+    stats = recording_stats(tmp_path / "rec.evt3.raw", tmp_path / "stats")
+    keys = events["t"] * WIDTH * HEIGHT + events["y"] * WIDTH + events["x"]
+    assert stats["events"] == 5000 and stats["t_first_us"] == int(events["t"][0])
+    assert stats["events_sharing_pixel_and_microsecond"] == 5000 - len(np.unique(keys)) >= 39
+    assert stats["hot_pixels"][0] == {"x": 5, "y": 7, "events": int(np.sum((events["x"] == 5) & (events["y"] == 7))),
+                                      "rate": stats["hot_pixels"][0]["rate"]}
+    assert (tmp_path / "stats" / "event_rate.png").stat().st_size > 0

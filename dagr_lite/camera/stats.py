@@ -1,0 +1,67 @@
+"""Statistics of one event recording (any format :func:`~dagr_lite.camera.recording.open_recording`
+reads): ``python -m dagr_lite.data.stats RECORDING --out DIR [--size W H]``.
+
+Writes ``DIR/stats.json`` (events, the clock's first and last time, duration, mean and peak rate
+over 10 ms bins, ON fraction, frames, the hottest pixels and their share of all events, and the
+events that share their pixel and microsecond with an earlier one) and ``DIR/event_rate.png``.
+The recording is read a chunk at a time.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from dagr_lite.camera.recording import open_recording
+from dagr_lite.data.stats import BIN_US, rate_picture
+
+HOT_PIXELS = 10  # the hottest pixels listed
+
+
+def recording_stats(path: Path | str, out: Path | str, *, size: tuple[int, int] | None = None) -> dict:
+    out = Path(out)
+    if (out / "stats.json").exists():
+        raise FileExistsError(f"{out}: holds earlier statistics (stats.json); choose a new --out")
+    rec = open_recording(path, size=size)
+    width, height = rec.size
+    per_pixel = np.zeros(width * height, np.int64)
+    on = off = repeats = 0
+    t_first = t_last = None
+    bins: dict[str, list[np.ndarray]] = {"on": [], "off": []}
+    last_key = None
+    for chunk in tqdm(rec.events(), desc=f"reading {Path(path).name}", unit=" chunk"):
+        t = chunk["t"]
+        t_first = int(t[0]) if t_first is None else t_first
+        t_last = int(t[-1])
+        pixel = chunk["y"] * width + chunk["x"]
+        per_pixel += np.bincount(pixel, minlength=width * height)
+        on += int(chunk["p"].sum())
+        off += int(len(t) - chunk["p"].sum())
+        key = (t - t_first) * (width * height) + pixel  # events sharing pixel and microsecond: same key, adjacent once sorted
+        key = np.sort(key) if last_key is None else np.sort(np.concatenate([[last_key], key]))
+        repeats += int(np.sum(key[1:] == key[:-1]))
+        last_key = key[-1]
+        index = (t - t_first) // BIN_US
+        for name, mask in (("on", chunk["p"] == 1), ("off", chunk["p"] == 0)):
+            bins[name].append(index[mask])
+    if t_first is None:
+        raise ValueError(f"{path}: the recording holds no events")
+    counts = {name: np.bincount(np.concatenate(v), minlength=int((t_last - t_first) // BIN_US) + 1)
+              for name, v in bins.items()}
+    total = on + off
+    duration = max(t_last - t_first, 1) / 1e6
+    hot = np.argsort(-per_pixel)[:HOT_PIXELS]
+    stats = {"recording": str(path), "format": rec.kind, "sensor": [width, height], "events": total,
+             "t_first_us": t_first, "t_last_us": t_last, "duration_s": duration, "mean_rate": total / duration,
+             "peak_rate": float((counts["on"] + counts["off"]).max() / (BIN_US / 1e6)), "on_fraction": on / total,
+             "frames": sum(1 for _ in rec.frames()) if rec.has_frames else 0,
+             "events_sharing_pixel_and_microsecond": repeats,
+             "hot_pixels": [{"x": int(i % width), "y": int(i // width), "events": int(per_pixel[i]),
+                             "rate": float(per_pixel[i] / duration)} for i in hot],
+             "hot_pixels_share": float(per_pixel[hot].sum() / total)}
+    out.mkdir(parents=True, exist_ok=True)
+    rate_picture(out / "event_rate.png", Path(path).name, counts)
+    (out / "stats.json").write_text(json.dumps(stats, indent=1))
+    return stats
