@@ -13,8 +13,8 @@ suffix             camera / format                                read by
 ``.h5``            this package's dataset layout                  :class:`~dagr_lite.data.reader.EventFile`
 =================  =============================================  ==========================
 
-Events come as dicts of numpy arrays ``x, y, t, p`` (``t`` int64 microseconds on the recording's own
-clock, which need not start at 0; ``p`` 0 or 1), a chunk at a time, so a recording of hundreds of
+Events come as dicts of numpy arrays ``x, y, t, p`` (integers: ``t`` int64 microseconds on the
+recording's own clock, which need not start at 0; ``p`` 0 or 1; ``x, y`` as the decoder gives them), a chunk at a time, so a recording of hundreds of
 millions of events never sits in memory whole. Real recordings are not always in time order: with
 ``order="sort"`` events are sorted within a buffer of ``order_window_us``, and an event later than
 that is an error naming where it is; with ``order="refuse"`` the first disorder is an error that
@@ -80,9 +80,9 @@ class OrderStats:
 class TimeOrder:
     """Puts chunks of events in time order within a bounded buffer, or refuses disorder.
 
-    ``push`` takes a chunk as read and returns the events now certain to be in order: those at
-    least ``window_us`` older than the latest time seen (sorted, stable); ``flush`` returns the
-    rest. An event arriving after events ``window_us`` or more later than it were already given
+    ``push`` takes a chunk as read and returns the events now certain to be in order, as a list of
+    chunks: those at least ``window_us`` older than the latest time seen (sorted, stable); ``flush``
+    returns the rest. Chunks already in order are passed on as views, uncopied. An event arriving after events ``window_us`` or more later than it were already given
     out raises; ``order="refuse"`` raises at the first disorder (after ``count_rest`` has counted
     the rest of the recording, so the message says how many).
     """
@@ -100,6 +100,10 @@ class TimeOrder:
 
     def _check(self, t: np.ndarray) -> np.ndarray:
         """Indices in ``t`` of events earlier than an event read before them; updates the counts."""
+        if not len(t) or (t[0] >= self._max_t and bool(np.all(t[1:] >= t[:-1]))):  # in order: one pass
+            self.stats.events += len(t)
+            self._max_t = max(self._max_t, float(t[-1])) if len(t) else self._max_t
+            return t[:0]
         running = np.maximum.accumulate(np.concatenate([[self._max_t], t.astype(np.float64)]))
         late = np.flatnonzero(t < running[:-1])
         if len(late) and self.stats.first_at is None:
@@ -118,15 +122,15 @@ class TimeOrder:
             f"{s.first_at} at t={s.first_t} us, after an event at t={s.first_after} us (order=sort sorts them "
             f"within order_window_us)")
 
-    def push(self, chunk: Events) -> Events:
-        t = np.asarray(chunk["t"], np.int64)
+    def push(self, chunk: Events) -> list[Events]:
+        t = np.asarray(chunk["t"])
         chunk = {k: np.asarray(chunk[k]) for k in "xyp"} | {"t": t}
         late = self._check(t)
         if self.order == "refuse":
             if len(late):
                 raise self.refused()
             self._given_t = self._max_t
-            return chunk
+            return [chunk]
         if len(t) and t.min() < self._given_t:
             i = int(np.argmax(t < self._given_t))
             raise RecordingError(
@@ -134,24 +138,35 @@ class TimeOrder:
                 f"up to t={int(self._given_t)} us were read: it is more than order_window_us={self.window_us} "
                 "late; raise order_window_us")
         self._pending.append(chunk)
-        return self._release(self._max_t - self.window_us)
+        before = self._max_t - self.window_us
+        if len(late):
+            return self._release(before)
+        # In order: the held chunks are too, end to end; whole chunks go out uncopied, one is split.
+        ready = []
+        while self._pending and (not len(self._pending[0]["t"]) or self._pending[0]["t"][-1] <= before):
+            ready.append(self._pending.pop(0))
+        if self._pending:
+            cut = int(np.searchsorted(self._pending[0]["t"], before, side="right"))
+            ready.append(take(self._pending[0], slice(0, cut)))
+            self._pending[0] = take(self._pending[0], slice(cut, None))
+        return self._given(ready)
 
-    def flush(self) -> Events:
+    def flush(self) -> list[Events]:
         return self._release(math.inf)
 
-    def _release(self, before: float) -> Events:
-        pending = concat(self._pending)
-        if not len(pending["t"]):
-            self._pending = []
-            return pending
-        order = np.argsort(pending["t"], kind="stable")
-        pending = take(pending, order)
-        cut = int(np.searchsorted(pending["t"], before, side="right")) if math.isfinite(before) else len(order)
-        ready = take(pending, slice(0, cut))
-        self._pending = [take(pending, slice(cut, None))]
-        if cut:
-            self._given_t = max(self._given_t, float(ready["t"][-1]))
+    def _given(self, ready: list[Events]) -> list[Events]:
+        ready = [r for r in ready if len(r["t"])]
+        if ready:
+            self._given_t = max(self._given_t, float(ready[-1]["t"][-1]))
         return ready
+
+    def _release(self, before: float) -> list[Events]:
+        """The pending events older than ``before``, in stable time order."""
+        pending = concat(self._pending)
+        pending = take(pending, np.argsort(pending["t"], kind="stable"))
+        cut = int(np.searchsorted(pending["t"], before, side="right")) if math.isfinite(before) else len(pending["t"])
+        self._pending = [take(pending, slice(cut, None))]
+        return self._given([take(pending, slice(0, cut))])
 
 
 @dataclass
@@ -190,16 +205,15 @@ class Recording:
                             sorter._check(np.asarray(rest["t"], np.int64))
                         raise sorter.refused() from None
                     raise
-                if len(ready["t"]):
-                    yield self._checked(ready)
+                for part in ready:
+                    yield self._checked(part)
         except RecordingError:
             raise
         except Exception as err:  # a decoder's own error: truncated or corrupt data
             raise RecordingError(f"{self.path}: cannot read it as {self.kind} after {read} events ({err}); the file "
                                  "may be truncated or corrupt") from err
-        ready = sorter.flush()
-        if len(ready["t"]):
-            yield self._checked(ready)
+        for part in sorter.flush():
+            yield self._checked(part)
 
     def _chunks_after(self, read: int) -> Iterator[Events]:
         """The chunks after the first ``read`` events (to count disorder in the rest of the file)."""
@@ -210,14 +224,19 @@ class Recording:
                 yield raw
 
     def _checked(self, events: Events) -> Events:
+        """Events inside the sensor, as integer arrays (``p`` 0 or 1); arrays are not copied."""
         width, height = self.size
-        bad = (events["x"] < 0) | (events["x"] >= width) | (events["y"] < 0) | (events["y"] >= height)
-        if bad.any():
+        x, y, p = events["x"], events["y"], events["p"]
+        if x.min() < 0 or x.max() >= width or y.min() < 0 or y.max() >= height:
+            bad = (x < 0) | (x >= width) | (y < 0) | (y >= height)
             i = int(np.argmax(bad))
-            raise RecordingError(f"{self.path}: event at t={int(events['t'][i])} us lies at ({int(events['x'][i])}, "
-                                 f"{int(events['y'][i])}), outside the {width}x{height} sensor its header declares")
-        return {"x": events["x"].astype(np.int64), "y": events["y"].astype(np.int64), "t": events["t"],
-                "p": (events["p"] > 0).astype(np.int64)}
+            raise RecordingError(f"{self.path}: event at t={int(events['t'][i])} us lies at ({int(x[i])}, {int(y[i])}), "
+                                 f"outside the {width}x{height} sensor its header declares")
+        if p.dtype == np.bool_:
+            p = p.view(np.uint8)
+        elif p.max() > 1 or p.min() < 0:
+            p = (p > 0).astype(np.uint8)
+        return {"x": x, "y": y, "t": events["t"], "p": p}
 
     def frames(self) -> Iterator[tuple[int, np.ndarray]]:
         """``(t_us, (H, W, 3) uint8)`` in time order; nothing if the recording has no frames."""
@@ -277,7 +296,7 @@ def _faery_chunks(path: Path, kind: str, size: tuple[int, int] | None) -> tuple[
     def chunks() -> Iterator[Events]:
         for packet in faery.events_stream_from_file(path, **kwargs):
             if len(packet):
-                yield {"x": packet["x"], "y": packet["y"], "t": packet["t"].astype(np.int64), "p": packet["on"]}
+                yield {"x": packet["x"], "y": packet["y"], "t": packet["t"].view(np.int64), "p": packet["on"]}
 
     return dimensions, chunks
 

@@ -113,8 +113,8 @@ def test_time_order_sorts_within_its_window_and_says_where_disorder_is():
     jitter = t + rng.integers(-400, 400, len(t))  # events up to 800 us out of order
     events = {"x": np.arange(len(t)), "y": np.zeros(len(t), int), "t": jitter, "p": np.ones(len(t), int)}
     order = TimeOrder("cam.h5", "sort", window_us=1000)
-    parts = [order.push({k: v[i:i + 250] for k, v in events.items()}) for i in range(0, len(t), 250)]
-    got = concat(parts + [order.flush()])
+    parts = [part for i in range(0, len(t), 250) for part in order.push({k: v[i:i + 250] for k, v in events.items()})]
+    got = concat(parts + order.flush())
     expected = np.argsort(jitter, kind="stable")
     np.testing.assert_array_equal(got["x"], expected)  # the same events, now in stable time order
     running = np.maximum.accumulate(jitter)
@@ -124,6 +124,17 @@ def test_time_order_sorts_within_its_window_and_says_where_disorder_is():
     with pytest.raises(RecordingError, match=r"cam.h5: event \d+ at t=\d+ us arrives after .*raise order_window_us"):
         for i in range(0, len(t), 250):
             tight.push({k: v[i:i + 250] for k, v in events.items()})
+
+
+def test_chunks_in_order_pass_through_whole_and_held_back_by_the_window_only():
+    t = np.arange(0, 10_000, 10)
+    events = {"x": np.arange(len(t)), "y": np.zeros(len(t), int), "t": t, "p": np.ones(len(t), int)}
+    order = TimeOrder("cam.h5", "sort", window_us=95)
+    out = [order.push({k: v[i:i + 100] for k, v in events.items()}) for i in range(0, len(t), 100)]
+    assert [len(p["t"]) for p in out[0]] == [90]  # the last 95 us of the chunk are held back
+    assert [len(p["t"]) for p in out[1]] == [10, 90]  # the held tail, then the new chunk's older part
+    assert out[1][1]["t"].base is not None  # a view of the chunk, not a copy
+    np.testing.assert_array_equal(concat([p for parts in out for p in parts] + order.flush())["x"], events["x"])
 
 
 def test_refused_disorder_counts_every_late_event_of_the_file(tmp_path):
