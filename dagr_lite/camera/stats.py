@@ -29,13 +29,13 @@ def recording_stats(path: Path | str, out: Path | str, *, size: tuple[int, int] 
     per_pixel = np.zeros(width * height, np.int64)
     on = off = repeats = 0
     t_first = t_last = None
-    bins: dict[str, list[np.ndarray]] = {"on": [], "off": []}
+    counts = {"on": np.zeros(0, np.int64), "off": np.zeros(0, np.int64)}  # events per 10 ms bin
     last_key = None
     for chunk in tqdm(rec.events(), desc=f"reading {Path(path).name}", unit=" chunk"):
         t = chunk["t"]
         t_first = int(t[0]) if t_first is None else t_first
         t_last = int(t[-1])
-        pixel = chunk["y"] * width + chunk["x"]
+        pixel = chunk["y"].astype(np.int64) * width + chunk["x"]
         per_pixel += np.bincount(pixel, minlength=width * height)
         on += int(chunk["p"].sum())
         off += int(len(t) - chunk["p"].sum())
@@ -45,11 +45,13 @@ def recording_stats(path: Path | str, out: Path | str, *, size: tuple[int, int] 
         last_key = key[-1]
         index = (t - t_first) // BIN_US
         for name, mask in (("on", chunk["p"] == 1), ("off", chunk["p"] == 0)):
-            bins[name].append(index[mask])
+            add = np.bincount(index[mask], minlength=int(index[-1]) + 1)
+            grown = np.zeros(max(len(counts[name]), len(add)), np.int64)
+            grown[:len(counts[name])] += counts[name]
+            grown[:len(add)] += add
+            counts[name] = grown
     if t_first is None:
         raise ValueError(f"{path}: the recording holds no events")
-    counts = {name: np.bincount(np.concatenate(v), minlength=int((t_last - t_first) // BIN_US) + 1)
-              for name, v in bins.items()}
     total = on + off
     duration = max(t_last - t_first, 1) / 1e6
     hot = np.argsort(-per_pixel)[:HOT_PIXELS]

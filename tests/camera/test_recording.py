@@ -222,3 +222,18 @@ def test_recording_statistics_count_bursts_and_hot_pixels(tmp_path):
     assert stats["hot_pixels"][0] == {"x": 5, "y": 7, "events": int(np.sum((events["x"] == 5) & (events["y"] == 7))),
                                       "rate": stats["hot_pixels"][0]["rate"]}
     assert (tmp_path / "stats" / "event_rate.png").stat().st_size > 0
+
+
+def test_recording_statistics_place_hot_pixels_of_a_large_sensor(tmp_path):
+    """Decoders give 16-bit coordinates: pixel indices of a 1280x720 sensor must not wrap."""
+    import faery
+
+    from dagr_lite.camera.stats import recording_stats
+
+    packed = np.zeros(300, faery.EVENTS_DTYPE)
+    packed["t"] = T0 + np.arange(300)
+    packed["x"], packed["y"] = np.where(np.arange(300) < 200, 1200, 3), np.where(np.arange(300) < 200, 700, 4)
+    faery.events_stream_from_array(packed, dimensions=(1280, 720)).to_file(str(tmp_path / "big.es"))
+    stats = recording_stats(tmp_path / "big.es", tmp_path / "stats")
+    assert stats["hot_pixels"][0]["x"] == 1200 and stats["hot_pixels"][0]["y"] == 700
+    assert stats["hot_pixels"][0]["events"] == 200
