@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import struct
 from pathlib import Path
+from typing import Iterable
 
 import flatbuffers
 import numpy as np
@@ -82,42 +83,60 @@ def _frame_body(t_us: int, image: np.ndarray, exposure_us: int) -> bytes:
     return bytes(builder.Output())
 
 
-def write_aedat4(path: Path | str, events: dict[str, np.ndarray], size: tuple[int, int],
-                 frames: list[tuple[int, np.ndarray]] | None = None, *, exposure_us: int = 1000,
-                 overwrite: bool = False) -> Path:
-    """Write ``events`` (``x, y, t, p``, sorted by ``t`` in microseconds) of a ``size = (width, height)``
-    sensor, and ``frames`` (``(t_us, (H, W, 3) or (H, W) uint8)``, sorted), as one AEDAT4 file; packets
-    of both tracks are interleaved by time, as a camera writes them. Returns the path."""
+def _check_frame(t_us: int, image: np.ndarray, width: int, height: int) -> None:
+    if image.shape[:2] != (height, width) or image.dtype != np.uint8 or image.ndim not in (2, 3):
+        raise ValueError(f"frame at {t_us} us is {image.shape} {image.dtype}; expected ({height}, {width}[, 3]) "
+                         "uint8, the events' sensor size")
+
+
+def write_aedat4(path: Path | str, events: dict[str, np.ndarray] | Iterable[dict[str, np.ndarray]],
+                 size: tuple[int, int], frames: Iterable[tuple[int, np.ndarray]] | None = None, *,
+                 exposure_us: int = 1000, overwrite: bool = False) -> Path:
+    """Write ``events`` (``x, y, t, p``, sorted by ``t`` in microseconds; one dict, or time-ordered
+    chunks of them) of a ``size = (width, height)`` sensor, and ``frames`` (``(t_us, (H, W, 3) or
+    (H, W) uint8)``, sorted), as one AEDAT4 file; packets of both tracks are interleaved by time, as
+    a camera writes them, a chunk and a frame in memory at a time. Returns the path."""
     path = Path(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} already exists (nothing is overwritten)")
     width, height = int(size[0]), int(size[1])
-    frames = list(frames or [])
-    for t_us, image in frames:
-        if image.shape[:2] != (height, width) or image.dtype != np.uint8 or image.ndim not in (2, 3):
-            raise ValueError(f"frame at {t_us} us is {image.shape} {image.dtype}; expected ({height}, {width}[, 3]) "
-                             "uint8, the events' sensor size")
-    t = np.asarray(events["t"], np.int64)
-    columns = (t, np.asarray(events["x"]), np.asarray(events["y"]), np.asarray(events["p"]))
-    frame_starts = np.searchsorted(t, [f[0] for f in frames], side="left")
+    chunks = [events] if isinstance(events, dict) else events
+    frames = iter(frames or ())
+    next_frame = next(frames, None)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(tmp, "wb") as out:
-        out.write(MAGIC)
-        out.write(_header(width, height, bool(frames)))
+    try:
+        with open(tmp, "wb") as out:
+            out.write(MAGIC)
+            out.write(_header(width, height, next_frame is not None))
 
-        def packet(track: int, body: bytes) -> None:
-            out.write(struct.pack("<ii", track, len(body)))
-            out.write(body)
+            def packet(track: int, body: bytes) -> None:
+                out.write(struct.pack("<ii", track, len(body)))
+                out.write(body)
 
-        start, k = 0, 0
-        while start < len(t) or k < len(frames):
-            if k < len(frames) and frame_starts[k] <= start:
-                packet(1, _frame_body(frames[k][0], frames[k][1], exposure_us))
-                k += 1
-                continue
-            stop = min(start + EVENTS_PER_PACKET, len(t), *(frame_starts[k:k + 1]))
-            packet(0, _events_body(*(c[start:stop] for c in columns)))
-            start = stop
+            def write_frame() -> None:
+                nonlocal next_frame
+                _check_frame(*next_frame, width, height)
+                packet(1, _frame_body(next_frame[0], next_frame[1], exposure_us))
+                next_frame = next(frames, None)
+
+            for chunk in chunks:
+                t = np.asarray(chunk["t"], np.int64)
+                columns = (t, np.asarray(chunk["x"]), np.asarray(chunk["y"]), np.asarray(chunk["p"]))
+                start = 0
+                while start < len(t):
+                    if next_frame is not None and next_frame[0] <= t[start]:  # a frame before these events
+                        write_frame()
+                        continue
+                    stop = min(start + EVENTS_PER_PACKET, len(t))
+                    if next_frame is not None:
+                        stop = min(stop, int(np.searchsorted(t, next_frame[0], side="left")))
+                    packet(0, _events_body(*(c[start:stop] for c in columns)))
+                    start = stop
+            while next_frame is not None:
+                write_frame()
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     os.replace(tmp, path)
     return path

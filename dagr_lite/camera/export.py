@@ -16,7 +16,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from dagr_lite.camera.aedat import write_aedat4
-from dagr_lite.camera.recording import concat, open_recording
+from dagr_lite.camera.recording import open_recording
 from dagr_lite.data import format as fmt
 from dagr_lite.data.reader import list_videos
 
@@ -47,7 +47,7 @@ def export_video(events_path: Path, out_stem: Path, targets: list[str]) -> list[
         if path.exists():
             raise FileExistsError(f"{path} already exists (nothing is overwritten)")
         if target == "aedat4":  # frames too: faery writes events only
-            write_aedat4(path, concat(list(recording.events())), recording.size, list(recording.frames()))
+            write_aedat4(path, recording.events(), recording.size, recording.frames())
         elif target == "mp4":
             with tempfile.TemporaryDirectory() as tmp:
                 source = Path(tmp) / "events.aedat4"
