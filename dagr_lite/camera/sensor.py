@@ -3,7 +3,8 @@
 A :class:`Sensor` applies, in this order: ``crop = [x0, y0, w, h]`` (sensor pixels), ``rotate`` (0,
 90, 180 or 270 degrees, clockwise), ``flip_x`` / ``flip_y`` (mirror the columns / rows), then an
 integer ``scale`` that bins ``scale x scale`` pixels into one (an event keeps its time and polarity
-at ``x // scale, y // scale``; a frame's pixels are averaged), as the dataset versions were made
+at ``x // scale, y // scale``; a frame's pixels are averaged by the dataset builder's
+:func:`~dagr_lite.synth.video.downscale_area`), as the dataset versions were made
 from 1280x720 EgoHands (scale 2: 640x360, scale 4: 320x180). Events and frames go through the same
 steps; :meth:`Sensor.boxes_to_sensor` undoes them for boxes.
 """
@@ -12,6 +13,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from dagr_lite.synth.video import downscale_area
 
 ROTATIONS = (0, 90, 180, 270)
 
@@ -105,9 +108,7 @@ class Sensor:
         if self.flip_y:
             image = image[::-1]
         if self.scale > 1:
-            h, w = image.shape[0] // self.scale, image.shape[1] // self.scale
-            binned = image.reshape(h, self.scale, w, self.scale, -1).astype(np.float64).mean(axis=(1, 3))
-            image = np.clip(np.round(binned), 0, 255).astype(np.uint8).reshape(h, w, *image.shape[2:])
+            image = np.clip(np.round(downscale_area(image, self.scale)), 0, 255).astype(np.uint8)
         return np.ascontiguousarray(image)
 
     def boxes_to_sensor(self, boxes: np.ndarray) -> np.ndarray:
