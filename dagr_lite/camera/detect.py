@@ -120,12 +120,9 @@ def run_detect(stream: StreamingDetector, source, sensor: Sensor, out: Path | st
     out = Path(out)
     check_out(out, overwrite)
     output = _Output(out, sensor, video or VideoSettings(), live)
-    runner = _Runner(stream, sensor, output, 1e6 / rate_hz, live)
     bar = None
     try:
-        frames = iter(source.frames())
-        runner.next_frame = next(frames, None)
-        runner.frames = frames
+        runner = _Runner(stream, sensor, output, 1e6 / rate_hz, live, source.frames())
         bar = tqdm(desc=f"detect {Path(str(source.path)).name}", unit=" ev", unit_scale=True,
                    disable=not progress or live)
         for chunk in source.events():
@@ -148,12 +145,14 @@ def run_detect(stream: StreamingDetector, source, sensor: Sensor, out: Path | st
 class _Runner:
     """The time-ordered feeding of one source (see :func:`run_detect`)."""
 
-    def __init__(self, stream: StreamingDetector, sensor: Sensor, output: _Output, step_us: float, live: bool):
+    def __init__(self, stream: StreamingDetector, sensor: Sensor, output: _Output, step_us: float, live: bool,
+                 frames):
         self.stream, self.sensor, self.output, self.step_us, self.live = stream, sensor, output, step_us, live
+        self.frames = iter(frames)  # (t_us, sensor image), in time order
+        self.next_frame = next(self.frames, None)
         self.pending: list[Events] = []  # model-pixel events read but not yet pushed
         self.t_first: float | None = None
         self.next_stop: float | None = None
-        self.frames, self.next_frame = iter(()), None
         self.events_in = self.events_used = self.frames_used = 0
         self.late_dropped = 0  # live: events older than those already read (reported, not hidden)
         self.busy_s = 0.0  # wall time in the detector (push + detect)
