@@ -6,8 +6,9 @@ memory ``detect`` holds over a long recording.
 A camera-like recording (640x480, about 5 million events/s, several events per pixel and
 microsecond, a clock that starts at 1.7e12 us) is written once per format by faery into a temporary
 folder. For each format it prints faery's read time (iterating its decoder, touching every array),
-ours (``open_recording(...).events()``: the decoder, the time-order buffer, the range check and
-the conversion to int64 arrays), the ratio (the target: at most 1.20) and both throughputs, the
+ours (``open_recording(...).events()``: the decoder and the time-order buffer, which passes faery's
+chunks through whole, as faery already refuses events off the sensor and never goes back in time),
+the ratio (the target: at most 1.20) and both throughputs, the
 best of ``--repeats`` runs each.
 
 ``--detect-events N --ckpt CKPT`` (an events-only checkpoint) also writes an N-event EVT3

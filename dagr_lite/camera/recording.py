@@ -19,8 +19,10 @@ millions of events never sits in memory whole. Real recordings are not always in
 ``order="sort"`` events are sorted within a buffer of ``order_window_us``, and an event later than
 that is an error naming where it is; with ``order="refuse"`` the first disorder is an error that
 says how many events are out of order and where the first is. faery's decoders (every format but
-``.h5``) already hold the clock non-decreasing: an event earlier than the one before it comes out at
-that one's time, so disorder there is never seen here.
+``.h5``) already hold the clock non-decreasing (an event earlier than the one before it comes out at
+that one's time) and refuse an event outside the sensor, so their chunks pass through unscanned;
+``.h5`` chunks get one compiled pass that checks both (tests/camera/test_recording.py pins what
+faery does).
 
 Frames come from the recording's own frame track (AEDAT4), from a frame folder (``frames=DIR``
 with ``timestamps.txt``, one time in microseconds per image in name order) or a video file
@@ -34,6 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator
 
+import numba
 import numpy as np
 
 from dagr_lite.data import format as fmt
@@ -41,6 +44,7 @@ from dagr_lite.data.reader import EventFile, list_frames, read_frame
 
 FAERY_SUFFIXES = {".aedat4": "aedat", ".raw": "evt", ".dat": "dat", ".es": "es", ".csv": "csv"}
 H5_SUFFIXES = (".h5", ".hdf5")
+FAERY_KINDS = set(FAERY_SUFFIXES.values())
 SUFFIXES = tuple(FAERY_SUFFIXES) + H5_SUFFIXES
 ORDERS = ("sort", "refuse")
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
@@ -77,42 +81,75 @@ class OrderStats:
     first_after: int | None = None
 
 
+@numba.njit(cache=True, nogil=True)
+def scan_chunk(t, x, y, after, width, height):
+    """One pass over a chunk: whether an event is earlier than an event before it (``after``: the
+    latest time before the chunk), whether an event lies outside the ``width x height`` sensor, and
+    the chunk's latest time."""
+    top = after
+    late = outside = False
+    for i in range(t.shape[0]):
+        late |= t[i] < top
+        top = max(top, t[i])
+        outside |= (x[i] < 0) | (x[i] >= width) | (y[i] < 0) | (y[i] >= height)
+    return late, outside, top
+
+
 class TimeOrder:
-    """Puts chunks of events in time order within a bounded buffer, or refuses disorder.
+    """Puts chunks of events in time order within a bounded buffer, or refuses disorder, and checks
+    that every event lies inside the sensor (one compiled pass per chunk does both).
 
     ``push`` takes a chunk as read and returns the events now certain to be in order, as a list of
     chunks: those at least ``window_us`` older than the latest time seen (sorted, stable); ``flush``
-    returns the rest. Chunks already in order are passed on as views, uncopied. An event arriving after events ``window_us`` or more later than it were already given
-    out raises; ``order="refuse"`` raises at the first disorder (after ``count_rest`` has counted
-    the rest of the recording, so the message says how many).
+    returns the rest. Chunks already in order go out whole and uncopied once their last event is
+    ``window_us`` old. An event arriving after events ``window_us`` or more later than it were
+    already given out raises; ``order="refuse"`` raises at the first disorder (after ``count_rest``
+    has counted the rest of the recording, so the message says how many). ``p`` comes out as 0 or 1
+    (a bool array viewed as uint8; other values mapped by ``p > 0``).
     """
 
-    def __init__(self, where: str, order: str, window_us: int):
+    def __init__(self, where: str, order: str, window_us: int, size: tuple[int, int] | None = None,
+                 decoder_checked: bool = False):
         if order not in ORDERS:
             raise RecordingError(f"order={order!r}: expected one of {ORDERS}")
         if window_us < 0:
             raise RecordingError(f"order_window_us must be >= 0, got {window_us}")
         self.where, self.order, self.window_us = where, order, int(window_us)
+        self.size = size if size is not None else (np.iinfo(np.int64).max,) * 2
+        self.decoder_checked = decoder_checked  # the decoder refuses events off the sensor and never goes back in time
         self.stats = OrderStats()
         self._pending: list[Events] = []
-        self._max_t = -math.inf  # latest time read
+        self._max_t = np.iinfo(np.int64).min  # latest time read
         self._given_t = -math.inf  # latest time given out
 
-    def _check(self, t: np.ndarray) -> np.ndarray:
-        """Indices in ``t`` of events earlier than an event read before them; updates the counts."""
-        if not len(t) or (t[0] >= self._max_t and bool(np.all(t[1:] >= t[:-1]))):  # in order: one pass
-            self.stats.events += len(t)
-            self._max_t = max(self._max_t, float(t[-1])) if len(t) else self._max_t
+    def _check(self, chunk: Events) -> np.ndarray:
+        """Indices of the chunk's events earlier than an event read before them; updates the counts,
+        and refuses an event outside the sensor."""
+        t, x, y = chunk["t"], chunk["x"], chunk["y"]
+        if not len(t):
             return t[:0]
-        running = np.maximum.accumulate(np.concatenate([[self._max_t], t.astype(np.float64)]))
+        if self.decoder_checked:
+            self.stats.events += len(t)
+            self._max_t = max(self._max_t, int(t[-1]))
+            return t[:0]
+        late, outside, top = scan_chunk(t, x, y, self._max_t, *self.size)
+        if outside:
+            i = int(np.argmax((x < 0) | (x >= self.size[0]) | (y < 0) | (y >= self.size[1])))
+            raise RecordingError(f"{self.where}: event at t={int(t[i])} us lies at ({int(x[i])}, {int(y[i])}), "
+                                 f"outside the {self.size[0]}x{self.size[1]} sensor its header declares")
+        if not late:
+            self.stats.events += len(t)
+            self._max_t = int(top)
+            return t[:0]
+        running = np.maximum.accumulate(np.concatenate([[self._max_t], t.astype(np.int64)]))
         late = np.flatnonzero(t < running[:-1])
-        if len(late) and self.stats.first_at is None:
+        if self.stats.first_at is None:
             i = int(late[0])
             self.stats.first_at, self.stats.first_t = self.stats.events + i, int(t[i])
             self.stats.first_after = int(running[i])
         self.stats.out_of_order += len(late)
         self.stats.events += len(t)
-        self._max_t = float(running[-1])
+        self._max_t = int(running[-1])
         return late
 
     def refused(self) -> RecordingError:
@@ -123,15 +160,20 @@ class TimeOrder:
             f"within order_window_us)")
 
     def push(self, chunk: Events) -> list[Events]:
-        t = np.asarray(chunk["t"])
-        chunk = {k: np.asarray(chunk[k]) for k in "xyp"} | {"t": t}
-        late = self._check(t)
+        p = np.asarray(chunk["p"])
+        if p.dtype == np.bool_:
+            p = p.view(np.uint8)
+        elif len(p) and (p.min() < 0 or p.max() > 1):
+            p = (p > 0).astype(np.uint8)
+        chunk = {"x": np.asarray(chunk["x"]), "y": np.asarray(chunk["y"]), "t": np.asarray(chunk["t"]), "p": p}
+        t = chunk["t"]
+        late = self._check(chunk)
         if self.order == "refuse":
             if len(late):
                 raise self.refused()
             self._given_t = self._max_t
-            return [chunk]
-        if len(t) and t.min() < self._given_t:
+            return [chunk] if len(t) else []
+        if len(late) and t.min() < self._given_t:  # (in order, every event is later than any given out)
             i = int(np.argmax(t < self._given_t))
             raise RecordingError(
                 f"{self.where}: event {self.stats.events - len(t) + i} at t={int(t[i])} us arrives after events "
@@ -141,14 +183,10 @@ class TimeOrder:
         before = self._max_t - self.window_us
         if len(late):
             return self._release(before)
-        # In order: the held chunks are too, end to end; whole chunks go out uncopied, one is split.
+        # In order: the held chunks are too, end to end; whole chunks go out uncopied.
         ready = []
         while self._pending and (not len(self._pending[0]["t"]) or self._pending[0]["t"][-1] <= before):
             ready.append(self._pending.pop(0))
-        if self._pending:
-            cut = int(np.searchsorted(self._pending[0]["t"], before, side="right"))
-            ready.append(take(self._pending[0], slice(0, cut)))
-            self._pending[0] = take(self._pending[0], slice(cut, None))
         return self._given(ready)
 
     def flush(self) -> list[Events]:
@@ -190,8 +228,9 @@ class Recording:
         return self._frames is not None
 
     def events(self) -> Iterator[Events]:
-        """Chunks of events in time order (no chunk is empty)."""
-        sorter = TimeOrder(str(self.path), self.order_mode, self.order_window_us)
+        """Chunks of events in time order, inside the sensor, ``p`` 0 or 1 (no chunk is empty)."""
+        sorter = TimeOrder(str(self.path), self.order_mode, self.order_window_us, self.size,
+                           decoder_checked=self.kind in FAERY_KINDS)
         self.order = sorter.stats
         read = 0
         try:
@@ -200,20 +239,21 @@ class Recording:
                 try:
                     ready = sorter.push(raw)
                 except RecordingError:
-                    if self.order_mode == "refuse":
+                    if self.order_mode == "refuse" and sorter.stats.out_of_order:
                         for rest in self._chunks_after(read):
-                            sorter._check(np.asarray(rest["t"], np.int64))
+                            sorter._check(dict(rest))
                         raise sorter.refused() from None
                     raise
-                for part in ready:
-                    yield self._checked(part)
+                yield from ready
         except RecordingError:
             raise
-        except Exception as err:  # a decoder's own error: truncated or corrupt data
+        except Exception as err:  # a decoder's own error: an event off the sensor, truncated or corrupt data
+            if "overflow" in str(err):
+                raise RecordingError(f"{self.path}: after {read} events, an event lies outside the "
+                                     f"{self.size[0]}x{self.size[1]} sensor its header declares ({err})") from err
             raise RecordingError(f"{self.path}: cannot read it as {self.kind} after {read} events ({err}); the file "
                                  "may be truncated or corrupt") from err
-        for part in sorter.flush():
-            yield self._checked(part)
+        yield from sorter.flush()
 
     def _chunks_after(self, read: int) -> Iterator[Events]:
         """The chunks after the first ``read`` events (to count disorder in the rest of the file)."""
@@ -222,21 +262,6 @@ class Recording:
             seen += len(raw["t"])
             if seen > read:
                 yield raw
-
-    def _checked(self, events: Events) -> Events:
-        """Events inside the sensor, as integer arrays (``p`` 0 or 1); arrays are not copied."""
-        width, height = self.size
-        x, y, p = events["x"], events["y"], events["p"]
-        if x.min() < 0 or x.max() >= width or y.min() < 0 or y.max() >= height:
-            bad = (x < 0) | (x >= width) | (y < 0) | (y >= height)
-            i = int(np.argmax(bad))
-            raise RecordingError(f"{self.path}: event at t={int(events['t'][i])} us lies at ({int(x[i])}, {int(y[i])}), "
-                                 f"outside the {width}x{height} sensor its header declares")
-        if p.dtype == np.bool_:
-            p = p.view(np.uint8)
-        elif p.max() > 1 or p.min() < 0:
-            p = (p > 0).astype(np.uint8)
-        return {"x": x, "y": y, "t": events["t"], "p": p}
 
     def frames(self) -> Iterator[tuple[int, np.ndarray]]:
         """``(t_us, (H, W, 3) uint8)`` in time order; nothing if the recording has no frames."""

@@ -67,13 +67,29 @@ def load_model(state: dict, detector: DetectorConfig, image_size: tuple[int, int
     """The checkpoint's EMA weights in the detector it describes; frames of another size are refused."""
     if (detector.height, detector.width) != tuple(image_size):
         raise ConfigError(f"{ckpt}: the model was trained on {detector.width}x{detector.height} frames, but the "
-                          f"dataset's frames are {image_size[1]}x{image_size[0]}; evaluate it on data of its size")
+                          f"dataset's frames are {image_size[1]}x{image_size[0]}; evaluate it on data of its size, "
+                          "or give model_size=data to run its weights at the data's size")
     model = Detector(detector)
     try:
         model.load_state_dict(state["ema"]["module"])
     except RuntimeError as err:
         raise ValueError(f"{ckpt}: its weights do not fit the model its config describes ({err})") from err
     return model
+
+
+MODEL_SIZES = ("checkpoint", "data")
+
+
+def at_model_size(model_size: str, detector: DetectorConfig, image_size: tuple[int, int],
+                  overrides: dict) -> DetectorConfig:
+    """The detector at the size it was trained at (``checkpoint``) or at the dataset's frame size
+    (``data``: the weights do not depend on the input size; what ``detect``'s
+    ``sensor.model_size=sensor`` runs), the change recorded in ``overrides``."""
+    height, width = image_size
+    if model_size == "checkpoint" or (detector.height, detector.width) == (height, width):
+        return detector
+    overrides["model_size"] = {"checkpoint": [detector.width, detector.height], "used": [width, height]}
+    return dataclasses.replace(detector, width=int(width), height=int(height))
 
 
 def evaluate(cfg: DictConfig) -> dict:
@@ -83,6 +99,8 @@ def evaluate(cfg: DictConfig) -> dict:
     data, detector, overrides = settings(cfg, state)
     cfg = OmegaConf.merge(cfg, {"data": data})
     check_values(cfg)
+    if cfg.model_size not in MODEL_SIZES:
+        raise ConfigError(f"model_size={cfg.model_size!r}: expected one of {MODEL_SIZES}")
     print(OmegaConf.to_yaml(cfg), flush=True)
     for key, change in overrides.items():
         print(f"override: {key}={change['used']!r} (the checkpoint was trained with {change['checkpoint']!r})")
@@ -90,6 +108,7 @@ def evaluate(cfg: DictConfig) -> dict:
     device = resolve_device(cfg.device)
     dataset = build_dataset(cfg, cfg.split, train=False, with_image=detector.use_image)
     print(describe_dataset(dataset), flush=True)
+    detector = at_model_size(cfg.model_size, detector, dataset.image_size, overrides)
     model = load_model(state, detector, dataset.image_size, cfg.ckpt).to(device)
     loader = make_loader(dataset, batch_size=cfg.loader.batch_size, num_workers=cfg.loader.num_workers,
                          graph=model.graph_spec, worker_nice=cfg.loader.worker_nice)

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from dagr_lite.camera.aedat import write_aedat4
-from dagr_lite.camera.recording import (RecordingError, TimeOrder, concat, open_recording, truncation_problem)
+from dagr_lite.camera.recording import (RecordingError, TimeOrder, scan_chunk, concat, open_recording,
+                                        truncation_problem)
 
 WIDTH, HEIGHT = 64, 48
 T0 = 1_700_000_000_000  # a camera clock that does not start at 0 (microseconds)
@@ -107,6 +108,52 @@ def test_frame_folder_with_timestamps_goes_with_the_events(tmp_path):
         open_recording(tmp_path / "rec.es", frames=folder)
 
 
+def _backwards(name: str, data: bytes) -> bytes:
+    """The file's bytes with events 3 and 6 swapped (in EVT3, event 7's time set back to 1)."""
+    if name.endswith(".csv"):
+        lines = data.split(b"\r\n")
+        lines[4], lines[7] = lines[7], lines[4]
+        return b"\r\n".join(lines)
+    start = 0
+    while data.startswith(b"%", start):  # past the header lines
+        start = data.index(b"\n", start) + 1
+    if name == "evt3.raw":
+        return data[:start] + data[start:].replace(bytes([0x07, 0x60]), bytes([0x01, 0x60]), 1)  # TIME_LOW 7 -> 1
+    word = {"evt2.raw": 4, "rec.dat": 8}[name]
+    start += word if name == "evt2.raw" else 2  # past EVT2's first time word / DAT's type and size bytes
+    event = [data[start + k * word:start + (k + 1) * word] for k in range(10)]
+    event[3], event[6] = event[6], event[3]
+    return data[:start] + b"".join(event) + data[start + 10 * word:]
+
+
+@pytest.mark.parametrize(("name", "kwargs"), FORMATS, ids=[f[0] for f in FORMATS])
+def test_faery_refuses_events_off_the_sensor_and_never_goes_back_in_time(tmp_path, name, kwargs):
+    """What lets faery's chunks pass through unscanned (recording.py's docstring)."""
+    import faery
+
+    packed = np.zeros(10, faery.EVENTS_DTYPE)
+    packed["t"], packed["x"], packed["y"] = 1000 + np.arange(10), [1, 2, 3, 70, 5, 6, 7, 8, 9, 10], 1
+    faery.events_stream_from_array(packed, dimensions=(99, 48)).to_file(str(tmp_path / name), **kwargs)
+    data = (tmp_path / name).read_bytes()
+    header = {"rec.es": (b"Event Stream\x02\x00\x00\x01c\x00", b"Event Stream\x02\x00\x00\x01@\x00"),
+              "rec.aedat4": (b'"int">99<', b'"int">64<')}.get(name, (b"99", b"64"))
+    off = tmp_path / f"off_{name}"
+    off.write_bytes(data.replace(*header))  # the same events on a sensor 64 wide: x=70 lies off it
+    with pytest.raises(RecordingError, match=rf"{off}: after 0 events, an event lies outside the 64x48 sensor its header declares \(x overflow \(x=70 .*width=64\)\)"):
+        list(open_recording(off, size=(64, 48) if name == "rec.csv" else None).events())
+    if name == "rec.es":
+        return  # ES stores times as unsigned steps: it cannot go back
+    back = tmp_path / f"back_{name}"
+    if name == "rec.aedat4":
+        order = [0, 1, 2, 6, 4, 5, 3, 7, 8, 9]
+        write_aedat4(back, {k: packed[f][order].astype(np.int64) for k, f in zip("xytp", ("x", "y", "t", "on"))},
+                     size=(99, 48))
+    else:
+        back.write_bytes(_backwards(name, data))
+    t = concat(list(open_recording(back, size=(99, 48)).events()))["t"]
+    assert len(t) == 10 and np.all(np.diff(t) >= 0) and not np.array_equal(t, packed["t"].astype(np.int64))
+
+
 def test_time_order_sorts_within_its_window_and_says_where_disorder_is():
     rng = np.random.default_rng(5)
     t = np.sort(rng.integers(0, 100_000, 3000))
@@ -131,10 +178,38 @@ def test_chunks_in_order_pass_through_whole_and_held_back_by_the_window_only():
     events = {"x": np.arange(len(t)), "y": np.zeros(len(t), int), "t": t, "p": np.ones(len(t), int)}
     order = TimeOrder("cam.h5", "sort", window_us=95)
     out = [order.push({k: v[i:i + 100] for k, v in events.items()}) for i in range(0, len(t), 100)]
-    assert [len(p["t"]) for p in out[0]] == [90]  # the last 95 us of the chunk are held back
-    assert [len(p["t"]) for p in out[1]] == [10, 90]  # the held tail, then the new chunk's older part
-    assert out[1][1]["t"].base is not None  # a view of the chunk, not a copy
+    assert out[0] == []  # its last event is not yet 95 us old
+    assert [len(p["t"]) for p in out[1]] == [100]  # now it is: the whole chunk goes out
+    assert np.shares_memory(out[1][0]["t"], events["t"])  # a view of what was read, not a copy
     np.testing.assert_array_equal(concat([p for parts in out for p in parts] + order.flush())["x"], events["x"])
+
+
+def test_compiled_check_finds_what_numpy_finds_on_strided_decoder_arrays():
+    rng = np.random.default_rng(2)
+    packed = np.zeros(5000, [("t", "<u8"), ("x", "<u2"), ("y", "<u2"), ("on", "?")])  # faery's 13-byte events
+    packed["t"] = np.sort(rng.integers(10, 10**6, 5000))
+    packed["x"], packed["y"] = rng.integers(0, 64, 5000), rng.integers(0, 48, 5000)
+    t = packed["t"].view(np.int64)
+    for late_at, outside_at in [(None, None), (1234, None), (None, 77), (4000, 4999), (0, 0)]:
+        chunk = packed.copy()
+        if late_at is not None:
+            chunk["t"][late_at] = chunk["t"][late_at - 1] - 5 if late_at else 3
+        if outside_at is not None:
+            chunk["y"][outside_at] = 48
+        ct = chunk["t"].view(np.int64)
+        running = np.maximum.accumulate(np.concatenate([[5], ct]))
+        late = np.flatnonzero(ct < running[:-1])
+        outside = np.flatnonzero((chunk["x"] >= 64) | (chunk["y"] >= 48))
+        got = scan_chunk(ct, chunk["x"], chunk["y"], 5, 64, 48)
+        assert got == (len(late) > 0, len(outside) > 0, running.max())
+        if outside_at is not None:
+            with pytest.raises(RecordingError, match=rf"cam.raw: event at t=\d+ us lies at \(\d+, 48\), outside the 64x48"):
+                TimeOrder("cam.raw", "sort", 0, size=(64, 48)).push(
+                    {"x": chunk["x"], "y": chunk["y"], "t": ct, "p": chunk["on"]})
+    p = np.array([0, 1, 1, 2, 0, -1])
+    order = TimeOrder("cam.raw", "sort", 0, size=(64, 48))
+    out = order.push({"x": packed["x"][:6], "y": packed["y"][:6], "t": t[:6], "p": p}) + order.flush()
+    np.testing.assert_array_equal(concat(out)["p"], [0, 1, 1, 1, 0, 0])
 
 
 def test_refused_disorder_counts_every_late_event_of_the_file(tmp_path):

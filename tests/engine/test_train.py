@@ -295,6 +295,12 @@ def test_evaluation_refuses_what_the_model_cannot_take(tmp_path, dataset):
                         f"dataset.root={dataset.root}", "loader.num_workers=0"))
     with pytest.raises(ConfigError, match=r"graph\.radius=3\.0 was given, but the checkpoint's model has no event branch"):
         evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'b'}", "graph.radius=3.0"))
+    at_data = evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'c'}", "dataset=custom",
+                              f"dataset.root={dataset.root}", "loader.num_workers=0", "model_size=data"))
+    assert at_data["metrics"]["overrides"] == {"model_size": {"checkpoint": [320, 180], "used": [64, 48]}}
+    with pytest.raises(ConfigError, match=r"model_size='sensor': expected one of \('checkpoint', 'data'\)"):
+        evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'd'}", "model_size=sensor"))
+    assert not (tmp_path / "d").exists()
 
 
 def test_bad_values_stop_before_the_run_folder_is_made(tmp_path):
