@@ -22,7 +22,7 @@ import time
 import torch
 
 from dagr_lite.config import build_dataset, build_model, compose_config, resolve_config
-from dagr_lite.engine.common import make_loader
+from dagr_lite.engine.loading import make_loader
 from dagr_lite.engine.train import cpu_has_bfloat16
 
 

@@ -27,7 +27,7 @@ import torch
 
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.data.writer import VideoWriter, write_labels
-from dagr_lite.engine.common import make_loader
+from dagr_lite.engine.loading import make_loader
 
 SPLIT_SHARES = {"train": 30, "valid": 10, "test": 8}
 

@@ -35,8 +35,8 @@ from dagr_lite.data.collate import collate
 from dagr_lite.data.dataset import Sample, sample_start_us
 from dagr_lite.data.reader import list_videos
 from dagr_lite.data.writer import VideoWriter
-from dagr_lite.demo import Recording
-from dagr_lite.engine.common import load_checkpoint
+from dagr_lite.apps.demo import Recording
+from dagr_lite.engine.checkpoint import load_checkpoint
 from dagr_lite.nn.detector import Detector, DetectorConfig
 from dagr_lite.nn.gcn import GCNConv, GraphOperator
 from dagr_lite.stream import StreamingDetector

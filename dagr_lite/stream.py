@@ -363,8 +363,7 @@ class StreamingDetector:
         radius stays in pixels, so accuracy at another size is for a measurement to say."""
         import dataclasses
 
-        from dagr_lite.engine.common import load_checkpoint
-        from dagr_lite.engine.evaluate import load_model, trained_sample
+        from dagr_lite.engine.checkpoint import load_checkpoint, load_model, trained_sample
         from dagr_lite.nn.detector import DetectorConfig
 
         state = load_checkpoint(path)

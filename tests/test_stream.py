@@ -338,7 +338,7 @@ def test_demo_writes_a_playable_animation_and_a_strip(hybrid_checkpoint, tmp_pat
     from PIL import Image
 
     from dagr_lite.config import ConfigError
-    from dagr_lite.demo import demo
+    from dagr_lite.apps.demo import demo
     from tests.engine.test_train import config
 
     out = tmp_path / "demo.webp"

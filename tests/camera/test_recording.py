@@ -203,7 +203,7 @@ def test_compiled_check_finds_what_numpy_finds_on_strided_decoder_arrays():
         got = scan_chunk(ct, chunk["x"], chunk["y"], 5, 64, 48)
         assert got == (len(late) > 0, len(outside) > 0, running.max())
         if outside_at is not None:
-            with pytest.raises(RecordingError, match=rf"cam.raw: event at t=\d+ us lies at \(\d+, 48\), outside the 64x48"):
+            with pytest.raises(RecordingError, match=r"cam.raw: event at t=\d+ us lies at \(\d+, 48\), outside the 64x48"):
                 TimeOrder("cam.raw", "sort", 0, size=(64, 48)).push(
                     {"x": chunk["x"], "y": chunk["y"], "t": ct, "p": chunk["on"]})
     p = np.array([0, 1, 1, 2, 0, -1])
@@ -286,7 +286,7 @@ def test_export_writes_every_format_that_reads_back_the_dataset(dataset, tmp_pat
 
 
 def test_recording_statistics_count_bursts_and_hot_pixels(tmp_path):
-    from dagr_lite.camera.stats import recording_stats
+    from dagr_lite.apps.recording_stats import recording_stats
 
     events = camera_events(7, 5000)
     faery_write(tmp_path / "rec.evt3.raw", events, version="evt3")
@@ -303,7 +303,7 @@ def test_recording_statistics_place_hot_pixels_of_a_large_sensor(tmp_path):
     """Decoders give 16-bit coordinates: pixel indices of a 1280x720 sensor must not wrap."""
     import faery
 
-    from dagr_lite.camera.stats import recording_stats
+    from dagr_lite.apps.recording_stats import recording_stats
 
     packed = np.zeros(300, faery.EVENTS_DTYPE)
     packed["t"] = T0 + np.arange(300)

@@ -134,7 +134,7 @@ def test_loader_workers_reopen_files(dataset):
 
 
 def test_new_epochs_reach_loader_workers(dataset):
-    from dagr_lite.engine.common import make_loader
+    from dagr_lite.engine.loading import make_loader
     ds = EventEgoHands(dataset.root, "train", image_age=(1, 4), seed=0)  # the epoch draws the image ages
     loader = make_loader(ds, batch_size=8, num_workers=2)
     first = next(iter(loader)).events
@@ -145,7 +145,7 @@ def test_new_epochs_reach_loader_workers(dataset):
 
 def test_epoch_index_pairs_draw_as_that_epoch(dataset):
     """``ds[(epoch, i)]`` is ``ds[i]`` after ``set_epoch(epoch)``, through loader workers too."""
-    from dagr_lite.engine.common import make_loader
+    from dagr_lite.engine.loading import make_loader
     ds = EventEgoHands(dataset.root, "train", image_age=(1, 4), seed=0)
     for epoch in (0, 3):
         for i in range(len(ds)):

@@ -7,7 +7,8 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader
 
-from dagr_lite.engine.common import EpochSampler, ModelEMA, RunSampler, prepare_worker, warmup_cosine
+from dagr_lite.engine.loading import EpochSampler, RunSampler, prepare_worker
+from dagr_lite.engine.schedule import ModelEMA, warmup_cosine
 
 
 def test_warmup_cosine_by_hand():
@@ -178,7 +179,7 @@ def test_a_failed_checkpoint_write_names_the_path_and_keeps_the_earlier_one(tmp_
     import resource
     import signal
 
-    from dagr_lite.engine.common import load_checkpoint, save_checkpoint
+    from dagr_lite.engine.checkpoint import load_checkpoint, save_checkpoint
 
     path = tmp_path / "last.pt"
     save_checkpoint(path, {"model": {"w": torch.zeros(4)}})

@@ -10,7 +10,7 @@ import pytest
 import torch
 import torch.multiprocessing as mp
 
-from dagr_lite.engine.common import EpochSampler
+from dagr_lite.engine.loading import EpochSampler
 
 STEPS = 4
 PER_RANK = 2  # samples per process and step; the global batch is 4

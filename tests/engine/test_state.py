@@ -6,7 +6,7 @@ import torch
 from dagr_lite.config import build_model, build_optimizer, compose_config, resolve_config
 from dagr_lite.data.collate import collate
 from dagr_lite.data.dataset import EventEgoHands
-from dagr_lite.engine.common import make_loader
+from dagr_lite.engine.loading import make_loader
 from dagr_lite.engine.state import TrainState, train_step, validate
 from dagr_lite.eval.coco import METRIC_KEYS
 from dagr_lite.eval.score import score_model

@@ -11,7 +11,7 @@ import dagr_lite.engine.train as train_module
 from dagr_lite.config import ConfigError
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.evaluate import evaluate
-from dagr_lite.engine.common import warmup_cosine
+from dagr_lite.engine.schedule import warmup_cosine
 from dagr_lite.engine.train import ResumeError, train
 from dagr_lite.synth.stub import stub_root
 
@@ -338,7 +338,7 @@ def test_a_mistake_on_the_command_line_is_one_line_and_leaves_no_folder(tmp_path
     full = subprocess.run([sys.executable, str(repo / "train.py"), "loader.batch_size=0"], capture_output=True,
                           text=True, cwd=tmp_path, env={**env, "HYDRA_FULL_ERROR": "1"})
     assert full.returncode == 1 and "Traceback" in full.stderr and "ConfigError" in full.stderr
-    sweep = subprocess.run([sys.executable, "-m", "dagr_lite.eval.sweep", f"out={tmp_path / 'sweep'}"],
+    sweep = subprocess.run([sys.executable, "-m", "dagr_lite.apps.sweep", f"out={tmp_path / 'sweep'}"],
                            capture_output=True, text=True, cwd=tmp_path, env=env)
     assert sweep.returncode == 1
     assert sweep.stderr.strip() == ("error: invalid configuration: Missing mandatory value: ckpt; "

@@ -1,4 +1,4 @@
-"""Statistics and pictures of a dataset: ``python -m dagr_lite.data.stats ROOT --out DIR [--videos ...]``.
+"""Statistics and pictures of a dataset: ``python -m dagr_lite.apps.stats ROOT --out DIR [--videos ...]``.
 
 Writes ``DIR/stats.json``: per video and per split the events, duration, mean and peak event
 rate (over 10 ms bins), ON fraction, frames, labelled frames, boxes and boxes per labelled
@@ -28,7 +28,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from dagr_lite.cli import user_errors  # noqa: E402
+from dagr_lite.apps.cli import user_errors  # noqa: E402
 from dagr_lite.data import format as fmt  # noqa: E402
 from dagr_lite.data.reader import EventFile, list_frames, list_videos, read_frame, read_labels  # noqa: E402
 
@@ -239,7 +239,7 @@ def dataset_stats(root: Path | str, out: Path | str, *, videos: list[str] | None
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m dagr_lite.data.stats", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m dagr_lite.apps.stats", description=__doc__.splitlines()[0])
     parser.add_argument("root", help="dataset folder in the EventEgoHands layout, or one event recording "
                                      "(.aedat4 .raw .dat .es .csv .h5)")
     parser.add_argument("--out", required=True, help="folder for stats.json, the pictures and index.html")
@@ -250,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fps", type=float, default=fmt.DEFAULT_FPS)
     args = parser.parse_args(argv)
     if Path(args.root).is_file():
-        from dagr_lite.camera.stats import recording_stats
+        from dagr_lite.apps.recording_stats import recording_stats
 
         with user_errors():
             stats = recording_stats(args.root, args.out, size=args.size)

@@ -8,7 +8,7 @@ import pytest
 from dagr_lite.config import ConfigError, compose_config
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.train import train
-from dagr_lite.eval.sweep import SweepSamples, interpolate_boxes, match_boxes, sweep, sweep_frames, sweep_points
+from dagr_lite.apps.sweep import SweepSamples, interpolate_boxes, match_boxes, sweep, sweep_frames, sweep_points
 from dagr_lite.synth.stub import stub_root
 
 
@@ -93,7 +93,7 @@ def test_the_sweep_writes_its_table_plot_and_rows(tmp_path, capsys, monkeypatch)
     # a truncated checkpoint after a good one: refused by name before anything is scored
     truncated = tmp_path / "truncated.pt"
     truncated.write_bytes(open(ckpts[1], "rb").read()[:5000])
-    import dagr_lite.eval.sweep as sweep_module
+    import dagr_lite.apps.sweep as sweep_module
     scored = []
     monkeypatch.setattr(sweep_module, "score_point", lambda *args, **kwargs: scored.append(1))
     with pytest.raises(ValueError, match=f"{truncated}: cannot read as a dagr_lite checkpoint"):

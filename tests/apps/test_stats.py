@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.stats import BIN_US, SIZE_EDGES, dataset_stats, main
+from dagr_lite.apps.stats import BIN_US, SIZE_EDGES, dataset_stats, main
 from tests.conftest import make_dataset
 
 

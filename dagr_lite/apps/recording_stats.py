@@ -1,5 +1,5 @@
 """Statistics of one event recording (any format :func:`~dagr_lite.camera.recording.open_recording`
-reads): ``python -m dagr_lite.data.stats RECORDING --out DIR [--size W H]``.
+reads): ``python -m dagr_lite.apps.stats RECORDING --out DIR [--size W H]``.
 
 Writes ``DIR/stats.json`` (events, the clock's first and last time, duration, mean and peak rate
 over 10 ms bins, ON fraction, frames, the hottest pixels and their share of all events, and the
@@ -15,7 +15,7 @@ import numpy as np
 from tqdm import tqdm
 
 from dagr_lite.camera.recording import open_recording
-from dagr_lite.data.stats import BIN_US, rate_picture
+from dagr_lite.apps.stats import BIN_US, rate_picture
 
 HOT_PIXELS = 10  # the hottest pixels listed
 

@@ -5,10 +5,7 @@ under Hydra the output folder it made for the command is removed when the comman
 nothing in it.
 ``HYDRA_FULL_ERROR=1`` shows the traceback as well.
 
-    @hydra.main(config_path="conf", config_name="train", version_base=None)
-    def main(cfg):
-        with user_errors():
-            train(cfg)
+    main = hydra_command("train", train)   # python train.py [key=value ...] runs main()
 """
 from __future__ import annotations
 
@@ -17,8 +14,12 @@ import os
 import re
 import sys
 from pathlib import Path
+from typing import Callable
 
+from omegaconf import DictConfig
 from omegaconf.errors import MissingMandatoryValue
+
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
 # What a user's mistake raises here: every check of a value, file or folder raises one of these
 # (ConfigError, ResumeError and DatasetFormatError are ValueErrors; FileNotFoundError and
@@ -66,3 +67,16 @@ def remove_empty_output_folder() -> None:
             path.rmdir()  # only an empty folder
         except OSError:
             break
+
+
+def hydra_command(config_name: str, run: Callable[[DictConfig], object]) -> Callable[[], None]:
+    """A command's ``main``: Hydra composes ``conf/<config_name>.yaml`` with the command line and
+    ``run(cfg)`` runs inside :func:`user_errors`."""
+    import hydra
+
+    @hydra.main(config_path=str(CONF_DIR), config_name=config_name, version_base=None)
+    def main(cfg: DictConfig) -> None:
+        with user_errors():
+            run(cfg)
+
+    return main

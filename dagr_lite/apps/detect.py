@@ -11,7 +11,7 @@ from dagr_lite.camera.recording import open_recording
 from dagr_lite.camera.sensor import Sensor
 from dagr_lite.camera.udp import UdpSource
 from dagr_lite.config import ConfigError
-from dagr_lite.engine.common import resolve_device
+from dagr_lite.engine.runs import resolve_device
 from dagr_lite.stream import StreamingDetector
 
 MODEL_SIZES = ("model", "sensor")

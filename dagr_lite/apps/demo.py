@@ -1,6 +1,6 @@
 """Run the streaming detector over one recording and write a video a person can play.
 
-    python -m dagr_lite.demo ckpt=runs/train/<run>/checkpoints/best.pt [video=<name>] [split=test]
+    python -m dagr_lite.apps.demo ckpt=runs/train/<run>/checkpoints/best.pt [video=<name>] [split=test]
         [rate_hz=300] [out=runs/demo/<video>.webp] [seconds=null] [dataset=...]
 
 Images reach the detector at the camera's rate, events in updates of ``1 / rate_hz`` seconds,
@@ -15,19 +15,18 @@ import os
 import time
 from pathlib import Path
 
-import hydra
 import numpy as np
 from omegaconf import DictConfig
 from PIL import Image
 from tqdm import tqdm
 
 from dagr_lite.camera.render import render_moment
-from dagr_lite.cli import user_errors
+from dagr_lite.apps.cli import hydra_command
 from dagr_lite.config import ConfigError, dataset_root
 from dagr_lite.data import format as fmt
 from dagr_lite.data.reader import EventFile, list_frames, list_videos, read_frame
 from dagr_lite.data.writer import temporary_name
-from dagr_lite.engine.common import resolve_device
+from dagr_lite.engine.runs import resolve_device
 from dagr_lite.stream import StreamingDetector
 
 FORMATS = {".webp": "WEBP", ".gif": "GIF"}
@@ -142,10 +141,7 @@ def demo(cfg: DictConfig) -> dict:
     return {"out": out, "strip": strip_file, "latencies": latency}
 
 
-@hydra.main(config_path="../conf", config_name="demo", version_base=None)
-def main(cfg: DictConfig) -> None:
-    with user_errors():
-        demo(cfg)
+main = hydra_command("demo", demo)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,8 @@
 """The paper's version experiment (Table III) on one source, in one command.
 
-    python -m dagr_lite.experiments.versions --source DIR --versions v2,v3,v4,v5,v6 \\
+    python -m dagr_lite.apps.versions --source DIR --versions v2,v3,v4,v5,v6 \\
         --budget-minutes M --out OUT [--labels L.json] [--splits S.json] [--seed 0]
-    python -m dagr_lite.experiments.versions --stub-source 1280x720 --versions v2,v3,v4,v5,v6 \\
+    python -m dagr_lite.apps.versions --stub-source 1280x720 --versions v2,v3,v4,v5,v6 \\
         --budget-minutes M --out OUT
 
 From the same source frames (``DIR/<video>/frame_<k>.jpg`` with labels in the release format at
@@ -158,7 +158,7 @@ def parse_numbers(text: str, separator: str, count: int, option: str, expected: 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m dagr_lite.experiments.versions", description=__doc__.splitlines()[0],
+    parser = argparse.ArgumentParser(prog="python -m dagr_lite.apps.versions", description=__doc__.splitlines()[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--source", type=Path, help="folder of <video>/frame_<k>.jpg folders")

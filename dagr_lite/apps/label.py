@@ -1,4 +1,4 @@
-"""Labels for every frame, the paper's way: ``python -m dagr_lite.synth.label ROOT --out DIR``.
+"""Labels for every frame, the paper's way: ``python -m dagr_lite.apps.label ROOT --out DIR``.
 
 EventEgoHands labels every frame by running a detector trained on the hand-labelled frames. This
 does the same with our own image-only detector:
@@ -28,12 +28,12 @@ import torch
 from scipy.optimize import linear_sum_assignment
 from tqdm import tqdm
 
-from dagr_lite.cli import user_errors
+from dagr_lite.apps.cli import user_errors
 from dagr_lite.data import format as fmt
 from dagr_lite.data.reader import list_frames, list_videos, read_frame, read_labels
 from dagr_lite.data.writer import write_labels, write_text_atomically
 from dagr_lite.eval.coco import CocoEvaluator
-from dagr_lite.eval.sweep import match_boxes
+from dagr_lite.apps.sweep import match_boxes
 from dagr_lite.nn.head import box_iou, postprocess
 
 Labels = dict[str, dict[int, np.ndarray]]  # video -> frame -> (M, 4) xywh
@@ -97,8 +97,8 @@ def train_detector(work: Path, out: Path, *, minutes: float, steps: int | None, 
 @torch.no_grad()
 def predict_all(checkpoint: Path, root: Path, videos: dict[str, str], *, batch_size: int = 16) -> dict:
     """``{video: {k: (boxes xywh, scores)}}`` of the detector on every frame."""
-    from dagr_lite.engine.common import load_checkpoint
-    from dagr_lite.engine.evaluate import load_model
+    from dagr_lite.engine.checkpoint import load_checkpoint
+    from dagr_lite.engine.checkpoint import load_model
     from dagr_lite.nn.detector import DetectorConfig
 
     state = load_checkpoint(checkpoint)
@@ -219,7 +219,7 @@ def label_dataset(root: Path | str, out: Path | str, *, hide: float | None = Non
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m dagr_lite.synth.label", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m dagr_lite.apps.label", description=__doc__.splitlines()[0])
     parser.add_argument("root", type=Path, help="dataset in the EventEgoHands layout, with some frames labelled")
     parser.add_argument("--out", type=Path, required=True, help="folder for the labels, report and training run")
     parser.add_argument("--hide", type=float, help="hide this share of all labels first and measure on them")

@@ -9,10 +9,11 @@ from omegaconf import OmegaConf
 from scipy.optimize import linear_sum_assignment
 
 from dagr_lite.config import build_dataset, compose_config
-from dagr_lite.engine.common import load_checkpoint, make_loader
-from dagr_lite.engine.evaluate import load_model, trained_sample
+from dagr_lite.engine.checkpoint import load_checkpoint
+from dagr_lite.engine.loading import make_loader
+from dagr_lite.engine.checkpoint import load_model, trained_sample
 from dagr_lite.eval.score import detections_of
-from dagr_lite.eval.sweep import SweepSamples, streamed_detections, sweep_frames
+from dagr_lite.apps.sweep import SweepSamples, streamed_detections, sweep_frames
 from dagr_lite.nn.detector import DetectorConfig
 
 AGES = (1, 3, 10)

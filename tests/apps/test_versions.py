@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from dagr_lite.experiments.versions import main, run_versions, write_stub_source
+from dagr_lite.apps.versions import main, run_versions, write_stub_source
 
 
 def test_versions_table_from_one_source_and_reuse(tmp_path):
@@ -74,7 +74,7 @@ def test_versions_train_with_the_stub_recipe_itself(tmp_path):
     from omegaconf import OmegaConf
 
     from dagr_lite.config import compose_config
-    from dagr_lite.experiments.versions import version_config
+    from dagr_lite.apps.versions import version_config
 
     recipe = OmegaConf.load(Path(__file__).resolve().parents[2] / "conf" / "recipe" / "stub.yaml")
     stub = compose_config("train", [])

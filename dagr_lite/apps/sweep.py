@@ -1,6 +1,6 @@
 """Detection quality against the image's age, for several checkpoints on the same frames.
 
-    python -m dagr_lite.eval.sweep ckpt=[A.pt,B.pt] split=test ages=[1,2,3,5,7,10] out=DIR [between=10] [stream=true]
+    python -m dagr_lite.apps.sweep ckpt=[A.pt,B.pt] split=test ages=[1,2,3,5,7,10] out=DIR [between=10] [stream=true]
 
 Every checkpoint is scored at every image age ``a`` (the image of frame ``k - a`` and the
 events of the sample's horizon, boxes of frame ``k``) on one list of label frames, ``k >= max(ages)``, so the
@@ -19,7 +19,6 @@ import csv
 import json
 from pathlib import Path
 
-import hydra
 import numpy as np
 import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
@@ -27,13 +26,15 @@ from scipy.optimize import linear_sum_assignment
 from torch.utils.data import Dataset
 from tqdm import tqdm
 
-from dagr_lite.cli import user_errors
+from dagr_lite.apps.cli import hydra_command
 from dagr_lite.config import ConfigError, build_dataset, resolve_config
 from dagr_lite.data import format as fmt
 from dagr_lite.data.dataset import EventEgoHands, Sample
-from dagr_lite.engine.common import load_checkpoint, make_loader, resolve_device
+from dagr_lite.engine.checkpoint import load_checkpoint
+from dagr_lite.engine.loading import make_loader
+from dagr_lite.engine.runs import resolve_device
 from dagr_lite.data.writer import write_text_atomically
-from dagr_lite.engine.evaluate import SAMPLE_KEYS, _override, load_model, trained_sample
+from dagr_lite.engine.checkpoint import SAMPLE_KEYS, load_model, override, trained_sample
 from dagr_lite.eval.score import score_entries, score_model
 from dagr_lite.nn.detector import Detector, DetectorConfig
 from dagr_lite.nn.head import box_iou
@@ -202,7 +203,7 @@ def sweep_checkpoint(cfg: DictConfig, path: str, state: dict, frames: list[tuple
     trained = state["config"]
     overrides: dict = {}
     data = trained_sample(state)
-    data.update({key: _override("data", key, data[key], cfg.data.get(key), overrides) for key in OVERRIDABLE})
+    data.update({key: override("data", key, data[key], cfg.data.get(key), overrides) for key in OVERRIDABLE})
     run_cfg = OmegaConf.merge(cfg, {"data": data})
     largest = max(cfg.ages)
     dataset = build_dataset(run_cfg, cfg.split, train=False, with_image=detector.use_image, image_age=largest,
@@ -330,10 +331,7 @@ def plot_sweep(rows: list[dict], path: Path, *, between: int) -> None:
     plt.close(fig)
 
 
-@hydra.main(config_path="../../conf", config_name="sweep", version_base=None)
-def main(cfg: DictConfig) -> None:
-    with user_errors():
-        sweep(cfg)
+main = hydra_command("sweep", sweep)
 
 
 if __name__ == "__main__":

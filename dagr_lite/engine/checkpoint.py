@@ -1,0 +1,139 @@
+"""Checkpoints: saving and loading them, the model a checkpoint describes, what one of its samples
+is, and a description of a run's data. The engine, the streaming detector, the sweep and
+labelling all read checkpoints through here."""
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig
+
+from dagr_lite.config import ConfigError
+from dagr_lite.data.dataset import EventEgoHands
+from dagr_lite.data.writer import temporary_name
+from dagr_lite.graph.spec import EventGraphSpec
+from dagr_lite.nn.detector import Detector, DetectorConfig
+
+CHECKPOINT_FORMAT = 2
+
+
+def save_checkpoint(path: Path, state: dict) -> None:
+    """``torch.save`` to a temporary name, then rename: a checkpoint on disk is always whole. A
+    write that fails (disk full, file size limit) raises :class:`OSError` naming ``path`` and
+    the cause, removes the temporary file and leaves an earlier checkpoint at ``path`` as it was."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_name(path)
+    try:
+        torch.save({"format": CHECKPOINT_FORMAT, **state}, tmp)
+        os.replace(tmp, path)
+    except (OSError, RuntimeError) as err:  # torch reports a failed write as a RuntimeError
+        tmp.unlink(missing_ok=True)
+        kept = f"; the earlier {path.name} is kept as it was" if path.exists() else ""
+        raise OSError(f"{path}: the checkpoint could not be written ({err}){kept}") from err
+
+
+def load_checkpoint(path: Path | str) -> dict:
+    """Load a checkpoint safely (``weights_only``); a missing or foreign file gives a clear error."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: checkpoint file is missing")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # unpickling errors come in many types
+        raise ValueError(f"{path}: cannot read as a dagr_lite checkpoint ({err})") from err
+    if not isinstance(state, dict) or "model" not in state:
+        raise ValueError(f"{path}: not a dagr_lite checkpoint (expected keys format, model, ema, detector, config, ...)")
+    if state.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path}: a checkpoint of format {state.get('format')}, but this dagr_lite reads format "
+                         f"{CHECKPOINT_FORMAT} (it records the model's architecture and event graph); "
+                         "train the model again with this version")
+    return state
+
+
+# The data settings that define a model's input: taken from the checkpoint unless overridden.
+SAMPLE_KEYS = ("image_age", "window_us", "context_us", "refractory_us", "max_events")
+
+
+# Sample keys newer than some checkpoints, with the value that gives those checkpoints' samples.
+SAMPLE_ADDED_LATER = {"refractory_us": 0}
+
+
+def trained_sample(state: dict) -> dict:
+    """The sample settings a checkpoint was trained with (keys added later at their old value)."""
+    return {**SAMPLE_ADDED_LATER, **{key: state["config"]["data"][key] for key in SAMPLE_KEYS
+                                     if key in state["config"]["data"]}}
+
+
+def override(section: str, key: str, trained, given, overrides: dict):
+    """``given`` when set (recorded in ``overrides`` when it differs), else ``trained``."""
+    if given is None:
+        return trained
+    if given != trained:
+        overrides[f"{section}.{key}"] = {"checkpoint": trained, "used": given}
+    return given
+
+
+def settings(cfg: DictConfig, state: dict) -> tuple[dict, DetectorConfig, dict]:
+    """The data settings, the detector and the overrides of an evaluation of checkpoint ``state``."""
+    trained_data = trained_sample(state)
+    detector = DetectorConfig.from_dict(state["detector"])
+    overrides: dict = {}
+    data = {key: override("data", key, trained_data[key], cfg.data[key], overrides) for key in SAMPLE_KEYS}
+    given_graph = {key: value for key, value in cfg.graph.items() if value is not None}
+    if given_graph and detector.graph is None:
+        raise ConfigError(f"{cfg.ckpt}: graph.{next(iter(given_graph))}={next(iter(given_graph.values()))!r} "
+                          "was given, but the checkpoint's model has no event branch (use_events false)")
+    graph = detector.graph
+    if graph is not None:
+        values = {key: override("graph", key, trained, cfg.graph[key], overrides)
+                  for key, trained in graph.as_dict().items()}
+        try:
+            graph = EventGraphSpec(**values)
+        except ValueError as err:
+            raise ConfigError(str(err)) from err
+    return data, dataclasses.replace(detector, graph=graph), overrides
+
+
+def load_model(state: dict, detector: DetectorConfig, image_size: tuple[int, int], ckpt: str) -> Detector:
+    """The checkpoint's EMA weights in the detector it describes; frames of another size are refused."""
+    if (detector.height, detector.width) != tuple(image_size):
+        raise ConfigError(f"{ckpt}: the model was trained on {detector.width}x{detector.height} frames, but the "
+                          f"dataset's frames are {image_size[1]}x{image_size[0]}; evaluate it on data of its size, "
+                          "or give model_size=data to run its weights at the data's size")
+    model = Detector(detector)
+    try:
+        model.load_state_dict(state["ema"]["module"])
+    except RuntimeError as err:
+        raise ValueError(f"{ckpt}: its weights do not fit the model its config describes ({err})") from err
+    return model
+
+
+MODEL_SIZES = ("checkpoint", "data")
+
+
+def at_model_size(model_size: str, detector: DetectorConfig, image_size: tuple[int, int],
+                  overrides: dict) -> DetectorConfig:
+    """The detector at the size it was trained at (``checkpoint``) or at the dataset's frame size
+    (``data``: the weights do not depend on the input size; what ``detect``'s
+    ``sensor.model_size=sensor`` runs), the change recorded in ``overrides``."""
+    height, width = image_size
+    if model_size == "checkpoint" or (detector.height, detector.width) == (height, width):
+        return detector
+    overrides["model_size"] = {"checkpoint": [detector.width, detector.height], "used": [width, height]}
+    return dataclasses.replace(detector, width=int(width), height=int(height))
+
+
+def describe_dataset(dataset: EventEgoHands) -> str:
+    height, width = dataset.image_size
+    return (f"{dataset.root} [{dataset.split}]: {len(dataset.videos)} videos, {len(dataset)} samples, "
+            f"{width}x{height} px, image age {describe_age(dataset.age_range, dataset.age_power)} frames, events "
+            f"of the last {dataset.window_us} us"
+            + (f" (none from before the image - {dataset.context_us} us)" if dataset.event_span == "image" else ""))
+
+
+def describe_age(ages: tuple[int, int], power: float = 0.0) -> str:
+    if ages[0] == ages[1]:
+        return str(ages[0])
+    return f"{ages[0]}-{ages[1]}" + (f" (weights (a - {ages[0] - 1})^{power:g})" if power else "")
