@@ -103,7 +103,7 @@ def main() -> None:
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     from dagr_lite.data import format as fmt
-    from dagr_lite.data.reader import EventFile
+    from dagr_lite.data.events import EventFile
 
     event_bytes = sum(EventFile(fmt.events_path(root, "train", v)).num_events for v in dataset.videos) * 13
     print(f"start-up of the train split ({len(dataset.videos)} videos, {len(dataset):,} samples): {opened:.1f} s, "

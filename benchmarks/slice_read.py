@@ -23,7 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.reader import EventFile
+from dagr_lite.data.events import EventFile
 from dagr_lite.data.writer import DEFAULT_CHUNK_EVENTS, EventFileWriter
 
 DURATION_S = 90.0

@@ -33,7 +33,7 @@ import torch
 
 from dagr_lite.data.collate import collate
 from dagr_lite.data.dataset import Sample, sample_start_us
-from dagr_lite.data.reader import list_videos
+from dagr_lite.data.labels import list_videos
 from dagr_lite.data.writer import VideoWriter
 from dagr_lite.apps.demo import Recording
 from dagr_lite.engine.checkpoint import load_checkpoint

@@ -24,7 +24,9 @@ from dagr_lite.camera.render import render_moment
 from dagr_lite.apps.cli import hydra_command
 from dagr_lite.config import ConfigError, dataset_root
 from dagr_lite.data import format as fmt
-from dagr_lite.data.reader import EventFile, list_frames, list_videos, read_frame
+from dagr_lite.data.events import EventFile
+from dagr_lite.data.frames import list_frames, read_frame
+from dagr_lite.data.labels import list_videos
 from dagr_lite.data.writer import temporary_name
 from dagr_lite.engine.runs import resolve_device
 from dagr_lite.stream import StreamingDetector

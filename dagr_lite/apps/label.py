@@ -30,7 +30,8 @@ from tqdm import tqdm
 
 from dagr_lite.apps.cli import user_errors
 from dagr_lite.data import format as fmt
-from dagr_lite.data.reader import list_frames, list_videos, read_frame, read_labels
+from dagr_lite.data.frames import list_frames, read_frame
+from dagr_lite.data.labels import list_videos, read_labels
 from dagr_lite.data.writer import write_labels, write_text_atomically
 from dagr_lite.eval.coco import CocoEvaluator
 from dagr_lite.apps.sweep import match_boxes

@@ -30,7 +30,9 @@ from tqdm import tqdm  # noqa: E402
 
 from dagr_lite.apps.cli import user_errors  # noqa: E402
 from dagr_lite.data import format as fmt  # noqa: E402
-from dagr_lite.data.reader import EventFile, list_frames, list_videos, read_frame, read_labels  # noqa: E402
+from dagr_lite.data.events import EventFile
+from dagr_lite.data.frames import list_frames, read_frame
+from dagr_lite.data.labels import list_videos, read_labels
 
 BIN_US = 10_000  # event-rate bins
 READ_US = 1_000_000  # events are read this much at a time

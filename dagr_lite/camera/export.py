@@ -16,7 +16,7 @@ from tqdm import tqdm
 from dagr_lite.camera.aedat import write_aedat4
 from dagr_lite.camera.recording import open_recording
 from dagr_lite.data import format as fmt
-from dagr_lite.data.reader import list_videos
+from dagr_lite.data.labels import list_videos
 
 TARGETS = {"aedat4": ".aedat4", "evt2": ".evt2.raw", "evt3": ".evt3.raw", "dat": ".dat", "es": ".es",
            "csv": ".csv", "mp4": ".mp4"}

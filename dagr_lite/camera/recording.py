@@ -10,7 +10,7 @@ suffix             camera / format                                read by
 ``.dat``           Prophesee DAT                                  faery
 ``.es``            Event Stream (ATIS, DVS)                       faery
 ``.csv``           ``t,x,y,on`` text                              faery
-``.h5``            this package's dataset layout                  :class:`~dagr_lite.data.reader.EventFile`
+``.h5``            this package's dataset layout                  :class:`~dagr_lite.data.events.EventFile`
 =================  =============================================  ==========================
 
 Events come as dicts of numpy arrays ``x, y, t, p`` (integers: ``t`` int64 microseconds on the
@@ -40,7 +40,8 @@ import numba
 import numpy as np
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.reader import EventFile, list_frames, read_frame
+from dagr_lite.data.events import EventFile
+from dagr_lite.data.frames import list_frames, read_frame
 
 FAERY_SUFFIXES = {".aedat4": "aedat", ".raw": "evt", ".dat": "dat", ".es": "es", ".csv": "csv"}
 H5_SUFFIXES = (".h5", ".hdf5")

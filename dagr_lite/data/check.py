@@ -18,9 +18,10 @@ import numpy as np
 from tqdm import tqdm
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.reader import (DatasetFormatError, Problem, box_problems, fits_neither_message,
-                                   frame_header_problems, header_problems, jpeg_size, list_frames, list_videos,
-                                   load_labels_json, open_h5, parse_boxes, polarity_problem, read_frame)
+from dagr_lite.data.errors import DatasetFormatError, Problem
+from dagr_lite.data.events import fits_neither_message, header_problems, open_h5, polarity_problem
+from dagr_lite.data.frames import frame_header_problems, jpeg_size, list_frames, read_frame
+from dagr_lite.data.labels import box_problems, list_videos, load_labels_json, parse_boxes
 
 BLOCK_EVENTS = 1 << 22
 

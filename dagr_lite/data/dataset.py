@@ -18,8 +18,10 @@ import torch
 from torch.utils.data import Dataset
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.reader import (DatasetFormatError, EventFile, Problem, box_problems, frame_header_problems,
-                                   list_frames, list_videos, read_frame, read_labels)
+from dagr_lite.data.errors import DatasetFormatError, Problem
+from dagr_lite.data.events import EventFile
+from dagr_lite.data.frames import frame_header_problems, list_frames, read_frame
+from dagr_lite.data.labels import box_problems, list_videos, read_labels
 
 # At most this many frame problems are listed when the dataset refuses to open.
 MAX_LISTED_PROBLEMS = 10

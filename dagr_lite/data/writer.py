@@ -17,7 +17,8 @@ import numpy as np
 from PIL import Image
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.reader import list_frames, load_labels_json
+from dagr_lite.data.frames import list_frames
+from dagr_lite.data.labels import load_labels_json
 
 # Events per HDF5 chunk. A window read decompresses the chunks it touches, about
 # n / CHUNK + 1 per array, so small chunks keep the constant part of a slice read low; 8192

@@ -35,7 +35,9 @@ import numpy as np
 from tqdm import tqdm
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.reader import DatasetFormatError, frame_size, read_json_object, read_label_file
+from dagr_lite.data.errors import DatasetFormatError
+from dagr_lite.data.frames import frame_size
+from dagr_lite.data.labels import read_json_object, read_label_file
 from dagr_lite.data.writer import VideoWriter, write_labels, write_text_atomically
 from dagr_lite.synth.dvs import PRESETS, DVSParams, preset
 from dagr_lite.synth.egohands import (EGOHANDS_HEIGHT, EGOHANDS_WIDTH, Labeller, default_split, interpolate_labels,

@@ -21,7 +21,7 @@ import numpy as np
 import scipy.io
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.reader import DatasetFormatError
+from dagr_lite.data.errors import DatasetFormatError
 
 HANDS = ("myleft", "myright", "yourleft", "yourright")
 EGOHANDS_HEIGHT, EGOHANDS_WIDTH = 720, 1280

@@ -18,10 +18,10 @@ from pathlib import Path
 from typing import Callable, Protocol
 
 import numpy as np
-from PIL import Image
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.reader import DatasetFormatError
+from dagr_lite.data.errors import DatasetFormatError
+from dagr_lite.data.frames import read_frame
 from dagr_lite.data.writer import VideoWriter
 from dagr_lite.synth.dvs import DVSEmulator, DVSParams
 
@@ -148,11 +148,7 @@ class FolderSource(_TwoFrameSource):
 
     def _load(self, k: int) -> np.ndarray:
         path = self.files[k]
-        try:
-            with Image.open(path) as image:
-                rgb = np.asarray(image.convert("RGB"))
-        except (OSError, SyntaxError, ValueError) as err:
-            raise DatasetFormatError.at(path, f"cannot decode image ({err})") from err
+        rgb = read_frame(path)
         frame = downscale_area(rgb, self.scale)
         if self.height is not None and frame.shape[:2] != (self.height, self.width):
             raise DatasetFormatError.at(path, f"frame is {rgb.shape[1]}x{rgb.shape[0]} (WxH), unlike the first "

@@ -5,7 +5,7 @@ import re
 import numpy as np
 import pytest
 
-from dagr_lite.data.reader import read_labels
+from dagr_lite.data.labels import read_labels
 from dagr_lite.apps.label import interpolate_frame, label_dataset, main, split_labels
 from tests.conftest import make_dataset
 

@@ -6,7 +6,8 @@ import pytest
 from dagr_lite.data import format as fmt
 from dagr_lite.data.check import check_dataset, main
 from dagr_lite.data.dataset import EventEgoHands
-from dagr_lite.data.reader import MAX_CONVENTION_PROBES, DatasetFormatError, EventFile, probe_frames
+from dagr_lite.data.errors import DatasetFormatError
+from dagr_lite.data.events import EventFile, MAX_CONVENTION_PROBES, probe_frames
 from dagr_lite.data.writer import write_events
 from tests.conftest import HEIGHT, WIDTH, make_dataset
 

@@ -9,7 +9,8 @@ from torch.utils.data import DataLoader
 from dagr_lite.data import format as fmt
 from dagr_lite.data.collate import collate
 from dagr_lite.data.dataset import EventEgoHands, SampleTooLarge, draw_age, refractory_keep, sample_start_us
-from dagr_lite.data.reader import DatasetFormatError, read_frame
+from dagr_lite.data.errors import DatasetFormatError
+from dagr_lite.data.frames import read_frame
 from dagr_lite.data.writer import write_frame
 from tests.conftest import make_dataset
 

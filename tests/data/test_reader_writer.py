@@ -7,8 +7,10 @@ import pytest
 from PIL import Image
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.reader import (DatasetFormatError, EventFile, frame_size, jpeg_size, list_videos, read_frame,
-                                   read_labels)
+from dagr_lite.data.errors import DatasetFormatError
+from dagr_lite.data.events import EventFile
+from dagr_lite.data.frames import frame_size, jpeg_size, read_frame
+from dagr_lite.data.labels import list_videos, read_labels
 from dagr_lite.data.writer import EventFileWriter, write_events, write_frame, write_labels, write_video
 from tests.conftest import make_dataset, random_events
 

@@ -388,7 +388,7 @@ def test_last_checkpoint_is_saved_before_validation(tmp_path, monkeypatch):
 def test_a_dataset_with_truncated_frame_times_passes_check_and_trains(tmp_path):
     from dagr_lite.data import format as fmt
     from dagr_lite.data.check import main as check_main
-    from dagr_lite.data.reader import EventFile
+    from dagr_lite.data.events import EventFile
     from tests.conftest import make_dataset
     from tests.data.test_conventions import on_frame_events, reference_timeidx, write_by_hand
     written = make_dataset(tmp_path / "ds", num_frames=12, compression=None)

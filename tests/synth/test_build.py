@@ -8,7 +8,7 @@ import yaml
 from dagr_lite.data import format as fmt
 from dagr_lite.data.check import check_dataset
 from dagr_lite.data.dataset import EventEgoHands
-from dagr_lite.data.reader import read_labels
+from dagr_lite.data.labels import read_labels
 from dagr_lite.data.writer import write_frame
 from dagr_lite.synth.build import BUILD_INFO, LABEL_SOURCES, VERSIONS, main
 from tests.synth.test_egohands import write_metadata
@@ -206,7 +206,8 @@ def test_egohands_frame_folders_must_count_from_one_at_full_size(tmp_path):
 
 
 def test_label_file_is_read_by_the_dataset_parser_and_errors_name_file_and_key(tmp_path):
-    from dagr_lite.data.reader import DatasetFormatError, read_label_file
+    from dagr_lite.data.errors import DatasetFormatError
+    from dagr_lite.data.labels import read_label_file
     from dagr_lite.synth.build import folder_jobs
     write_moving_square_videos(tmp_path / "frames", ["a", "b"])
     path = tmp_path / "labels.json"

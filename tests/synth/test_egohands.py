@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from dagr_lite.data.reader import DatasetFormatError
+from dagr_lite.data.errors import DatasetFormatError
 from dagr_lite.synth.egohands import (default_split, interpolate_labels, load_metadata, polygon_to_box,
                                       VideoAnnotations)
 

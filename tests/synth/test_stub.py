@@ -3,7 +3,7 @@ import numpy as np
 from dagr_lite.data import format as fmt
 from dagr_lite.data.check import check_dataset
 from dagr_lite.data.dataset import EventEgoHands
-from dagr_lite.data.reader import EventFile
+from dagr_lite.data.events import EventFile
 from dagr_lite.synth.stub import HandScene, generate_stub
 
 

@@ -3,7 +3,8 @@ import pytest
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.check import check_dataset
-from dagr_lite.data.reader import DatasetFormatError, EventFile
+from dagr_lite.data.errors import DatasetFormatError
+from dagr_lite.data.events import EventFile
 from dagr_lite.data.writer import VideoWriter, write_frame, write_labels
 from dagr_lite.synth.dvs import preset
 from dagr_lite.synth.video import (FolderSource, choose_dvs_model, downscale_area, emulate_video, linear_interpolate,

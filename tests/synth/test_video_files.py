@@ -8,7 +8,7 @@ import pytest
 from dagr_lite.data import format as fmt
 from dagr_lite.data.check import check_dataset
 from dagr_lite.data.dataset import EventEgoHands
-from dagr_lite.data.reader import DatasetFormatError
+from dagr_lite.data.errors import DatasetFormatError
 from dagr_lite.synth.build import BUILD_INFO, main
 from dagr_lite.synth.video import VideoFileSource
 
