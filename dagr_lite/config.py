@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -243,3 +244,51 @@ def build_optimizer(cfg: DictConfig, parameters) -> torch.optim.Optimizer:
         return instantiate(cfg.optim, _convert_="all")(parameters)
     except Exception as err:  # instantiation wraps the optimiser's own errors
         raise ConfigError(f"optim: cannot build {cfg.optim.get('_target_')!r}: {err}") from err
+
+
+@dataclass(frozen=True)
+class TrainerSettings:
+    """What the training loop reads, built from ``trainer.*``, ``eval.*`` and ``data.image_age`` by
+    :func:`trainer_settings` (each field is the config key of the same name, ``conf/train.yaml``)."""
+    max_steps: int | None
+    max_epochs: int | None
+    max_minutes: float | None
+    schedule_by: str
+    events_first: float  # 0 for a model with one branch and for a run started from init_from
+    val_every: int
+    log_every: int
+    image_every: int
+    checkpoint_every: int
+    checkpoint_minutes: float | None
+    warmup_steps: int
+    min_lr_ratio: float
+    grad_clip: float | None
+    ema_decay: float
+    ema_tau: float
+    amp: bool
+    amp_dtype: str
+    image_age: int  # data.image_age: the validation age whose metrics the run reports
+    eval_backend: str  # eval.backend, eval.conf_threshold, eval.nms_threshold: how validation scores
+    conf_threshold: float
+    nms_threshold: float
+
+    @property
+    def by_time(self) -> bool:
+        return self.schedule_by == "time"
+
+    def total_steps(self, steps_per_epoch: int) -> int:
+        """The schedule's length: ``max_steps``, or ``max_epochs`` epochs."""
+        return int(self.max_steps) if self.max_steps is not None else int(self.max_epochs) * steps_per_epoch
+
+
+def trainer_settings(cfg: DictConfig) -> TrainerSettings:
+    """The training loop's settings from a checked config (:func:`check_values`)."""
+    trainer = cfg.trainer
+    hybrid = bool(cfg.model.use_events and cfg.model.use_image)
+    first = float(trainer.get("events_first", 0.0) or 0.0) if hybrid and cfg.get("init_from") is None else 0.0
+    keys = ("max_steps", "max_epochs", "max_minutes", "schedule_by", "val_every", "log_every", "image_every",
+            "checkpoint_every", "checkpoint_minutes", "warmup_steps", "min_lr_ratio", "grad_clip", "ema_decay",
+            "ema_tau", "amp", "amp_dtype")
+    return TrainerSettings(**{key: trainer[key] for key in keys}, events_first=first,
+                           image_age=int(cfg.data.image_age), eval_backend=cfg.eval.backend,
+                           conf_threshold=float(cfg.eval.conf_threshold), nms_threshold=float(cfg.eval.nms_threshold))

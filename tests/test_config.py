@@ -168,3 +168,24 @@ def test_a_run_needs_a_length():
     with pytest.raises(ConfigError, match="trainer.max_steps or trainer.max_epochs"):
         check_values(resolve_config(compose_cfg("train", ["trainer.max_steps=null", "trainer.max_epochs=null"])))
     check_values(resolve_config(compose_cfg("train")))  # the defaults pass
+
+
+def test_trainer_settings_carry_every_trainer_key_and_decide_the_events_first_phase():
+    import dataclasses
+
+    from dagr_lite.config import TrainerSettings, trainer_settings
+
+    cfg = compose_cfg("train", ["trainer.events_first=0.25", "trainer.max_steps=123", "eval.nms_threshold=0.5"])
+    settings = trainer_settings(cfg)
+    for field in dataclasses.fields(TrainerSettings):
+        if field.name in cfg.trainer and field.name != "events_first":
+            assert getattr(settings, field.name) == cfg.trainer[field.name], field.name
+    assert (settings.image_age, settings.eval_backend) == (cfg.data.image_age, cfg.eval.backend)
+    assert (settings.conf_threshold, settings.nms_threshold) == (cfg.eval.conf_threshold, 0.5)
+    assert settings.events_first == 0.25 and settings.total_steps(44) == 123
+    assert trainer_settings(compose_cfg("train", ["trainer.max_steps=null", "trainer.max_epochs=3"])).total_steps(44) == 132
+    # A model with one branch has no events-only phase, nor has a run that starts from other weights.
+    assert trainer_settings(compose_cfg("train", ["model=events_only", "trainer.events_first=0.25"])).events_first == 0
+    assert trainer_settings(compose_cfg("train", ["trainer.events_first=0.25", "init_from=x.pt"])).events_first == 0
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        settings.max_steps = 1

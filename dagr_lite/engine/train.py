@@ -24,7 +24,8 @@ from torch.utils.data import DataLoader
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from dagr_lite.config import build_dataset, build_model, build_optimizer, check_values, resolve_config
+from dagr_lite.config import (TrainerSettings, build_dataset, build_model, build_optimizer, check_values,
+                              resolve_config, trainer_settings)
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.checkpoint import describe_dataset, load_checkpoint, save_checkpoint
 from dagr_lite.engine.loading import EpochSampler, RunSampler, ShardSampler, make_loader
@@ -157,18 +158,15 @@ class TrainingClock:
         return {"elapsed_s": self.elapsed_s, "warmup_end_s": self.warmup_end_s}
 
 
-def make_clock(cfg: DictConfig) -> TrainingClock:
+def make_clock(trainer: TrainerSettings) -> TrainingClock:
     """The run's clock; with ``trainer.schedule_by=time`` it carries the ``trainer.max_minutes`` budget."""
-    trainer = cfg.trainer
-    budget = 60.0 * trainer.max_minutes if trainer.schedule_by == "time" else None
+    budget = 60.0 * trainer.max_minutes if trainer.by_time else None
     return TrainingClock(budget, warmup=trainer.warmup_steps)
 
 
-def make_state(cfg: DictConfig, model, steps_per_epoch: int, device: torch.device,
-               clock: TrainingClock) -> TrainState:
-    trainer = cfg.trainer
-    return TrainState.create(model, build_optimizer(cfg, model.parameters()),
-                             total_steps=make_total(cfg, steps_per_epoch),
+def make_state(trainer: TrainerSettings, model, optimizer: torch.optim.Optimizer, steps_per_epoch: int,
+               device: torch.device, clock: TrainingClock) -> TrainState:
+    return TrainState.create(model, optimizer, total_steps=trainer.total_steps(steps_per_epoch),
                              warmup_steps=trainer.warmup_steps, min_lr_ratio=trainer.min_lr_ratio,
                              ema_decay=trainer.ema_decay, ema_tau=trainer.ema_tau, grad_clip=trainer.grad_clip,
                              amp=amp_dtype(trainer, device),
@@ -182,7 +180,7 @@ def cpu_has_bfloat16() -> bool:
     return any(bool(getattr(torch.cpu, name, lambda: False)()) for name in checks)
 
 
-def amp_dtype(trainer: DictConfig, device: torch.device) -> torch.dtype | None:
+def amp_dtype(trainer: TrainerSettings, device: torch.device) -> torch.dtype | None:
     """The mixed precision of a training step when ``trainer.amp`` (None: float32).
 
     CUDA: ``trainer.amp_dtype`` (``auto``: bfloat16 where the GPU supports it, else float16 with
@@ -249,18 +247,18 @@ class TrainLoop:
     ``init_from`` an events-only checkpoint, in one run.
     """
 
-    def __init__(self, cfg: DictConfig, state: TrainState, data: TrainData, run_dir: Path, writer,
-                 clock: TrainingClock, position: dict | None = None):
-        """``clock`` must be the one ``state``'s schedule reads (:func:`make_clock`, :func:`make_state`)."""
-        self.cfg, self.state, self.data, self.writer = cfg, state, data, writer
+    def __init__(self, trainer: TrainerSettings, config: dict, state: TrainState, data: TrainData, run_dir: Path,
+                 writer, clock: TrainingClock, position: dict | None = None):
+        """``config``: the run's resolved config, recorded in every checkpoint; ``clock`` must be the
+        one ``state``'s schedule reads (:func:`make_clock`, :func:`make_state`)."""
+        self.trainer, self.config, self.state, self.data, self.writer = trainer, config, state, data, writer
         self.clock, self.resumed_position = clock, position
-        self.trainer, self.place = cfg.trainer, data.place
+        self.place = data.place
         self.checkpoints = run_dir / "checkpoints"
         self.steps_per_epoch = data.steps_per_epoch
         self.epoch_samples = self.steps_per_epoch * data.global_batch_size  # of the global order, per epoch
-        self.total = make_total(cfg, self.steps_per_epoch)
+        self.total = trainer.total_steps(self.steps_per_epoch)
         self.val_every = self.trainer.val_every or self.steps_per_epoch
-        self.config = OmegaConf.to_container(cfg, resolve=True)
         self.losses: list[float] = []
         self.metrics: dict | None = None
         if position is None:  # a fresh run, or a checkpoint from before positions were saved
@@ -271,7 +269,7 @@ class TrainLoop:
             self.epoch, self.offset = self.epoch + 1, 0
         self.saved_at = time.monotonic()
         self.terminated = False  # set by SIGTERM (see run)
-        self.events_first = events_first(cfg)
+        self.events_first = trainer.events_first
         self.in_phase = self.events_phase()
 
     def events_phase(self) -> bool:
@@ -399,12 +397,12 @@ class TrainLoop:
         """
         state = self.state
         self.save("last.pt")
-        ev = self.cfg.eval
+        trainer = self.trainer
         gather = self.gather_shards if self.place.enabled else None
-        per_age = {age: validate(state, loader, backend=ev.backend, conf_threshold=ev.conf_threshold,
-                                 nms_threshold=ev.nms_threshold, progress=self.place.is_main, gather=gather)
+        per_age = {age: validate(state, loader, backend=trainer.eval_backend, conf_threshold=trainer.conf_threshold,
+                                 nms_threshold=trainer.nms_threshold, progress=self.place.is_main, gather=gather)
                    for age, loader in self.data.valid_loaders.items()}
-        metrics = dict(per_age[self.cfg.data.image_age])
+        metrics = dict(per_age[trainer.image_age])
         for age, values in per_age.items():
             metrics.update({f"mAP_age{age}": values["mAP"], f"AP50_age{age}": values["AP50"]})
         metrics["mAP_mean"] = sum(values["mAP"] for values in per_age.values()) / len(per_age)
@@ -444,20 +442,6 @@ class Terminated(SystemExit):
 
     def __str__(self) -> str:
         return self.message
-
-
-def events_first(cfg: DictConfig) -> float:
-    """The fraction of the schedule in which a hybrid learns from its events alone
-    (``trainer.events_first``; 0 for a model with one branch, and for a run started from
-    ``init_from``, whose weights, an events-only model's or a hybrid's, are what it starts from)."""
-    if not (cfg.model.use_events and cfg.model.use_image) or cfg.get("init_from") is not None:
-        return 0.0
-    return float(cfg.trainer.get("events_first", 0.0) or 0.0)
-
-
-def make_total(cfg: DictConfig, steps_per_epoch: int) -> int:
-    trainer = cfg.trainer
-    return int(trainer.max_steps) if trainer.max_steps is not None else int(trainer.max_epochs) * steps_per_epoch
 
 
 def train(cfg: DictConfig) -> dict:
@@ -540,14 +524,15 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
     init_from = start_weights(cfg, resume_from)
     if init_from is not None:
         start_from(model, init_from, verbose=place.is_main)
-    if events_first(cfg) and resume_from is None:  # the image's weights start at zero (see TrainLoop)
+    trainer = trainer_settings(cfg)
+    if trainer.events_first and resume_from is None:  # the image's weights start at zero (see TrainLoop)
         model.zero_image_weights()
     if place.enabled:
         model = synchronise_batch_norm(model, device)
         model.loss_normaliser = global_normaliser(place)
     data = make_data(cfg, train_set, model, place)
-    clock = make_clock(cfg)
-    state = make_state(cfg, model, data.steps_per_epoch, device, clock)
+    clock = make_clock(trainer)
+    state = make_state(trainer, model, build_optimizer(cfg, model.parameters()), data.steps_per_epoch, device, clock)
     if place.is_main:
         precision = "float32" if state.amp_dtype is None else f"mixed precision {str(state.amp_dtype).split('.')[-1]}"
         print(f"training on {device} in {precision}", flush=True)
@@ -556,10 +541,11 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
         write_run_files(run_dir, cfg)
     if place.enabled:
         state.forward = DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None,
-                                                find_unused_parameters=bool(events_first(cfg)))  # the image branch
+                                                find_unused_parameters=bool(trainer.events_first))  # the image branch
     writer = SummaryWriter(str(run_dir / "tensorboard")) if place.is_main else NullWriter()
     try:
-        loop = TrainLoop(cfg, state, data, run_dir, writer, clock, position=saved.get("position") if saved else None)
+        loop = TrainLoop(trainer, OmegaConf.to_container(cfg, resolve=True), state, data, run_dir, writer, clock,
+                         position=saved.get("position") if saved else None)
         metrics = loop.run()
     finally:
         if place.is_main:
