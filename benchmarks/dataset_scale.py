@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dagr_lite.data import format as fmt
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.data.writer import VideoWriter, write_labels
 from dagr_lite.engine.loading import make_loader
@@ -98,11 +99,11 @@ def main() -> None:
         print(f"  {seconds:.0f} s, {disk / 2 ** 30:.2f} GiB on disk")
     tracemalloc.start()
     started = time.perf_counter()
-    dataset = EventEgoHands(root, "train", image_age=(1, 10), context_us=10_000, max_events=None)
+    dataset = EventEgoHands(root, "train", image_age=(1, 10), window_us=fmt.DEFAULT_WINDOW_US, context_us=10_000,
+                            refractory_us=0, max_events=None)
     opened = time.perf_counter() - started
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
-    from dagr_lite.data import format as fmt
     from dagr_lite.data.events import EventFile
 
     event_bytes = sum(EventFile(fmt.events_path(root, "train", v)).num_events for v in dataset.videos) * 13

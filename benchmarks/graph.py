@@ -32,10 +32,11 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from dagr_lite.data import format as fmt
 from dagr_lite.graph import StreamingGraph, radius_graph
 from dagr_lite.nn import GCNConv, GraphOperator
 
-WIDTH, HEIGHT, WINDOW_US = 640, 360, 33_333
+WIDTH, HEIGHT, WINDOW_US = 640, 360, fmt.DEFAULT_WINDOW_US
 RADIUS, K = 5.0, 16
 BETA = RADIUS / 10_000  # 10 ms of time count as R pixels
 

@@ -80,7 +80,7 @@ def detect_memory(folder: Path, n: int, ckpt: str) -> None:
 
     path = folder / "long.raw"
     faery.file_encoder.events_to_file(camera_chunks(n, rate=5e5), path, dimensions=(WIDTH, HEIGHT), version="evt3")
-    stream = StreamingDetector.from_checkpoint(ckpt)
+    stream = StreamingDetector.from_checkpoint(ckpt, conf_threshold=0.3, nms_threshold=0.65)  # conf/detect.yaml's
     fit = Sensor((WIDTH, HEIGHT), crop=(0, 60, 640, 360), scale=2)
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     summary = run_detect(stream, open_recording(path), fit, folder / "out", rate_hz=100,

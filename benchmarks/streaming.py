@@ -129,7 +129,8 @@ def frame_at(rec: Recording, t_us: float) -> int:
 def stream_run(model: Detector, rec: Recording, update_us: float, t0: float, t1: float, *, context_us: int,
                window_us: int) -> dict:
     """Updates of ``update_us`` over ``[t0, t1)``: latencies, the time spent per part, GCN multiply-adds."""
-    stream = StreamingDetector(model, context_us=context_us, window_us=window_us)
+    stream = StreamingDetector(model, context_us=context_us, window_us=window_us, refractory_us=0,
+                               conf_threshold=0.25, nms_threshold=0.65)
     t, ev = rec.events["t"], rec.events
     k = frame_at(rec, t0)
     begin = int(np.searchsorted(t, rec.frame_times[k] - context_us - window_us))
@@ -180,7 +181,7 @@ def full_pass(model: Detector, rec: Recording, t_query: float, *, context_us: in
         tic = time.perf_counter()
         with torch.no_grad():
             batch.edge_index = model.graph_spec.edges(batch.events, batch.batch_index)
-            model(batch, conf_threshold=0.25)
+            model(batch, conf_threshold=0.25, nms_threshold=0.65)
         best = min(best, time.perf_counter() - tic)
         counter.close()
         macs = counter.total

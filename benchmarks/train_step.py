@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from dagr_lite.data import format as fmt
 from dagr_lite.data.collate import GraphCollate
 from dagr_lite.data.dataset import Sample
 from dagr_lite.engine.loading import make_loader
@@ -42,7 +43,7 @@ from dagr_lite.engine.train import amp_dtype
 from dagr_lite.config import build_model, compose_config, resolve_config
 from dagr_lite.synth.stub import HandScene
 
-WINDOW_US = 33_333
+WINDOW_US = fmt.DEFAULT_WINDOW_US
 
 
 class SyntheticSamples(Dataset):

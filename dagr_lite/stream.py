@@ -332,8 +332,8 @@ class StreamingDetector:
     ``ValueError`` naming what was wrong and leaves the detector as it was.
     """
 
-    def __init__(self, model: Detector, *, context_us: int = 10_000, window_us: int = 33_333, refractory_us: int = 0,
-                 conf_threshold: float = 0.25, nms_threshold: float = 0.65):
+    def __init__(self, model: Detector, *, context_us: int, window_us: int, refractory_us: int,
+                 conf_threshold: float, nms_threshold: float):
         if model.events is None:
             raise ValueError("the streaming detector needs a model with an event branch (use_events true)")
         if context_us < 0 or window_us <= 0 or refractory_us < 0:

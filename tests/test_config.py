@@ -189,3 +189,41 @@ def test_trainer_settings_carry_every_trainer_key_and_decide_the_events_first_ph
     assert trainer_settings(compose_cfg("train", ["trainer.events_first=0.25", "init_from=x.pt"])).events_first == 0
     with pytest.raises(dataclasses.FrozenInstanceError):
         settings.max_steps = 1
+
+
+def test_what_conf_sets_has_no_second_default_in_the_code():
+    """One owner per setting: the code that receives a value conf/ sets takes it as a required
+    argument; the horizon's constant is the value conf/data sets."""
+    import dataclasses
+    import inspect
+
+    from dagr_lite.data import format as fmt
+    from dagr_lite.data.augment import TrainAugment
+    from dagr_lite.data.dataset import EventEgoHands
+    from dagr_lite.engine.state import validate
+    from dagr_lite.eval.score import detections_of, save_pictures, score_model
+    from dagr_lite.nn.head import postprocess
+    from dagr_lite.stream import StreamingDetector
+
+    required = {EventEgoHands.__init__: ("image_age", "window_us", "context_us", "refractory_us", "max_events"),
+                StreamingDetector.__init__: ("context_us", "window_us", "refractory_us", "conf_threshold",
+                                             "nms_threshold"),
+                validate: ("backend", "conf_threshold", "nms_threshold"),
+                score_model: ("backend", "conf_threshold", "nms_threshold"),
+                detections_of: ("conf_threshold", "nms_threshold"),
+                save_pictures: ("conf_threshold", "nms_threshold"),
+                postprocess: ("conf_threshold", "nms_threshold")}
+    for function, names in required.items():
+        parameters = inspect.signature(function).parameters
+        assert [n for n in names if parameters[n].default is not inspect.Parameter.empty] == [], function
+    assert all(f.default is dataclasses.MISSING for f in dataclasses.fields(TrainAugment))
+    assert compose_cfg("train").data.window_us == fmt.DEFAULT_WINDOW_US
+
+
+def test_a_detector_answers_only_with_the_thresholds_given():
+    from dagr_lite.nn.detector import Detector
+    from tests.models import small_detector_config
+
+    model = Detector(small_detector_config()).eval()
+    with pytest.raises(TypeError, match=r"needs conf_threshold= and nms_threshold= \(eval\.\* in conf/\)"):
+        model(None)

@@ -14,6 +14,7 @@ from dagr_lite.nn.detector import Detector
 from dagr_lite.nn.head import postprocess
 from dagr_lite.stream import REORIGIN_US, StreamingDetector, _conv3x3_at, _Towers
 from tests.models import small_detector_config
+from tests.settings import EVAL
 
 H, W = 48, 64
 CONTEXT_US, WINDOW_US = 10_000, 33_333
@@ -108,7 +109,7 @@ def replay(model: Detector, events: dict, images: list, seed: int, *, detect_pro
     detect calls (at the latest event or a little later) against the batch model."""
     rng = np.random.default_rng(seed)
     stream = StreamingDetector(model, context_us=CONTEXT_US, window_us=WINDOW_US, refractory_us=refractory_us,
-                               conf_threshold=0.0)
+                               conf_threshold=0.0, nms_threshold=EVAL["nms_threshold"])
     n, i, checks, largest = len(events["t"]), 0, 0, 0
     pending = sorted(images, key=lambda item: item[1])
     image, t_image = None, None
@@ -238,7 +239,8 @@ def test_streaming_with_a_refractory_period_equals_the_batch_model_on_the_filter
 
 def test_events_only_window_empties_and_refills():
     model = small_model("events_only")
-    stream = StreamingDetector(model, context_us=CONTEXT_US, window_us=WINDOW_US, conf_threshold=0.0)
+    stream = StreamingDetector(model, context_us=CONTEXT_US, window_us=WINDOW_US, refractory_us=0, conf_threshold=0.0,
+                               nms_threshold=EVAL["nms_threshold"])
     empty = stream.detect(5_000.0)  # nothing pushed yet
     assert empty["boxes"].shape[1] == 4
     rng = np.random.default_rng(0)
@@ -251,7 +253,8 @@ def test_events_only_window_empties_and_refills():
 
 def test_bad_input_is_refused_and_leaves_the_state_valid():
     model = small_model("hybrid")
-    stream = StreamingDetector(model, context_us=CONTEXT_US, window_us=WINDOW_US, conf_threshold=0.0)
+    stream = StreamingDetector(model, context_us=CONTEXT_US, window_us=WINDOW_US, refractory_us=0, conf_threshold=0.0,
+                               nms_threshold=EVAL["nms_threshold"])
     rng = np.random.default_rng(1)
     events = random_stream(rng, 600, 40_000)
     image = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
@@ -286,8 +289,10 @@ def test_bad_input_is_refused_and_leaves_the_state_valid():
     stream.push_events(**{k: v[300:] for k, v in events.items()})
     check_against_batch(stream, model, events, 600, image, 5_000, float(events["t"][-1]))
     with pytest.raises(ValueError, match="event branch"):
-        StreamingDetector(Detector(small_detector_config(H, W, variant="image_only")))
-    events_only = StreamingDetector(small_model("events_only"), window_us=WINDOW_US, conf_threshold=0.0)
+        StreamingDetector(Detector(small_detector_config(H, W, variant="image_only")), context_us=CONTEXT_US,
+                          window_us=WINDOW_US, refractory_us=0, **EVAL)
+    events_only = StreamingDetector(small_model("events_only"), context_us=CONTEXT_US, window_us=WINDOW_US,
+                                    refractory_us=0, conf_threshold=0.0, nms_threshold=EVAL["nms_threshold"])
     events_only.push_events(**{k: v[:10] for k, v in events.items()})
     for when in (math.nan, math.inf):
         with pytest.raises(ValueError, match="detect time must be finite"):
@@ -308,7 +313,7 @@ def test_from_checkpoint_matches_the_batch_model_in_float32(trained_checkpoints,
     ``late_query``, the towers run whole where events changed most of a map, or always at the
     changed cells only."""
     monkeypatch.setattr(_Towers, "FULL_FRACTION", full_fraction)
-    stream = StreamingDetector.from_checkpoint(trained_checkpoints[name], conf_threshold=0.0)
+    stream = StreamingDetector.from_checkpoint(trained_checkpoints[name], conf_threshold=0.0, nms_threshold=EVAL["nms_threshold"])
     assert stream.model.cfg.late_query == name.endswith("_late")
     model = stream.model
     assert stream.context_us == 10_000 and next(model.parameters()).dtype == torch.float32

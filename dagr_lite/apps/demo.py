@@ -81,6 +81,20 @@ def strip_path(out: Path) -> Path:
     return out.with_name(out.stem + ".strip.png")
 
 
+def write_pictures(out: Path, frames: list, strip: list, playback_fps: float) -> Path:
+    """The animation to ``out`` and the strip beside it (each written whole, then renamed); the strip's path."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_name(out)
+    frames[0].save(tmp, format=FORMATS[out.suffix.lower()], save_all=True, append_images=frames[1:],
+                   duration=round(1000 / playback_fps), loop=0)
+    os.replace(tmp, out)
+    strip_file = strip_path(out)
+    tmp = temporary_name(strip_file)
+    Image.fromarray(np.concatenate(strip, axis=0)).save(tmp, format="PNG")
+    os.replace(tmp, strip_file)
+    return strip_file
+
+
 def demo(cfg: DictConfig) -> dict:
     """Stream one recording through the detector; write the animation and the strip. Returns their
     paths and the update latencies (seconds)."""
@@ -92,7 +106,8 @@ def demo(cfg: DictConfig) -> dict:
     out = Path(cfg.out if cfg.out is not None else f"runs/demo/{rec.video}.webp")
     check_output(out)
     stream = StreamingDetector.from_checkpoint(cfg.ckpt, device=resolve_device(cfg.device),
-                                               conf_threshold=cfg.conf_threshold)
+                                               conf_threshold=cfg.conf_threshold,
+                                               nms_threshold=cfg.eval.nms_threshold)
     if rec.frames[0].shape[:2] != (stream.height, stream.width):
         raise ConfigError(f"{cfg.ckpt}: the model takes {stream.width}x{stream.height} frames, the video "
                           f"{rec.video} has {rec.frames[0].shape[1]}x{rec.frames[0].shape[0]}")
@@ -127,15 +142,7 @@ def demo(cfg: DictConfig) -> dict:
             strip.append(picture)
         else:
             frames.append(Image.fromarray(picture))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = temporary_name(out)
-    frames[0].save(tmp, format=FORMATS[out.suffix.lower()], save_all=True, append_images=frames[1:],
-                   duration=round(1000 / cfg.playback_fps), loop=0)
-    os.replace(tmp, out)
-    strip_file = strip_path(out)
-    tmp = temporary_name(strip_file)
-    Image.fromarray(np.concatenate(strip, axis=0)).save(tmp, format="PNG")
-    os.replace(tmp, strip_file)
+    strip_file = write_pictures(out, frames, strip, cfg.playback_fps)
     latency = np.array(latencies)
     print(f"{len(frames)} frames -> {out}; strip of frame {k_strip} to {k_strip + 1} -> {strip_file}\n"
           f"update latency: median {1e3 * np.median(latency):.1f} ms, p95 {1e3 * np.percentile(latency, 95):.1f} ms",

@@ -29,13 +29,17 @@ from scipy.optimize import linear_sum_assignment
 from tqdm import tqdm
 
 from dagr_lite.apps.cli import user_errors
+from dagr_lite.apps.sweep import match_boxes
 from dagr_lite.data import format as fmt
 from dagr_lite.data.frames import list_frames, read_frame
 from dagr_lite.data.labels import list_videos, read_labels
 from dagr_lite.data.writer import write_labels, write_text_atomically
 from dagr_lite.eval.coco import CocoEvaluator
-from dagr_lite.apps.sweep import match_boxes
 from dagr_lite.nn.head import box_iou, postprocess
+
+# The labeller's detections: boxes from this score, NMS at this IoU (then best_threshold picks the score kept).
+LABEL_SCORE = 0.01
+LABEL_NMS_IOU = 0.65
 
 Labels = dict[str, dict[int, np.ndarray]]  # video -> frame -> (M, 4) xywh
 
@@ -114,7 +118,8 @@ def predict_all(checkpoint: Path, root: Path, videos: dict[str, str], *, batch_s
             images = torch.stack([torch.from_numpy(np.ascontiguousarray(
                 read_frame(fmt.frame_path(root, split, video, k)).transpose(2, 0, 1))) for k in ks])
             raw, shapes = model.head(model.image(images)[1:])
-            for k, det in zip(ks, postprocess(raw, shapes, model.strides, conf_threshold=0.01,
+            for k, det in zip(ks, postprocess(raw, shapes, model.strides, conf_threshold=LABEL_SCORE,
+                                              nms_threshold=LABEL_NMS_IOU,
                                               image_size=tuple(images.shape[-2:]))):
                 out[video][k] = (fmt.xyxy_to_xywh(det["boxes"].numpy().astype(np.float64)), det["scores"].numpy())
     return out

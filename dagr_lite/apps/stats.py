@@ -36,7 +36,7 @@ from dagr_lite.data.labels import list_videos, read_labels
 
 BIN_US = 10_000  # event-rate bins
 READ_US = 1_000_000  # events are read this much at a time
-WINDOW_US = 33_333  # the events drawn before a frame
+WINDOW_US = fmt.DEFAULT_WINDOW_US  # the events drawn before a frame
 SIZE_EDGES = [0, 8, 16, 24, 32, 48, 64, 96, 128, 192, 256, 1e9]  # box-size histogram, sqrt(area) in px
 ON_COLOUR, OFF_COLOUR = (0.85, 0.12, 0.12), (0.12, 0.25, 0.85)
 

@@ -75,11 +75,11 @@ class TrainAugment:
             the same with or without it).
     """
 
-    flip_prob: float = 0.5
-    zoom: tuple[float, float] = (1.0, 1.5)
-    translate: float = 0.1
-    min_box_size: float = 2.0
-    image_dropout: float = 0.0
+    flip_prob: float
+    zoom: tuple[float, float]
+    translate: float
+    min_box_size: float
+    image_dropout: float
 
     def __post_init__(self):
         low, high = self.zoom

@@ -193,9 +193,9 @@ class EventEgoHands(Dataset):
         seed: seed of the image ages and of ``transform``'s generator.
     """
 
-    def __init__(self, root: Path | str, split: str, *, image_age: int | Sequence[int] = 1,
-                 event_span: str = "image", window_us: int = fmt.DEFAULT_WINDOW_US, context_us: int = 0,
-                 refractory_us: int = 0, max_events: int | None = None, first_frame: int | None = None,
+    def __init__(self, root: Path | str, split: str, *, image_age: int | Sequence[int], window_us: int,
+                 context_us: int, refractory_us: int, max_events: int | None, event_span: str = "image",
+                 first_frame: int | None = None,
                  fps: float = fmt.DEFAULT_FPS,
                  image_size: Sequence[int] | None = None, videos: Sequence[str] | None = None,
                  transform: Callable[[Sample, np.random.Generator], Sample] | None = None,

@@ -48,7 +48,8 @@ KEY_TIMEIDX = "timeidx"
 
 # Default frame rate of EgoHands (and so of every EventEgoHands version).
 DEFAULT_FPS = 30.0
-# Default event window of one sample: one frame period at 30 fps, in microseconds.
+# The event window of one sample, one frame period at 30 fps, in microseconds: conf/data's window_us
+# (tests/test_config.py holds them equal) and the window the dataset statistics draw.
 DEFAULT_WINDOW_US = 33_333
 
 _FRAME_RE = re.compile(r"^frame_(0|[1-9][0-9]*)\.jpg$")

@@ -49,6 +49,7 @@ def evaluate(cfg: DictConfig) -> dict:
     (run_dir / "metrics.json").write_text(json.dumps(result, indent=1))
     (run_dir / "detections.json").write_text(json.dumps(evaluator.results_json()))
     if cfg.save_images:
-        save_pictures(model, loader, device, run_dir / "images", cfg.save_images)
+        save_pictures(model, loader, device, run_dir / "images", cfg.save_images,
+                      conf_threshold=cfg.eval.conf_threshold, nms_threshold=cfg.eval.nms_threshold)
     print(f"{cfg.split} split, {len(evaluator.images)} images ({run_dir}):\n{format_metrics(metrics)}", flush=True)
     return {"metrics": result, "run_dir": Path(run_dir)}

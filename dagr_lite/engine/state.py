@@ -130,8 +130,8 @@ def train_step(state: TrainState, batch: Batch, *, image: bool = True) -> dict[s
     return {key: value.detach() for key, value in out.items()}
 
 
-def validate(state: TrainState, loader: DataLoader, *, backend: str = "numpy", conf_threshold: float = 0.001,
-             nms_threshold: float = 0.65, progress: bool = True,
+def validate(state: TrainState, loader: DataLoader, *, backend: str, conf_threshold: float,
+             nms_threshold: float, progress: bool = True,
              gather: Callable[[list], list] | None = None) -> dict[str, float]:
     """COCO metrics of the EMA weights over every sample of ``loader``.
 

@@ -374,7 +374,8 @@ class TrainLoop:
         if self.place.is_main and self.trainer.image_every and step % self.trainer.image_every == 0:
             ema = self.state.ema.module.eval()
             with torch.no_grad():
-                detections = ema(batch)
+                detections = ema(batch, conf_threshold=self.trainer.conf_threshold,
+                                 nms_threshold=self.trainer.nms_threshold)
             self.writer.add_image("train/sample", render_sample(batch, 0, detections[0]), step, dataformats="HWC")
 
     def checkpoint(self) -> dict:

@@ -15,8 +15,8 @@ from dagr_lite.data.collate import Batch
 from dagr_lite.eval.coco import CocoEvaluator
 
 
-def score_model(model: nn.Module, loader: DataLoader, device: torch.device, *, backend: str = "numpy",
-                conf_threshold: float = 0.001, nms_threshold: float = 0.65, progress: bool = True,
+def score_model(model: nn.Module, loader: DataLoader, device: torch.device, *, backend: str,
+                conf_threshold: float, nms_threshold: float, progress: bool = True,
                 desc: str = "evaluating") -> tuple[dict, CocoEvaluator]:
     """COCO metrics of ``model`` over every sample of ``loader`` (no batch is dropped)."""
     entries = detections_of(model, loader, device, conf_threshold=conf_threshold, nms_threshold=nms_threshold,
@@ -25,8 +25,8 @@ def score_model(model: nn.Module, loader: DataLoader, device: torch.device, *, b
 
 
 @torch.no_grad()
-def detections_of(model: nn.Module, loader: DataLoader, device: torch.device, *, conf_threshold: float = 0.001,
-                  nms_threshold: float = 0.65, progress: bool = True, desc: str = "evaluating") -> list[tuple]:
+def detections_of(model: nn.Module, loader: DataLoader, device: torch.device, *, conf_threshold: float,
+                  nms_threshold: float, progress: bool = True, desc: str = "evaluating") -> list[tuple]:
     """``(image name, height, width, true boxes, boxes, scores)`` of every sample of ``loader``, in
     its order (numpy arrays, xyxy): what :func:`score_entries` scores, and what ranks gather."""
     was_training = model.training
@@ -78,14 +78,15 @@ def render_sample(batch: Batch, index: int, detections: dict | None = None, *, s
 
 
 @torch.no_grad()
-def save_pictures(model: nn.Module, loader: DataLoader, device: torch.device, folder: Path, count: int) -> None:
+def save_pictures(model: nn.Module, loader: DataLoader, device: torch.device, folder: Path, count: int, *,
+                  conf_threshold: float, nms_threshold: float) -> None:
     """PNGs of the first ``count`` samples with true (green) and predicted (red) boxes."""
     folder.mkdir(parents=True, exist_ok=True)
     model.eval()
     saved = 0
     for batch in loader:
         batch = batch.to(device)
-        detections = model(batch)
+        detections = model(batch, conf_threshold=conf_threshold, nms_threshold=nms_threshold)
         for b in range(len(batch)):
             if saved >= count:
                 return

@@ -393,12 +393,15 @@ class Detector(nn.Module):
 
         return sampler
 
-    def forward(self, batch: Batch, *, conf_threshold: float = 0.001, nms_threshold: float = 0.65,
+    def forward(self, batch: Batch, *, conf_threshold: float | None = None, nms_threshold: float | None = None,
                 image: bool = True):
         """Losses in training, detections in evaluation. ``image=False`` (a hybrid): the image
         branch is not run and every image feature the model reads is zero, at the nodes and in
         the fusion (the ``trainer.events_first`` phase; with :meth:`zero_image_weights` this is
-        what the hybrid computes with any image)."""
+        what the hybrid computes with any image). Detections need ``conf_threshold`` and
+        ``nms_threshold`` (``eval.*`` in ``conf/``)."""
+        if not self.training and (conf_threshold is None or nms_threshold is None):
+            raise TypeError("Detector in evaluation mode needs conf_threshold= and nms_threshold= (eval.* in conf/)")
         maps, query, image_inputs, event_inputs = self._features(batch, image=image)
         raw, shapes = self.head(maps, query, image_inputs)
         if self.training:

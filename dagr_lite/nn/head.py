@@ -274,8 +274,8 @@ def _yolox_losses(raw, shapes, strides, gt_boxes, gt_labels, *, iou_weight, norm
             "num_fg": torch.tensor(float(num_fg), device=device)}
 
 
-def postprocess(raw: torch.Tensor, shapes: list[tuple[int, int]], strides: list[int], *, conf_threshold: float = 0.001,
-                nms_threshold: float = 0.65, max_detections: int = 100, pre_nms: int = 1000,
+def postprocess(raw: torch.Tensor, shapes: list[tuple[int, int]], strides: list[int], *, conf_threshold: float,
+                nms_threshold: float, max_detections: int = 100, pre_nms: int = 1000,
                 image_size: tuple[int, int] | None = None) -> list[dict]:
     """Decoded, class-aware NMS-filtered detections per image: ``boxes (D, 4)``, ``scores (D,)``, ``labels (D,)``."""
     centres, stride_of = anchors_of(shapes, strides, raw.device)

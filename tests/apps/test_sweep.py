@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from dagr_lite.config import ConfigError, compose_config
-from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.train import train
 from dagr_lite.apps.sweep import SweepSamples, interpolate_boxes, match_boxes, sweep, sweep_frames, sweep_points
 from dagr_lite.synth.stub import stub_root
+from tests.settings import sample_set
 
 
 def test_boxes_are_matched_one_to_one_by_overlap():
@@ -33,7 +33,7 @@ def test_interpolated_boxes_by_hand():
 
 
 def test_every_age_scores_the_same_frames_with_events_since_its_image():
-    dataset = EventEgoHands(stub_root(), "valid", image_age=7, first_frame=7, max_events=None)
+    dataset = sample_set(stub_root(), "valid", image_age=7, first_frame=7, max_events=None)
     frames = sweep_frames(dataset, 7, between=0)
     assert frames and all(k >= 7 for _, k in frames)
     assert len(frames) == sum(dataset.num_frames(v) - 7 for v in range(len(dataset.videos)))

@@ -18,10 +18,11 @@ from dagr_lite.camera.recording import concat, open_recording, take
 from dagr_lite.camera.sensor import Sensor, SensorError
 from dagr_lite.camera.udp import UdpSource, send
 from dagr_lite.data.collate import collate
-from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.checkpoint import load_checkpoint
 from dagr_lite.engine.checkpoint import trained_sample
 from dagr_lite.stream import StreamingDetector
+from tests.settings import sample_set
+from tests.settings import EVAL
 
 FRAMES = 10  # frames of the stub's first test video used
 CONF = 0.0
@@ -48,14 +49,14 @@ def lines(out) -> list[dict]:
 def test_detect_on_a_written_aedat4_answers_what_the_batch_model_answers(stub_video, trained_checkpoints, tmp_path):
     ckpt = trained_checkpoints["hybrid"]
     path = write_aedat4(tmp_path / "davis.aedat4", stub_video["events"], stub_video["size"], stub_video["frames"])
-    stream = StreamingDetector.from_checkpoint(ckpt, conf_threshold=CONF)
+    stream = StreamingDetector.from_checkpoint(ckpt, conf_threshold=CONF, nms_threshold=EVAL["nms_threshold"])
     summary = run_detect(stream, open_recording(path), Sensor(stub_video["size"]), tmp_path / "out", rate_hz=1,
                          video=VideoSettings(enabled=False), progress=False)
     answers = {a["t_us"]: a for a in lines(tmp_path / "out")}
     assert summary["answers"] == len(answers) and summary["events_in"] == len(stub_video["events"]["t"])
 
     data = trained_sample(load_checkpoint(ckpt))
-    dataset = EventEgoHands(stub_video["root"], "test", image_age=1, window_us=data["window_us"],
+    dataset = sample_set(stub_video["root"], "test", image_age=1, window_us=data["window_us"],
                             context_us=data["context_us"], refractory_us=data["refractory_us"],
                             videos=[stub_video["video"]])
     model = stream.model
@@ -95,7 +96,7 @@ def test_a_larger_camera_with_a_declared_crop_and_scale_gives_the_same_detection
     large = write_aedat4(tmp_path / "large.aedat4", events, (640, 480), frames)
     for name, path, sensor in (("small", small, Sensor(stub_video["size"])),
                                ("large", large, Sensor((640, 480), crop=(0, 60, 640, 360), scale=2))):
-        run_detect(StreamingDetector.from_checkpoint(ckpt, conf_threshold=CONF), open_recording(path), sensor,
+        run_detect(StreamingDetector.from_checkpoint(ckpt, conf_threshold=CONF, nms_threshold=EVAL["nms_threshold"]), open_recording(path), sensor,
                    tmp_path / name, rate_hz=200, video=VideoSettings(enabled=name == "large", max_seconds=0.1),
                    progress=False)
     small_answers, large_answers = lines(tmp_path / "small"), lines(tmp_path / "large")
@@ -105,17 +106,17 @@ def test_a_larger_camera_with_a_declared_crop_and_scale_gives_the_same_detection
         np.testing.assert_allclose(np.asarray(b["boxes"]).reshape(-1, 4), expected, atol=0.05)
     assert (tmp_path / "large" / "detections.mp4").stat().st_size > 0
     with pytest.raises(SensorError, match=r"the 640x480 sensor gives 640x480.*sensor.scale=2 sensor.crop=\[0,60,640,360\]"):
-        run_detect(StreamingDetector.from_checkpoint(ckpt), open_recording(large), Sensor((640, 480)),
+        run_detect(StreamingDetector.from_checkpoint(ckpt, **EVAL), open_recording(large), Sensor((640, 480)),
                    tmp_path / "refused", rate_hz=100, progress=False)
     with pytest.raises(FileExistsError, match="small/summary.json already exists; choose another out="):
-        run_detect(StreamingDetector.from_checkpoint(ckpt), open_recording(small), Sensor(stub_video["size"]),
+        run_detect(StreamingDetector.from_checkpoint(ckpt, **EVAL), open_recording(small), Sensor(stub_video["size"]),
                    tmp_path / "small", rate_hz=100, progress=False)
 
 
 def test_a_hybrid_needs_frames_and_says_so(stub_video, trained_checkpoints, tmp_path):
     path = write_aedat4(tmp_path / "events_only.aedat4", stub_video["events"], stub_video["size"])
     with pytest.raises(ValueError, match="events_only.aedat4: the model is a hybrid and needs frames"):
-        run_detect(StreamingDetector.from_checkpoint(trained_checkpoints["hybrid"]), open_recording(path),
+        run_detect(StreamingDetector.from_checkpoint(trained_checkpoints["hybrid"], **EVAL), open_recording(path),
                    Sensor(stub_video["size"]), tmp_path / "out", rate_hz=100, progress=False)
 
 
@@ -138,7 +139,8 @@ def test_a_live_udp_stream_on_loopback_is_read_whole_and_answered(stub_video, tr
 
     thread = threading.Thread(target=sender)
     thread.start()
-    stream = StreamingDetector.from_checkpoint(trained_checkpoints["events_only"], conf_threshold=CONF)
+    stream = StreamingDetector.from_checkpoint(trained_checkpoints["events_only"], conf_threshold=CONF,
+                                               nms_threshold=EVAL["nms_threshold"])
     summary = run_detect(stream, source, Sensor(stub_video["size"]), tmp_path / "live", rate_hz=100, live=True,
                          video=VideoSettings(enabled=False))
     thread.join()

@@ -4,6 +4,7 @@ import torch
 
 from dagr_lite.data.augment import TrainAugment, hflip, zoom_translate
 from dagr_lite.data.dataset import Sample
+from tests.settings import AUGMENT
 
 H, W = 40, 60
 
@@ -70,7 +71,7 @@ def test_boxes_leaving_the_frame_are_clipped_and_tiny_ones_dropped():
 
 
 def test_train_augment_is_reproducible_and_consistent():
-    augment = TrainAugment(flip_prob=0.5, zoom=(1.0, 1.5), translate=0.1)
+    augment = TrainAugment(**AUGMENT)
     sample = make_sample((5.0, 12.0, 20.0, 28.0))  # left of centre: a flip sends it right
     first = augment(sample, np.random.default_rng(5))
     second = augment(sample, np.random.default_rng(5))
@@ -93,9 +94,9 @@ def test_train_augment_is_reproducible_and_consistent():
 
 def test_bad_settings():
     with pytest.raises(ValueError, match="zoom"):
-        TrainAugment(zoom=(1.5, 1.0))
+        TrainAugment(**{**AUGMENT, "zoom": (1.5, 1.0)})
     with pytest.raises(ValueError, match="flip_prob"):
-        TrainAugment(flip_prob=2)
+        TrainAugment(**{**AUGMENT, "flip_prob": 2})
 
 
 def test_events_whose_pixel_centre_stays_inside_are_kept_within_pixel_range():
@@ -109,12 +110,12 @@ def test_events_whose_pixel_centre_stays_inside_are_kept_within_pixel_range():
 
 def test_image_dropout_greys_the_image_and_leaves_the_geometry_alone():
     sample = make_sample()
-    always = TrainAugment(image_dropout=1.0)(sample, np.random.default_rng([3]))
-    never = TrainAugment(image_dropout=0.0)(sample, np.random.default_rng([3]))
+    always = TrainAugment(**{**AUGMENT, "image_dropout": 1.0})(sample, np.random.default_rng([3]))
+    never = TrainAugment(**{**AUGMENT, "image_dropout": 0.0})(sample, np.random.default_rng([3]))
     assert torch.all(always.image == 128)
     assert torch.equal(always.boxes, never.boxes) and torch.equal(always.events, never.events)
-    kept = sum(bool(torch.all(TrainAugment(image_dropout=0.25)(sample, np.random.default_rng([i])).image == 128))
+    kept = sum(bool(torch.all(TrainAugment(**{**AUGMENT, "image_dropout": 0.25})(sample, np.random.default_rng([i])).image == 128))
                for i in range(400))
     assert 60 < kept < 140  # about a quarter
     with pytest.raises(ValueError, match="image_dropout"):
-        TrainAugment(image_dropout=1.5)
+        TrainAugment(**{**AUGMENT, "image_dropout": 1.5})

@@ -5,11 +5,11 @@ import pytest
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.check import check_dataset, main
-from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.data.errors import DatasetFormatError
 from dagr_lite.data.events import EventFile, MAX_CONVENTION_PROBES, probe_frames
 from dagr_lite.data.writer import write_events
 from tests.conftest import HEIGHT, WIDTH, make_dataset
+from tests.settings import sample_set
 
 NUM_FRAMES = 30  # frames 2, 5, ..., 29 differ between the conventions: the last frame is one of them
 
@@ -117,7 +117,7 @@ def test_shifted_last_entry_fits_neither_and_check_reports_it(tmp_path):
               f"{np.searchsorted(t, b)} (round: first event at or after {b} us) or "
               f"{np.searchsorted(t, a)} (truncate: first event at or after {a} us)")
     with pytest.raises(DatasetFormatError, match=r"v\.h5: " + stated.replace("(", r"\(").replace(")", r"\)")):
-        EventEgoHands(written.root, "train")
+        sample_set(written.root, "train")
     conventions = {}
     found = [str(p) for p in check_dataset(written.root, conventions=conventions)]
     assert found == [f"{path}: {stated}"]
@@ -147,7 +147,7 @@ def test_dataset_and_check_use_each_files_own_convention(tmp_path, capsys):
     events = {v: on_frame_events({"r": "round", "t": "truncate"}[v], seed=i) for i, v in enumerate(files)}
     for video, path in files.items():
         write_in_convention(path, events[video], {"r": "round", "t": "truncate"}[video])
-    ds = EventEgoHands(tmp_path, "train", image_age=1, event_span="window", window_us=34_000)
+    ds = sample_set(tmp_path, "train", image_age=1, event_span="window", window_us=34_000)
     for index in range(len(ds)):
         sample = ds[index]
         convention = {"r": "round", "t": "truncate"}[sample.video]

@@ -8,15 +8,16 @@ from torch.utils.data import DataLoader
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.collate import collate
-from dagr_lite.data.dataset import EventEgoHands, SampleTooLarge, draw_age, refractory_keep, sample_start_us
+from dagr_lite.data.dataset import SampleTooLarge, draw_age, refractory_keep, sample_start_us
 from dagr_lite.data.errors import DatasetFormatError
 from dagr_lite.data.frames import read_frame
 from dagr_lite.data.writer import write_frame
 from tests.conftest import make_dataset
+from tests.settings import sample_set
 
 
 def test_sample_matches_brute_force(dataset):
-    ds = EventEgoHands(dataset.root, "train", image_age=2, event_span="window", window_us=50_000)
+    ds = sample_set(dataset.root, "train", image_age=2, event_span="window", window_us=50_000)
     assert ds.videos == ["CARDS_COURTYARD_B_T", "vid_b"]
     assert len(ds) == 2 * (12 - 2)  # frames k < image_age give no sample
     for index in range(len(ds)):
@@ -38,7 +39,7 @@ def test_sample_matches_brute_force(dataset):
 
 
 def test_frames_without_boxes_are_samples_with_zero_boxes(dataset):
-    ds = EventEgoHands(dataset.root, "valid", image_age=0)
+    ds = sample_set(dataset.root, "valid", image_age=0)
     by_frame = {ds.sample_name(i)[1]: ds[i] for i in range(len(ds))}
     assert set(by_frame) == set(range(12))
     assert by_frame[1].boxes.shape == (0, 4)  # labelled with an empty list
@@ -47,10 +48,10 @@ def test_frames_without_boxes_are_samples_with_zero_boxes(dataset):
 
 
 def test_max_events_guards_and_never_thins(dataset):
-    full = EventEgoHands(dataset.root, "train", image_age=3)
+    full = sample_set(dataset.root, "train", image_age=3)
     sizes = [len(full[i].events) for i in range(len(full))]
     limit = sorted(sizes)[len(sizes) // 2]
-    guarded = EventEgoHands(dataset.root, "train", image_age=3, max_events=limit)
+    guarded = sample_set(dataset.root, "train", image_age=3, max_events=limit)
     for index, size in enumerate(sizes):
         if size <= limit:
             assert torch.equal(guarded[index].events, full[index].events)  # whole, never thinned
@@ -94,7 +95,7 @@ def test_a_refractory_sample_is_the_filtered_stream_in_its_horizon(tmp_path, age
     raw = written.events["v"]
     whole = brute_refractory(raw["x"], raw["y"], raw["t"], 2_000)  # the filter over the whole stream
     assert 0 < whole.sum() < len(whole)
-    ds = EventEgoHands(tmp_path, "train", image_age=age, refractory_us=2_000, context_us=5_000)
+    ds = sample_set(tmp_path, "train", image_age=age, refractory_us=2_000, context_us=5_000)
     for index in range(len(ds)):
         sample = ds[index]
         _, k = ds.sample_name(index)
@@ -103,7 +104,7 @@ def test_a_refractory_sample_is_the_filtered_stream_in_its_horizon(tmp_path, age
         expected = np.stack([raw["x"][mask], raw["y"][mask], raw["t"][mask] - t_image, raw["p"][mask]], 1)
         np.testing.assert_array_equal(sample.events.numpy(), expected.astype(np.float32))
     with pytest.raises(ValueError, match="refractory_us must be >= 0"):
-        EventEgoHands(tmp_path, "train", refractory_us=-1)
+        sample_set(tmp_path, "train", refractory_us=-1)
 
 
 def test_the_sample_start_by_hand():
@@ -117,7 +118,7 @@ def test_the_sample_start_by_hand():
 def test_window_with_no_events_gives_zero_events(tmp_path):
     written = make_dataset(tmp_path, videos={"v": "train"}, num_frames=6, events_per_video=1)
     t_event = int(written.events["v"]["t"][0])
-    ds = EventEgoHands(tmp_path, "train", image_age=0, event_span="window", window_us=1000)
+    ds = sample_set(tmp_path, "train", image_age=0, event_span="window", window_us=1000)
     for i in range(len(ds)):
         sample = ds[i]
         inside = sample.t_start_us <= t_event < sample.t_end_us
@@ -125,7 +126,7 @@ def test_window_with_no_events_gives_zero_events(tmp_path):
 
 
 def test_loader_workers_reopen_files(dataset):
-    ds = EventEgoHands(dataset.root, "train")
+    ds = sample_set(dataset.root, "train")
     ds[0]  # open the file in the main process first: workers must not reuse that handle
     loader = DataLoader(ds, batch_size=4, num_workers=2, collate_fn=collate)
     batches = list(loader)
@@ -136,7 +137,7 @@ def test_loader_workers_reopen_files(dataset):
 
 def test_new_epochs_reach_loader_workers(dataset):
     from dagr_lite.engine.loading import make_loader
-    ds = EventEgoHands(dataset.root, "train", image_age=(1, 4), seed=0)  # the epoch draws the image ages
+    ds = sample_set(dataset.root, "train", image_age=(1, 4), seed=0)  # the epoch draws the image ages
     loader = make_loader(ds, batch_size=8, num_workers=2)
     first = next(iter(loader)).events
     assert torch.equal(next(iter(loader)).events, first)
@@ -147,7 +148,7 @@ def test_new_epochs_reach_loader_workers(dataset):
 def test_epoch_index_pairs_draw_as_that_epoch(dataset):
     """``ds[(epoch, i)]`` is ``ds[i]`` after ``set_epoch(epoch)``, through loader workers too."""
     from dagr_lite.engine.loading import make_loader
-    ds = EventEgoHands(dataset.root, "train", image_age=(1, 4), seed=0)
+    ds = sample_set(dataset.root, "train", image_age=(1, 4), seed=0)
     for epoch in (0, 3):
         for i in range(len(ds)):
             ds.set_epoch(epoch)
@@ -165,17 +166,17 @@ def test_epoch_index_pairs_draw_as_that_epoch(dataset):
 
 def test_missing_split_folder(dataset):
     with pytest.raises(DatasetFormatError, match=r"valid: split folder is missing"):
-        EventEgoHands(dataset.root / "nowhere", "valid")
+        sample_set(dataset.root / "nowhere", "valid")
 
 
 def test_frame_count_disagreeing_with_timeidx(dataset_copy):
     frames = fmt.frames_dir(dataset_copy.root, "train", "vid_b")
     (frames / "frame_11.jpg").unlink()
     with pytest.raises(DatasetFormatError, match=r"vid_b\.h5: timeidx: has 12 entries but 11 frames exist on disk"):
-        EventEgoHands(dataset_copy.root, "train")
+        sample_set(dataset_copy.root, "train")
     (frames / "frame_5.jpg").unlink()
     with pytest.raises(DatasetFormatError, match=r"frames/vid_b: frames are not numbered 0\.\.9: frame_5\.jpg is missing"):
-        EventEgoHands(dataset_copy.root, "train")
+        sample_set(dataset_copy.root, "train")
 
 
 def test_events_file_with_no_events(dataset_copy):
@@ -186,11 +187,11 @@ def test_events_file_with_no_events(dataset_copy):
             h5[key] = np.zeros(0, np.int64)
         h5[fmt.KEY_TIMEIDX][...] = 0
     with pytest.raises(DatasetFormatError, match=r"vid_d\.h5: events/t: the file holds no events"):
-        EventEgoHands(dataset_copy.root, "test")
+        sample_set(dataset_copy.root, "test")
 
 
 def test_corrupt_jpeg_names_the_file(dataset_copy):
-    ds = EventEgoHands(dataset_copy.root, "valid", image_age=1)
+    ds = sample_set(dataset_copy.root, "valid", image_age=1)
     path = fmt.frame_path(dataset_copy.root, "valid", "vid_c", 4)
     path.write_bytes(path.read_bytes()[:200])
     index = [ds.sample_name(i)[1] for i in range(len(ds))].index(5)
@@ -200,8 +201,8 @@ def test_corrupt_jpeg_names_the_file(dataset_copy):
 
 def test_configured_size_must_match_the_frames(dataset):
     with pytest.raises(DatasetFormatError, match=r"frame_0\.jpg: frame is 64x48 \(WxH\), expected 640x360 as the dataset is configured"):
-        EventEgoHands(dataset.root, "train", image_size=(360, 640))
-    assert EventEgoHands(dataset.root, "train").image_size == (48, 64)
+        sample_set(dataset.root, "train", image_size=(360, 640))
+    assert sample_set(dataset.root, "train").image_size == (48, 64)
 
 
 def test_bad_boxes_are_refused_or_clipped(dataset_copy):
@@ -210,8 +211,8 @@ def test_bad_boxes_are_refused_or_clipped(dataset_copy):
     labels["vid_c_frame_2"] = [[60, 40, 10, 10], [5, 5, -1, 3]]
     path.write_text(json.dumps(labels))
     with pytest.raises(DatasetFormatError, match=r"vid_c_frame_2: box \[60.0, 40.0, 10.0, 10.0\] leaves the 64x48 image"):
-        EventEgoHands(dataset_copy.root, "valid")
-    ds = EventEgoHands(dataset_copy.root, "valid", image_age=0, clip_boxes=True)
+        sample_set(dataset_copy.root, "valid")
+    ds = sample_set(dataset_copy.root, "valid", image_age=0, clip_boxes=True)
     sample = ds[2]
     assert sample.frame == 2
     np.testing.assert_allclose(sample.boxes.numpy(), [[60, 40, 64, 48]])
@@ -221,7 +222,7 @@ def test_bad_boxes_are_refused_or_clipped(dataset_copy):
                                           (dict(max_events=0), "max_events"), (dict(videos=["nope"]), "nope")])
 def test_bad_arguments(dataset, kwargs, match):
     with pytest.raises(ValueError, match=match):
-        EventEgoHands(dataset.root, "train", **kwargs)
+        sample_set(dataset.root, "train", **kwargs)
 
 
 def test_polarity_outside_0_1_stops_the_dataset(tmp_path):
@@ -230,13 +231,13 @@ def test_polarity_outside_0_1_stops_the_dataset(tmp_path):
     with h5py.File(path, "a") as h5:
         h5[fmt.KEY_P][100] = 2
     with pytest.raises(DatasetFormatError, match=r"vid_b\.h5: events/p: values must be 0 or 1, found 2 at index 100 "):
-        EventEgoHands(written.root, "train")
+        sample_set(written.root, "train")
     # In a longer file the opening check samples only the ends; the window holding the value raises.
     written = make_dataset(tmp_path / "long", videos={"v": "train"}, events_per_video=30_000, compression=None)
     path = fmt.events_path(written.root, "train", "v")
     with h5py.File(path, "a") as h5:
         h5[fmt.KEY_P][15_000] = 2
-    ds = EventEgoHands(written.root, "train", image_age=0, event_span="window")
+    ds = sample_set(written.root, "train", image_age=0, event_span="window")
     with pytest.raises(DatasetFormatError, match=r"v\.h5: events/p: values must be 0 or 1, found 2 at index 15000 "):
         for index in range(len(ds)):
             ds[index]
@@ -247,21 +248,21 @@ def test_frame_problems_stop_the_dataset_when_it_opens(dataset_copy):
     frame = fmt.frame_path(root, "valid", "vid_c", 7)
     frame.write_bytes(frame.read_bytes()[:300])  # cut inside the image data
     with pytest.raises(DatasetFormatError, match=r"vid_c/frame_7\.jpg: not a readable JPEG: no end-of-image marker"):
-        EventEgoHands(root, "valid")
+        sample_set(root, "valid")
     small = fmt.frame_path(root, "test", "vid_d", 9)
     small.unlink()
     write_frame(small, np.zeros((10, 10, 3), np.uint8))
     with pytest.raises(DatasetFormatError, match=r"vid_d/frame_9\.jpg: frame is 10x10 \(WxH\), expected 64x48 as "
                                                  r"frame_0\.jpg$"):
-        EventEgoHands(root, "test")
+        sample_set(root, "test")
     with pytest.raises(DatasetFormatError, match=r"vid_d/frame_0\.jpg: frame is 64x48 \(WxH\), expected 10x10 as the "
                                                  r"dataset is configured"):
-        EventEgoHands(root, "test", image_size=(10, 10))
+        sample_set(root, "test", image_size=(10, 10))
     header = fmt.frame_path(root, "train", "vid_b", 3)
     header.write_bytes(header.read_bytes()[:100])
     with pytest.raises(DatasetFormatError, match=r"vid_b/frame_3\.jpg: not a readable JPEG: .*truncated header"):
-        EventEgoHands(root, "train")
-    assert len(EventEgoHands(root, "train", videos=["CARDS_COURTYARD_B_T"])) == 11  # the other video opens
+        sample_set(root, "train")
+    assert len(sample_set(root, "train", videos=["CARDS_COURTYARD_B_T"])) == 11  # the other video opens
 
 
 def test_frame_size_must_agree_across_videos(dataset_copy):
@@ -272,7 +273,7 @@ def test_frame_size_must_agree_across_videos(dataset_copy):
         write_frame(path, np.zeros((48, 60, 3), np.uint8))
     first = fmt.frame_path(root, "train", "CARDS_COURTYARD_B_T", 0)
     with pytest.raises(DatasetFormatError) as info:
-        EventEgoHands(root, "train")
+        sample_set(root, "train")
     lines = str(info.value).splitlines()
     assert lines[0] == f"{fmt.frame_path(root, 'train', 'vid_b', 0)}: frame is 60x48 (WxH), expected 64x48 as {first}"
     assert len(lines) == 11 and lines[-1].endswith("vid_b: ... and 2 more frame problems in this folder")
@@ -280,7 +281,7 @@ def test_frame_size_must_agree_across_videos(dataset_copy):
 
 @pytest.mark.parametrize("age,window_us", [(1, 33_333), (3, 33_333), (5, 33_333), (3, 200_000), (1, 35_000)])
 def test_events_of_the_horizon_since_the_image_match_a_brute_force_time_mask(dataset, age, window_us):
-    ds = EventEgoHands(dataset.root, "train", image_age=age, context_us=7_000, window_us=window_us)
+    ds = sample_set(dataset.root, "train", image_age=age, context_us=7_000, window_us=window_us)
     assert len(ds) == 2 * (12 - age)
     for index in range(len(ds)):
         sample = ds[index]
@@ -296,7 +297,7 @@ def test_events_of_the_horizon_since_the_image_match_a_brute_force_time_mask(dat
 
 
 def test_training_draws_ages_from_the_range_per_sample(dataset):
-    ds = EventEgoHands(dataset.root, "train", image_age=(1, 4))
+    ds = sample_set(dataset.root, "train", image_age=(1, 4))
     assert len(ds) == 2 * (12 - 1)  # a frame k draws from [1, min(4, k)]
     drawn = {}
     for epoch in range(6):
@@ -329,15 +330,15 @@ def test_weighted_ages_follow_their_weights(power):
 def test_unweighted_ages_are_the_uniform_draws(dataset):
     a, b = np.random.default_rng(7), np.random.default_rng(7)
     assert [draw_age(a, 1, 10) for _ in range(50)] == b.integers(1, 11, 50).tolist()
-    uniform = EventEgoHands(dataset.root, "train", image_age=(1, 6))
-    linear = EventEgoHands(dataset.root, "train", image_age=(1, 6), age_power=1.0)
+    uniform = sample_set(dataset.root, "train", image_age=(1, 6))
+    linear = sample_set(dataset.root, "train", image_age=(1, 6), age_power=1.0)
     ages = [[ds[i].frame - ds[i].image_frame for i in range(len(ds))] for ds in (uniform, linear)]
     assert ages[0] != ages[1] and all(1 <= a <= 6 for a in ages[1])
     with pytest.raises(ValueError, match="age_power must be a number >= 0, got -1"):
-        EventEgoHands(dataset.root, "train", image_age=(1, 6), age_power=-1)
+        sample_set(dataset.root, "train", image_age=(1, 6), age_power=-1)
 
 
 @pytest.mark.parametrize("image_age", [-1, (3, 1), (1, 2, 3), 1.5])
 def test_bad_image_ages_are_refused(dataset, image_age):
     with pytest.raises(ValueError, match="image_age"):
-        EventEgoHands(dataset.root, "train", image_age=image_age)
+        sample_set(dataset.root, "train", image_age=image_age)

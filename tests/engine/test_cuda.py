@@ -12,7 +12,6 @@ import pytest
 import torch
 
 from dagr_lite.data.collate import collate
-from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.evaluate import evaluate
 from dagr_lite.engine.train import train
 from dagr_lite.eval import METRIC_KEYS
@@ -21,6 +20,7 @@ from dagr_lite.nn.detector import Detector
 from dagr_lite.synth.stub import stub_root
 from tests.engine.test_train import config, small
 from tests.models import small_detector_config
+from tests.settings import sample_set
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 
@@ -41,7 +41,7 @@ def test_the_detector_on_the_gpu_equals_the_detector_on_the_cpu():
     """Losses and gradients of the same float64 weights on the same batch; the GPU builds its own
     graph (torch backend), the CPU its KD-tree one. Measured on an H100: losses within 1e-7 and
     gradients within 1e-6 (relative), from the order of the GPU's sums."""
-    dataset = EventEgoHands(stub_root(), "valid", window_us=15_000)
+    dataset = sample_set(stub_root(), "valid", window_us=15_000)
     batch = collate([dataset[i] for i in (2, 30, 61)])
     torch.manual_seed(0)
     cfg = small_detector_config(image_width=8, event_channels=(8, 16, 16, 16), head_hidden=16)

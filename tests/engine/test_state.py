@@ -5,12 +5,13 @@ import torch
 
 from dagr_lite.config import build_model, build_optimizer, compose_config, resolve_config
 from dagr_lite.data.collate import collate
-from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.loading import make_loader
 from dagr_lite.engine.state import TrainState, train_step, validate
 from dagr_lite.eval.coco import METRIC_KEYS
 from dagr_lite.eval.score import score_model
 from dagr_lite.synth.stub import stub_root
+from tests.settings import sample_set
+from tests.settings import EVAL
 
 
 def fresh_state(variant="image_only", seed=0):
@@ -22,7 +23,7 @@ def fresh_state(variant="image_only", seed=0):
 
 
 def a_batch(indices=(3, 40, 77, 120)):
-    dataset = EventEgoHands(stub_root(), "train", window_us=10_000)
+    dataset = sample_set(stub_root(), "train", window_us=10_000)
     return collate([dataset[i] for i in indices])
 
 
@@ -71,18 +72,19 @@ def test_a_non_finite_loss_stops_before_any_weight_changes(monkeypatch):
 
 def test_validate_scores_the_ema_weights_over_every_sample():
     state = fresh_state()
-    dataset = EventEgoHands(stub_root(), "valid", window_us=10_000)
+    dataset = sample_set(stub_root(), "valid", window_us=10_000)
     loader = make_loader(dataset, batch_size=8, num_workers=0)
-    metrics = validate(state, loader, progress=False)
+    metrics = validate(state, loader, backend="numpy", progress=False, **EVAL)
     assert set(METRIC_KEYS) <= set(metrics) and all(-1 <= metrics[k] <= 1 for k in METRIC_KEYS)
     # What is scored is the EMA module: silence its objectness and nothing is found, while the
     # trained module itself still detects.
     with torch.no_grad():
         for pred in state.ema.module.head.obj_preds:
             pred.bias.fill_(-30.0)
-    silenced = validate(state, loader, conf_threshold=1e-6, progress=False)
+    silenced = validate(state, loader, backend="numpy", conf_threshold=1e-6, nms_threshold=EVAL["nms_threshold"], progress=False)
     assert silenced["mAP"] == 0 and silenced["AR100"] == 0
-    _, evaluator = score_model(state.model, loader, state.device, conf_threshold=1e-6, progress=False)
+    _, evaluator = score_model(state.model, loader, state.device, backend="numpy", conf_threshold=1e-6,
+                               nms_threshold=EVAL["nms_threshold"], progress=False)
     assert len(evaluator.detections) > 0
 
 def brute_force_edges(pos: np.ndarray, radius: float, k: int) -> set[tuple[int, int]]:
@@ -99,7 +101,7 @@ def test_the_loaders_graph_is_the_models_own():
     cfg = resolve_config(compose_config("train", ["model=events_only", "model.graph.radius=4",
                                                   "model.graph.max_neighbors=6"]))
     model = build_model(cfg, height=180, width=320).eval()
-    dataset = EventEgoHands(stub_root(), "valid", window_us=6_000)
+    dataset = sample_set(stub_root(), "valid", window_us=6_000)
     batch = next(iter(make_loader(dataset, batch_size=2, num_workers=0, graph=model.graph_spec)))
     spec = model.graph_spec
     events = batch.events.double()
@@ -110,9 +112,9 @@ def test_the_loaders_graph_is_the_models_own():
         expected |= {(s + a, d + a) for s, d in brute_force_edges(pos, 4.0, 6)}
     assert set(map(tuple, batch.edge_index.t().tolist())) == expected and expected
     with torch.no_grad():
-        from_loader = model(batch)
+        from_loader = model(batch, **EVAL)
         batch.edge_index = None  # the model builds its own graph
-        own = model(batch)
+        own = model(batch, **EVAL)
     for x, y in zip(from_loader, own):
         assert torch.equal(x["boxes"], y["boxes"]) and torch.equal(x["scores"], y["scores"])
 
@@ -145,7 +147,7 @@ def test_mixed_precision_choices_run_a_step_on_the_cpu():
     common = dict(total_steps=20, warmup_steps=4, min_lr_ratio=0.05, ema_decay=0.99, ema_tau=5.0, grad_clip=10.0)
     bf16 = TrainState.create(model, build_optimizer(cfg, model.parameters()), amp=torch.bfloat16, **common)
     assert bf16.amp and not bf16.scaler.is_enabled()
-    dataset = EventEgoHands(stub_root(), "train", window_us=10_000)
+    dataset = sample_set(stub_root(), "train", window_us=10_000)
     out = train_step(bf16, collate([dataset[i] for i in (3, 40)]))
     assert torch.isfinite(out["loss"]) and out["loss"].dtype == torch.float32
     fp16 = TrainState.create(model, build_optimizer(cfg, model.parameters()), amp=True, **common)

@@ -9,11 +9,11 @@ from hydra import compose, initialize_config_dir
 
 import dagr_lite.engine.train as train_module
 from dagr_lite.config import ConfigError
-from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.evaluate import evaluate
 from dagr_lite.engine.schedule import warmup_cosine
 from dagr_lite.engine.train import ResumeError, train
 from dagr_lite.synth.stub import stub_root
+from tests.settings import sample_set
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 METRIC_KEYS = {"mAP", "AP50", "AP75", "APs", "APm", "APl", "AR100"}
@@ -43,13 +43,13 @@ def test_smoke_training_lowers_the_loss_then_evaluate_scores_the_checkpoint(tmp_
     assert (run / "checkpoints" / "last.pt").is_file() and (run / "checkpoints" / "best.pt").is_file()
     metrics = json.loads((run / "metrics.json").read_text())
     assert METRIC_KEYS <= set(metrics) and metrics["split"] == "valid"
-    assert metrics["num_images"] == len(EventEgoHands(stub_root(), "valid"))  # every sample scored
+    assert metrics["num_images"] == len(sample_set(stub_root(), "valid"))  # every sample scored
     assert list((run / "tensorboard").iterdir())
     evaluated = evaluate(config("evaluate", f"ckpt={run / 'checkpoints' / 'last.pt'}", f"run_dir={tmp_path / 'eval'}",
                                 "split=test", "save_images=2", "loader.num_workers=0"))
     out = json.loads((tmp_path / "eval" / "metrics.json").read_text())
     assert METRIC_KEYS <= set(out) and out["split"] == "test"
-    assert out["num_images"] == len(EventEgoHands(stub_root(), "test"))
+    assert out["num_images"] == len(sample_set(stub_root(), "test"))
     assert evaluated["metrics"]["mAP"] == out["mAP"]
     detections = json.loads((tmp_path / "eval" / "detections.json").read_text())
     assert detections and {"image_id", "category_id", "bbox", "score", "file_name"} <= set(detections[0])
@@ -276,7 +276,7 @@ def test_evaluation_takes_the_data_and_graph_settings_from_the_checkpoint(tmp_pa
     assert out["data"] == {"image_age": 2, "window_us": 20000, "context_us": 10000, "refractory_us": 0,
                            "max_events": 100000}
     assert out["graph"] == {"radius": 4.0, "beta": 5e-4, "max_neighbors": 16} and out["overrides"] == {}
-    assert out["num_images"] == len(EventEgoHands(stub_root(), "valid", image_age=2))
+    assert out["num_images"] == len(sample_set(stub_root(), "valid", image_age=2))
     capsys.readouterr()
     evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'o'}", "loader.num_workers=0", "split=valid",
                     "data.window_us=33333", "graph.radius=5"))

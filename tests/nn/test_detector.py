@@ -2,16 +2,17 @@ import pytest
 import torch
 
 from dagr_lite.data.collate import collate
-from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.nn.detector import Detector, DetectorConfig
 from dagr_lite.nn.head import box_iou
 from dagr_lite.synth.stub import stub_root
 from tests.models import small_detector_config
+from tests.settings import sample_set
+from tests.settings import EVAL
 
 
 def test_the_hybrid_model_overfits_one_batch():
     torch.manual_seed(0)
-    dataset = EventEgoHands(stub_root(), "train", window_us=20_000)
+    dataset = sample_set(stub_root(), "train", window_us=20_000)
     batch = collate([dataset[i] for i in (5, 60, 150, 260)])
     model = Detector(small_detector_config(image_width=8, event_channels=(8, 16, 16, 16), head_hidden=32))
     optimizer = torch.optim.AdamW(model.parameters(), lr=3e-3)
@@ -25,7 +26,7 @@ def test_the_hybrid_model_overfits_one_batch():
     assert losses[-1] < losses[0] / 4
     model.eval()
     with torch.no_grad():
-        detections = model(batch)
+        detections = model(batch, **EVAL)
     found = []
     for det, boxes in zip(detections, batch.boxes):
         confident = det["boxes"][det["scores"] > 0.3]
@@ -35,7 +36,7 @@ def test_the_hybrid_model_overfits_one_batch():
 
 
 def test_training_output_names_and_variants():
-    dataset = EventEgoHands(stub_root(), "valid", window_us=10_000)
+    dataset = sample_set(stub_root(), "valid", window_us=10_000)
     batch = collate([dataset[i] for i in (0, 40)])
     for use_events, use_image in ((True, True), (True, False), (False, True)):
         model = Detector(small_detector_config(use_events=use_events, use_image=use_image, image_width=8,
@@ -43,11 +44,11 @@ def test_training_output_names_and_variants():
         out = model(batch)
         assert set(out) == {"loss", "iou_loss", "obj_loss", "cls_loss", "num_fg"} and torch.isfinite(out["loss"])
         model.eval()
-        assert len(model(batch)) == 2
+        assert len(model(batch, **EVAL)) == 2
 
 
 def test_the_event_head_adds_its_weighted_loss_in_training_and_leaves_detection_alone():
-    dataset = EventEgoHands(stub_root(), "valid", window_us=10_000)
+    dataset = sample_set(stub_root(), "valid", window_us=10_000)
     batch = collate([dataset[i] for i in (0, 40)])
     torch.manual_seed(0)
     sizes = dict(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16)
@@ -65,7 +66,7 @@ def test_the_event_head_adds_its_weighted_loss_in_training_and_leaves_detection_
     assert all(stem[0].weight.grad.abs().sum() > 0 for stem in with_head.event_head.stems)  # it trains
     with_head.eval(), without.eval()
     with torch.no_grad():
-        for a, b in zip(with_head(batch), without(batch)):  # detection reads the fused head only
+        for a, b in zip(with_head(batch, **EVAL), without(batch, **EVAL)):  # detection reads the fused head only
             for key in ("boxes", "scores", "labels"):
                 torch.testing.assert_close(a[key], b[key], rtol=0, atol=0)
     for variant in ("events_only", "image_only"):  # only a hybrid has a second head to train
@@ -77,7 +78,7 @@ def test_with_its_image_weights_zeroed_a_hybrid_answers_what_it_answers_without_
     """zero_image_weights: the hybrid's features with any frame (the stub's, or noise) equal, to
     the last bit, those of forward(image=False), which runs no image branch; before zeroing, the
     image changes them (the check can fail). In training the zeroed weights get no gradient."""
-    dataset = EventEgoHands(stub_root(), "valid", window_us=10_000)
+    dataset = sample_set(stub_root(), "valid", window_us=10_000)
     batch = collate([dataset[i] for i in (0, 40)])
     noise = collate([dataset[i] for i in (0, 40)])
     noise.images.copy_(torch.randint(0, 256, noise.images.shape, dtype=noise.images.dtype))
@@ -92,7 +93,7 @@ def test_with_its_image_weights_zeroed_a_hybrid_answers_what_it_answers_without_
         for images in (batch, noise):
             for a, b in zip(model.features(images)[0], blank):
                 assert torch.equal(a, b)
-        for a, b in zip(model(batch), model(batch, image=False)):
+        for a, b in zip(model(batch, **EVAL), model(batch, image=False, **EVAL)):
             for key in ("boxes", "scores", "labels"):
                 assert torch.equal(a[key], b[key])
     model.train()
@@ -142,7 +143,7 @@ def test_mixed_precision_keeps_losses_and_graph_products_in_float32(monkeypatch)
         return real_bce(*args, **kwargs)
 
     monkeypatch.setattr(head_module.F, "binary_cross_entropy", guarded_bce)
-    dataset = EventEgoHands(stub_root(), "valid", window_us=10_000)
+    dataset = sample_set(stub_root(), "valid", window_us=10_000)
     batch = collate([dataset[i] for i in (3, 50)])
     model = Detector(small_detector_config(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16))
     with torch.autocast("cpu", dtype=torch.bfloat16):
@@ -161,7 +162,7 @@ def in_float64(sample):
 def test_node_features_ignore_later_events_and_the_query_time():
     """The rule streaming depends on: a node depends on its event, its causal past and the image."""
     torch.manual_seed(0)
-    dataset = EventEgoHands(stub_root(), "valid", image_age=3, max_events=None)
+    dataset = sample_set(stub_root(), "valid", image_age=3, max_events=None)
     sample = dataset[20]
     model = Detector(small_detector_config(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16)).double().eval()
     n = len(sample.events)
@@ -175,6 +176,6 @@ def test_node_features_ignore_later_events_and_the_query_time():
     assert torch.equal(a, b[: n // 2]) and torch.equal(b, c)
     # ...while the detections do follow the query time, through the image's age at the fusion
     with torch.no_grad():
-        now = model(in_float64(sample), conf_threshold=0.0)[0]["scores"]
-        later_scores = model(in_float64(later), conf_threshold=0.0)[0]["scores"]
+        now = model(in_float64(sample), conf_threshold=0.0, nms_threshold=EVAL["nms_threshold"])[0]["scores"]
+        later_scores = model(in_float64(later), conf_threshold=0.0, nms_threshold=EVAL["nms_threshold"])[0]["scores"]
     assert not torch.equal(now, later_scores)

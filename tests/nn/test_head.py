@@ -7,6 +7,7 @@ import torch.nn.functional as F
 from dagr_lite.nn.detector import ImageBranch, sample_at
 from dagr_lite.nn.head import (YOLOXHead, anchors_of, box_iou, decode_boxes, nms, postprocess, simota_assign,
                                yolox_losses)
+from tests.settings import EVAL
 
 
 def brute_force_nms(boxes, scores, threshold, labels):
@@ -110,7 +111,7 @@ def test_branch_and_head_shapes():
     head = YOLOXHead([32, 64, 128], [8, 16, 32], hidden=16, num_classes=1)
     raw, shapes = head(maps[1:])
     assert raw.shape == (2, 23 * 40 + 12 * 20 + 6 * 10, 6) and shapes == [(23, 40), (12, 20), (6, 10)]
-    dets = postprocess(raw, shapes, [8, 16, 32], image_size=(180, 320))
+    dets = postprocess(raw, shapes, [8, 16, 32], image_size=(180, 320), **EVAL)
     assert len(dets) == 2 and dets[0]["boxes"].shape[1] == 4 and len(dets[0]["boxes"]) <= 100
     assert torch.all(dets[0]["boxes"][:, 2] <= 320) and torch.all(dets[0]["boxes"][:, 3] <= 180)
 

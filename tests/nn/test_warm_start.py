@@ -6,13 +6,13 @@ from omegaconf import OmegaConf
 
 from dagr_lite.config import ConfigError, check_values, compose_config
 from dagr_lite.data.collate import collate
-from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.checkpoint import CHECKPOINT_FORMAT
 from dagr_lite.engine.train import start_from, start_weights, train
 from dagr_lite.nn.detector import Detector
 from dagr_lite.nn.warm_start import warm_start, widen
 from dagr_lite.synth.stub import stub_root
 from tests.models import small_detector_config
+from tests.settings import sample_set
 
 SIZES = dict(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16)
 
@@ -44,7 +44,7 @@ def test_an_events_only_branch_started_in_a_hybrid_computes_the_same_maps_whatev
     wider = ("image.", "to_nodes.", "fuse.", "head.stems.", "head.cls_late.", "head.reg_late.", "head.gates.",
              "head.image_")
     assert all(name.startswith(wider) or name.endswith("num_batches_tracked") for name in report["kept"])
-    dataset = EventEgoHands(stub_root(), "valid", image_age=3, window_us=15_000)
+    dataset = sample_set(stub_root(), "valid", image_age=3, window_us=15_000)
     batch = collate([dataset[i] for i in (5, 40)])
     with torch.no_grad():
         expected = events_only.events(batch.events, batch.batch_index, len(batch))

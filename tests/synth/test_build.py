@@ -7,11 +7,11 @@ import yaml
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.check import check_dataset
-from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.data.labels import read_labels
 from dagr_lite.data.writer import write_frame
 from dagr_lite.synth.build import BUILD_INFO, LABEL_SOURCES, VERSIONS, main
 from tests.synth.test_egohands import write_metadata
+from tests.settings import sample_set
 
 CONF = Path(__file__).resolve().parents[2] / "conf" / "dataset"
 
@@ -44,11 +44,11 @@ def test_folder_input_builds_a_valid_dataset_with_scaled_labels(tmp_path):
             "--scale", "2", "--labels", str(tmp_path / "labels.json"), "--splits", str(tmp_path / "splits.json")]
     assert main(args) == 0
     assert check_dataset(out, decode_frames=True) == []
-    ds = EventEgoHands(out, "train", image_age=0, event_span="window")
+    ds = sample_set(out, "train", image_age=0, event_span="window")
     assert ds.videos == ["a", "b"] and ds.image_size == (12, 16)
     sample = next(ds[i] for i in range(len(ds)) if ds.sample_name(i) == ("a", 3))
     np.testing.assert_allclose(sample.boxes.numpy(), [[5.5, 3, 9.5, 7]])  # (11, 6, 19, 14) / 2
-    assert len(EventEgoHands(out, "test").videos) == 1
+    assert len(sample_set(out, "test").videos) == 1
     info = json.loads((out / BUILD_INFO).read_text())
     assert {v["dvs_model"] for v in info["videos"].values()} <= {"clean", "noisy"}
     assert info["settings"]["upsample"] == 5 and info["videos"]["a"]["events"] > 0
@@ -150,7 +150,7 @@ def test_videos_without_events_are_left_out_with_a_warning(tmp_path):
         assert main(args) == 0
     assert {"no events", "frame(s)"} <= {w for m in caught for w in ("no events", "frame(s)") if w in str(m.message)}
     assert check_dataset(out) == []  # no leftover frames or labels of the skipped videos
-    assert EventEgoHands(out, "train").videos == ["moving"]
+    assert sample_set(out, "train").videos == ["moving"]
     info = json.loads((out / BUILD_INFO).read_text())
     assert set(info["skipped"]) == {"static", "single"}
 

@@ -2,15 +2,15 @@ import numpy as np
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.check import check_dataset
-from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.data.events import EventFile
 from dagr_lite.synth.stub import HandScene, generate_stub
+from tests.settings import sample_set
 
 
 def test_stub_is_a_valid_dataset_with_hands_and_events(tmp_path):
     root = generate_stub(tmp_path / "stub", seconds=1.0, splits={"train": 2, "valid": 1}, progress=False)
     assert check_dataset(root, decode_frames=True) == []
-    ds = EventEgoHands(root, "train", image_size=(180, 320))
+    ds = sample_set(root, "train", image_size=(180, 320))
     assert len(ds) == 2 * 29
     samples = [ds[i] for i in range(len(ds))]
     assert max(len(s.boxes) for s in samples) >= 2 and min(len(s.events) for s in samples) > 0

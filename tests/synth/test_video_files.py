@@ -7,10 +7,10 @@ import pytest
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.check import check_dataset
-from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.data.errors import DatasetFormatError
 from dagr_lite.synth.build import BUILD_INFO, main
 from dagr_lite.synth.video import VideoFileSource
+from tests.settings import sample_set
 
 
 def moving_square(k: int, height: int = 48, width: int = 64) -> np.ndarray:
@@ -56,7 +56,7 @@ def test_build_from_video_files_takes_their_frame_rate(tmp_path):
     info = json.loads((out / BUILD_INFO).read_text())
     assert info["settings"]["fps"] == 25 and set(info["videos"]) == {"clip_a", "clip_b"}
     assert check_dataset(out, fps=25) == []
-    dataset = EventEgoHands(out, "train", fps=25, image_age=1)
+    dataset = sample_set(out, "train", fps=25, image_age=1)
     assert len(dataset) == (12 - 1) + (9 - 1)
     assert dataset.frame_time_us(0, 5) == fmt.frame_time_us(5, 25)
     sample = dataset[2]  # clip_a, label frame 3

@@ -1,0 +1,22 @@
+"""The settings tests pass where a test does not choose its own: the library has no defaults for
+what `conf/` sets (docs/design.md, "Settings: where each one lives")."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from dagr_lite.data.dataset import EventEgoHands
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+_eval = OmegaConf.load(CONF / "eval" / "default.yaml")
+EVAL = {"conf_threshold": float(_eval.conf_threshold), "nms_threshold": float(_eval.nms_threshold)}  # conf/eval's own
+# One sample: the image one frame old, the events of its horizon since the image, no filter, no guard.
+SAMPLE = {"image_age": 1, "window_us": 33_333, "context_us": 0, "refractory_us": 0, "max_events": None}
+# TrainAugment without the hybrid's grey images.
+AUGMENT = {"flip_prob": 0.5, "zoom": (1.0, 1.5), "translate": 0.1, "min_box_size": 2.0, "image_dropout": 0.0}
+
+
+def sample_set(root, split: str, **settings) -> EventEgoHands:
+    """``EventEgoHands(root, split)`` with :data:`SAMPLE`, any of it replaced by ``settings``."""
+    return EventEgoHands(root, split, **{**SAMPLE, **settings})
