@@ -201,7 +201,7 @@ def test_what_conf_sets_has_no_second_default_in_the_code():
     from dagr_lite.data.augment import TrainAugment
     from dagr_lite.data.dataset import EventEgoHands
     from dagr_lite.engine.state import validate
-    from dagr_lite.eval.score import detections_of, save_pictures, score_model
+    from dagr_lite.eval.score import detections_of, save_pictures, score_entries, score_model
     from dagr_lite.nn.head import postprocess
     from dagr_lite.stream import StreamingDetector
 
@@ -210,7 +210,7 @@ def test_what_conf_sets_has_no_second_default_in_the_code():
                                              "nms_threshold"),
                 validate: ("backend", "conf_threshold", "nms_threshold"),
                 score_model: ("backend", "conf_threshold", "nms_threshold"),
-                detections_of: ("conf_threshold", "nms_threshold"),
+                detections_of: ("conf_threshold", "nms_threshold"), score_entries: ("backend",),
                 save_pictures: ("conf_threshold", "nms_threshold"),
                 postprocess: ("conf_threshold", "nms_threshold")}
     for function, names in required.items():

@@ -43,7 +43,7 @@ def detections_of(model: nn.Module, loader: DataLoader, device: torch.device, *,
     return entries
 
 
-def score_entries(entries: list[tuple], *, backend: str = "numpy") -> tuple[dict, CocoEvaluator]:
+def score_entries(entries: list[tuple], *, backend: str) -> tuple[dict, CocoEvaluator]:
     """COCO metrics of the entries of :func:`detections_of`."""
     evaluator = CocoEvaluator(backend=backend)
     for entry in entries:

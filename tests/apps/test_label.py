@@ -61,3 +61,29 @@ def test_bad_options_are_refused_by_name_before_any_work(tmp_path, capsys, args,
         main([str(written.root), "--out", str(tmp_path / "out"), *args])
     assert re.match(f"error: {expected}", capsys.readouterr().err)
     assert not (tmp_path / "out").exists()
+
+
+def test_best_threshold_is_the_score_with_the_best_f1_worked_by_hand():
+    from dagr_lite.apps.label import best_threshold
+
+    held = {"v": {0: np.array([[0.0, 0, 10, 10]]), 1: np.array([[20.0, 20, 10, 10]])}}
+    predicted = {"v": {0: (np.array([[0.0, 0, 10, 10], [50, 50, 10, 10]]), np.array([0.9, 0.3])),
+                       1: (np.array([[20.0, 20, 10, 10], [60, 0, 10, 10]]), np.array([0.6, 0.25]))}}
+    # t=0.2: tp 2, fp 2, fn 0 -> F1 4/6; t=0.5: tp 2 -> F1 1; t=0.7: tp 1, fn 1 -> F1 2/3.
+    assert best_threshold(predicted, held, thresholds=[0.2, 0.5, 0.7]) == (0.5, 1.0)
+    assert best_threshold(predicted, held, thresholds=[0.7, 0.2]) == (0.7, 2 / 3)  # a tie keeps the first
+    # A box at IoU 1/3 with the truth is no match: at t=0.5, frame 0 has fp 1 and fn 1.
+    shifted = {"v": {0: (np.array([[5.0, 0, 10, 10]]), np.array([0.9])), 1: predicted["v"][1]}}
+    assert best_threshold(shifted, held, thresholds=[0.5]) == (0.5, 2 * 1 / (2 * 1 + 1 + 1))
+
+
+def test_quality_is_coco_map_worked_by_hand():
+    from dagr_lite.apps.label import quality
+
+    held = {"v": {0: np.array([[0.0, 0, 10, 10]]), 1: np.array([[20.0, 20, 10, 10]])}}
+    exact = {"v": {0: (held["v"][0], np.array([0.9])), 1: (held["v"][1], np.array([0.8]))}}
+    assert quality(held, exact, 100, 100) == {"frames": 2, "mAP": 1.0, "AP50": 1.0, "AP75": 1.0}
+    # IoU 0.62 on both frames: a match at the thresholds 0.50, 0.55 and 0.60 of the ten, none above.
+    short = {"v": {k: (box * [1, 1, 1, 0.62], np.array([0.9])) for k, box in ((0, held["v"][0]), (1, held["v"][1]))}}
+    got = quality(held, short, 100, 100)
+    assert got["frames"] == 2 and got["AP50"] == 1.0 and got["AP75"] == 0.0 and abs(got["mAP"] - 0.3) < 1e-12

@@ -4,11 +4,14 @@ import json
 from pathlib import Path
 
 import pytest
+import numpy as np
 import torch
 from hydra import compose, initialize_config_dir
 
 import dagr_lite.engine.train as train_module
 from dagr_lite.config import ConfigError
+from dagr_lite.data import format as fmt
+from dagr_lite.data.labels import read_labels
 from dagr_lite.engine.evaluate import evaluate
 from dagr_lite.engine.schedule import warmup_cosine
 from dagr_lite.engine.train import ResumeError, train
@@ -53,6 +56,9 @@ def test_smoke_training_lowers_the_loss_then_evaluate_scores_the_checkpoint(tmp_
     assert evaluated["metrics"]["mAP"] == out["mAP"]
     detections = json.loads((tmp_path / "eval" / "detections.json").read_text())
     assert detections and {"image_id", "category_id", "bbox", "score", "file_name"} <= set(detections[0])
+    independent = pycocotools_metrics(detections, "test")  # the written detections, against the label file
+    for key in ("mAP", "AP50", "AP75"):
+        assert abs(out[key] - independent[key]) < 1e-9, (key, out[key], independent[key])
     assert len(list((tmp_path / "eval" / "images").glob("*.png"))) == 2
     # The command line itself, as a user runs it.
     import subprocess
@@ -63,6 +69,33 @@ def test_smoke_training_lowers_the_loss_then_evaluate_scores_the_checkpoint(tmp_
                          capture_output=True, text=True, cwd=tmp_path)
     assert run.returncode == 0, run.stderr[-2000:]
     assert json.loads((tmp_path / "cli" / "metrics.json").read_text())["split"] == "valid"
+
+
+def pycocotools_metrics(detections: list[dict], split: str) -> dict:
+    """mAP, AP50, AP75 of ``detections`` (the results format, with ``file_name``) scored by
+    pycocotools against the stub's label file, over every sample of ``split``."""
+    from pycocotools.coco import COCO
+    from pycocotools.cocoeval import COCOeval
+
+    dataset = sample_set(stub_root(), split)
+    labels = read_labels(stub_root())
+    height, width = dataset.image_size
+    names = [dataset.sample_name(i) for i in range(len(dataset))]
+    images = [{"id": i + 1, "file_name": fmt.label_key(v, k), "height": height, "width": width}
+              for i, (v, k) in enumerate(names)]
+    ids = {image["file_name"]: image["id"] for image in images}
+    annotations = [{"id": n + 1, "image_id": i + 1, "category_id": 1, "bbox": list(map(float, box)),
+                    "area": float(box[2] * box[3]), "iscrowd": 0}
+                   for n, (i, box) in enumerate((i, box) for i, (v, k) in enumerate(names)
+                                                for box in labels.get(v, {}).get(k, np.zeros((0, 4))))]
+    truth = COCO()
+    truth.dataset = {"images": images, "annotations": annotations, "categories": [{"id": 1, "name": "hand"}]}
+    truth.createIndex()
+    found = truth.loadRes([{"image_id": ids[d["file_name"]], "category_id": 1, "bbox": d["bbox"], "score": d["score"]}
+                           for d in detections])
+    scoring = COCOeval(truth, found, "bbox")
+    scoring.evaluate(), scoring.accumulate(), scoring.summarize()
+    return {"mAP": scoring.stats[0], "AP50": scoring.stats[1], "AP75": scoring.stats[2]}
 
 
 def keep_last_copies(monkeypatch) -> dict:
