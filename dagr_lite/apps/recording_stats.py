@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from dagr_lite.apps.event_rate import BIN_US, rate_picture
 from dagr_lite.camera.recording import open_recording
-from dagr_lite.apps.stats import BIN_US, rate_picture
 
 HOT_PIXELS = 10  # the hottest pixels listed
 

@@ -29,16 +29,15 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from dagr_lite.apps.cli import user_errors  # noqa: E402
+from dagr_lite.apps.event_rate import BIN_US, OFF_COLOUR, ON_COLOUR, rate_picture  # noqa: E402
 from dagr_lite.data import format as fmt  # noqa: E402
 from dagr_lite.data.events import EventFile
 from dagr_lite.data.frames import list_frames, read_frame
 from dagr_lite.data.labels import list_videos, read_labels
 
-BIN_US = 10_000  # event-rate bins
 READ_US = 1_000_000  # events are read this much at a time
 WINDOW_US = fmt.DEFAULT_WINDOW_US  # the events drawn before a frame
 SIZE_EDGES = [0, 8, 16, 24, 32, 48, 64, 96, 128, 192, 256, 1e9]  # box-size histogram, sqrt(area) in px
-ON_COLOUR, OFF_COLOUR = (0.85, 0.12, 0.12), (0.12, 0.25, 0.85)
 
 
 def video_stats(root: Path, split: str, video: str, labels: dict[int, np.ndarray], fps: float) -> tuple[dict, dict]:
@@ -92,22 +91,6 @@ def split_totals(per_video: dict[str, dict]) -> dict[str, dict]:
                       "frames": sum(r["frames"] for r in rows), "labelled_frames": labelled, "boxes": boxes,
                       "boxes_per_labelled_frame": boxes / labelled if labelled else None}
     return out
-
-
-def rate_picture(path: Path, video: str, counts: dict) -> None:
-    t = (np.arange(len(counts["on"])) + 0.5) * BIN_US / 1e6
-    fig, ax = plt.subplots(figsize=(8, 3))
-    scale = 1e6 / BIN_US / 1e3  # per bin -> thousands per second
-    ax.plot(t, counts["on"] * scale, color=ON_COLOUR, lw=0.8, label="ON")
-    ax.plot(t, counts["off"] * scale, color=OFF_COLOUR, lw=0.8, label="OFF")
-    ax.set(xlabel="time (s)", ylabel="events per second (thousands)",
-           title=f"{video}: event rate in {BIN_US // 1000} ms bins")
-    ax.set_xlim(0, t[-1] if len(t) else 1)
-    ax.set_ylim(bottom=0)
-    ax.legend(loc="upper right")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
 
 
 def event_image(events: dict, height: int, width: int, background: np.ndarray | None = None) -> np.ndarray:
