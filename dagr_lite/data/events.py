@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
+import hdf5plugin  # noqa: F401  (registers the Blosc filter, 32001, before any file is opened)
 import numpy as np
 
 from dagr_lite.data import format as fmt

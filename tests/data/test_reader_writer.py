@@ -316,3 +316,20 @@ def test_jpeg_size_refuses_what_is_not_a_whole_jpeg(tmp_path):
         jpeg_size(tmp_path / "png.jpg")
     with pytest.raises(DatasetFormatError, match=r"gone\.jpg: frame file is missing"):
         jpeg_size(tmp_path / "gone.jpg")
+
+
+def test_a_blosc_event_file_reads_in_a_process_that_imports_only_the_reader(tmp_path):
+    """The reader registers the Blosc filter itself (the writer, which also does, may never be imported)."""
+    import subprocess
+    import sys
+
+    from dagr_lite.data.writer import EventFileWriter
+
+    path = tmp_path / "v.h5"
+    with EventFileWriter(path, num_frames=1, compression="blosc", height=4, width=4) as writer:
+        writer.append(np.array([1]), np.array([2]), np.array([0]), np.array([1]))
+    code = (f"from dagr_lite.data.events import EventFile; import sys; "
+            f"e = EventFile({str(path)!r}).read(0, 1); sys.exit(0 if int(e['y'][0]) == 2 else 3)")
+    assert "dagr_lite.data.writer" not in code
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr[-1500:]
