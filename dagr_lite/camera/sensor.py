@@ -138,12 +138,13 @@ def fitting_settings(sensor_size: tuple[int, int], model_size: tuple[int, int]) 
     model's input, as settings to type; None if none does."""
     width, height = sensor_size
     mw, mh = model_size
-    for scale in range(min(width // mw, height // mh), 0, -1):
-        w, h = mw * scale, mh * scale
-        x0, y0 = (width - w) // 2, (height - h) // 2
-        crop = "" if (w, h) == (width, height) else f" sensor.crop=[{x0},{y0},{w},{h}]"
-        return f"sensor.scale={scale}{crop}"
-    return None
+    scale = min(width // mw, height // mh)
+    if scale < 1:
+        return None
+    w, h = mw * scale, mh * scale
+    x0, y0 = (width - w) // 2, (height - h) // 2
+    crop = "" if (w, h) == (width, height) else f" sensor.crop=[{x0},{y0},{w},{h}]"
+    return f"sensor.scale={scale}{crop}"
 
 
 def fit_sensor(sensor: Sensor, model_size: tuple[int, int]) -> None:
@@ -152,8 +153,7 @@ def fit_sensor(sensor: Sensor, model_size: tuple[int, int]) -> None:
         return
     out_w, out_h = sensor.output_size
     hint = fitting_settings(sensor.size, model_size)
-    fix = (f"; {hint} fits" if hint else "; the sensor is smaller than the model's input: no crop and scale "
-           "fit, run the model at the sensor's size with sensor.model_size=sensor")
+    fix = f"; {hint} fits" if hint else "; the sensor is smaller than the model's input: no crop and scale fit"
     raise SensorError(f"the {sensor.size[0]}x{sensor.size[1]} sensor gives {out_w}x{out_h} after crop, rotation and "
                       f"scale, but the model reads {model_size[0]}x{model_size[1]}{fix} (or sensor.model_size=sensor "
                       "to run the model at the sensor's size)")
