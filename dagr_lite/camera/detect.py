@@ -37,11 +37,11 @@ VIDEO = "detections.mp4"
 class VideoSettings:
     """The MP4: ``fps`` frames per second played, ``rate_hz`` pictures per second of recording (at
     most one per answer; ``rate_hz = fps``: real time), events of the last ``events_ms``."""
-    enabled: bool = True
-    fps: float = 30.0
-    rate_hz: float = 60.0
-    events_ms: float = 10.0
-    max_seconds: float | None = None  # of recording; None: all of it
+    enabled: bool
+    fps: float
+    rate_hz: float
+    events_ms: float
+    max_seconds: float | None  # of recording; None: all of it
 
 
 class _Output:
@@ -107,7 +107,7 @@ def check_out(out: Path, overwrite: bool) -> None:
 
 
 def run_detect(stream: StreamingDetector, source, sensor: Sensor, out: Path | str, *, rate_hz: float,
-               video: VideoSettings | None = None, seconds: float | None = None, live: bool = False,
+               video: VideoSettings, seconds: float | None = None, live: bool = False,
                progress: bool = True, overwrite: bool = False) -> dict:
     """Run ``stream`` over ``source`` (a :class:`~dagr_lite.camera.recording.Recording` or a
     :class:`~dagr_lite.camera.udp.UdpSource`); writes into ``out`` (see the module). Returns the summary."""
@@ -119,7 +119,7 @@ def run_detect(stream: StreamingDetector, source, sensor: Sensor, out: Path | st
     fit_sensor(sensor, (stream.width, stream.height))
     out = Path(out)
     check_out(out, overwrite)
-    output = _Output(out, sensor, video or VideoSettings(), live)
+    output = _Output(out, sensor, video, live)
     bar = None
     try:
         runner = _Runner(stream, sensor, output, 1e6 / rate_hz, live, source.frames())
@@ -150,7 +150,7 @@ class _Runner:
         self.stream, self.sensor, self.output, self.step_us, self.live = stream, sensor, output, step_us, live
         self.frames = iter(frames)  # (t_us, sensor image), in time order
         self.next_frame = next(self.frames, None)
-        self.pending: list[Events] = []  # model-pixel events read but not yet pushed
+        self.pending: list[Events] = []  # model-pixel events read but not yet pushed (no chunk empty)
         self.t_first: float | None = None
         self.next_stop: float | None = None
         self.events_in = self.events_used = self.frames_used = 0
@@ -173,7 +173,8 @@ class _Runner:
                 self.late_dropped += int(late.sum())
                 mapped = take(mapped, ~late)
         self.events_used += len(mapped["t"])
-        self.pending.append(mapped)
+        if len(mapped["t"]):
+            self.pending.append(mapped)
         if self.live:  # answer at the latest event, at most once per step
             self._push_frames_until(self.t_last)
             if self.t_last >= self.next_stop:
@@ -207,10 +208,15 @@ class _Runner:
         self.next_frame = next(self.frames, None)
 
     def _answer(self, stop: float, frame_due: bool) -> None:
-        events = concat(self.pending)
-        cut = int(np.searchsorted(events["t"], stop, side="left"))
-        now_events, rest = take(events, slice(0, cut)), take(events, slice(cut, None))
-        self.pending = [rest]
+        now, rest = [], []  # views of the pending chunks before ``stop`` and from it on: the events
+        for part in self.pending:  # left pending are not copied again at every answer
+            cut = int(np.searchsorted(part["t"], stop, side="left"))
+            if cut:
+                now.append(take(part, slice(0, cut)))
+            if cut < len(part["t"]):
+                rest.append(take(part, slice(cut, None)))
+        self.pending = rest
+        now_events = concat(now) if len(now) != 1 else now[0]
         tic = time.perf_counter()
         self.stream.push_events(**now_events)
         result = self.stream.detect(stop) if self.stream.ready else None
@@ -226,7 +232,7 @@ class _Runner:
             return
         if not self.live:
             self._answer_until(self.t_last)
-        if any(len(p["t"]) for p in self.pending):
+        if self.pending:
             self._answer(self.t_last + 1, frame_due=False)
 
     def summary(self, source, video_path: Path | None) -> dict:
