@@ -84,7 +84,7 @@ def detect_memory(folder: Path, n: int, ckpt: str) -> None:
     fit = Sensor((WIDTH, HEIGHT), crop=(0, 60, 640, 360), scale=2)
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     summary = run_detect(stream, open_recording(path), fit, folder / "out", rate_hz=100,
-                         video=VideoSettings(enabled=False))
+                         video=VideoSettings(enabled=False, fps=30, rate_hz=60, events_ms=10, max_seconds=None))
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"detect over {n:,} events ({path.stat().st_size / 2**20:.0f} MiB EVT3, "
           f"{summary['recording_seconds']:.1f} s at 500k events/s): peak resident memory {peak:.0f} MiB "

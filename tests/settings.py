@@ -13,6 +13,10 @@ _eval = OmegaConf.load(CONF / "eval" / "default.yaml")
 EVAL = {"conf_threshold": float(_eval.conf_threshold), "nms_threshold": float(_eval.nms_threshold)}  # conf/eval's own
 # One sample: the image one frame old, the events of its horizon since the image, no filter, no guard.
 SAMPLE = {"image_age": 1, "window_us": 33_333, "context_us": 0, "refractory_us": 0, "max_events": None}
+# detect's settings (conf/detect.yaml): its video, its UDP receiver.
+_detect = OmegaConf.load(CONF / "detect.yaml")
+VIDEO = OmegaConf.to_container(_detect.video)
+UDP = {"fmt": _detect.udp.format, "idle_s": float(_detect.udp.idle_s), "wait_first_s": float(_detect.udp.wait_first_s)}
 # TrainAugment without the hybrid's grey images.
 AUGMENT = {"flip_prob": 0.5, "zoom": (1.0, 1.5), "translate": 0.1, "min_box_size": 2.0, "image_dropout": 0.0}
 
@@ -20,3 +24,10 @@ AUGMENT = {"flip_prob": 0.5, "zoom": (1.0, 1.5), "translate": 0.1, "min_box_size
 def sample_set(root, split: str, **settings) -> EventEgoHands:
     """``EventEgoHands(root, split)`` with :data:`SAMPLE`, any of it replaced by ``settings``."""
     return EventEgoHands(root, split, **{**SAMPLE, **settings})
+
+
+def video_settings(**changes):
+    """``VideoSettings`` of conf/detect.yaml, any of it replaced by ``changes``."""
+    from dagr_lite.camera.detect import VideoSettings
+
+    return VideoSettings(**{**VIDEO, **changes})

@@ -48,6 +48,9 @@ H5_SUFFIXES = (".h5", ".hdf5")
 FAERY_KINDS = set(FAERY_SUFFIXES.values())
 SUFFIXES = tuple(FAERY_SUFFIXES) + H5_SUFFIXES
 ORDERS = ("sort", "refuse")
+# The time-order defaults: conf/detect.yaml's order and order_window_us (tests/camera/test_detect.py holds
+# them equal).
+ORDER, ORDER_WINDOW_US = "sort", 10_000
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
 TIMESTAMPS_FILE = "timestamps.txt"
 H5_CHUNK = 1 << 18  # events per chunk read from an h5 file
@@ -104,8 +107,8 @@ class TimeOrder:
     chunks: those at least ``window_us`` older than the latest time seen (sorted, stable); ``flush``
     returns the rest. Chunks already in order go out whole and uncopied once their last event is
     ``window_us`` old. An event arriving after events ``window_us`` or more later than it were
-    already given out raises; ``order="refuse"`` raises at the first disorder (after ``count_rest``
-    has counted the rest of the recording, so the message says how many). ``p`` comes out as 0 or 1
+    already given out raises; ``order="refuse"`` raises at the first disorder (:meth:`Recording.events`
+    then counts the rest of the recording with :meth:`_check`, so the message says how many). ``p`` comes out as 0 or 1
     (a bool array viewed as uint8; other values mapped by ``p > 0``).
     """
 
@@ -220,8 +223,8 @@ class Recording:
     size: tuple[int, int]
     _chunks: Callable[[], Iterator[Events]] = field(repr=False)
     _frames: Callable[[], Iterator[tuple[int, np.ndarray]]] | None = field(repr=False, default=None)
-    order_mode: str = "sort"
-    order_window_us: int = 10_000
+    order_mode: str = ORDER
+    order_window_us: int = ORDER_WINDOW_US
     order: OrderStats = field(default_factory=OrderStats)
 
     @property
@@ -442,8 +445,8 @@ def _h5_recording(path: Path, size: tuple[int, int] | None) -> tuple[tuple[int, 
 
 
 def open_recording(path: Path | str, *, size: tuple[int, int] | None = None, frames: Path | str | None = None,
-                   frame_times: Path | str | None = None, order: str = "sort",
-                   order_window_us: int = 10_000) -> Recording:
+                   frame_times: Path | str | None = None, order: str = ORDER,
+                   order_window_us: int = ORDER_WINDOW_US) -> Recording:
     """Open an event recording (see the module's table); ``size = (width, height)`` is needed where
     the file does not say it (CSV, and EVT/DAT files without a size in their header); ``frames`` a
     frame folder or video file whose frames go with the events."""

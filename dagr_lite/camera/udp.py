@@ -21,6 +21,8 @@ from urllib.parse import urlparse
 
 import numpy as np
 
+from dagr_lite.camera.recording import concat
+
 FORMATS = {
     "t64_x16_y16_on8": np.dtype([("t", "<u8"), ("x", "<u2"), ("y", "<u2"), ("on", "u1")]),
     "t32_x16_y15_on1": np.dtype([("t", "<u4"), ("x", "<u2"), ("y_on", "<u2")]),
@@ -69,11 +71,12 @@ class UdpStats:
 
 class UdpSource:
     """Events from ``udp://HOST:PORT`` (see the module), until ``idle_s`` seconds pass with no packet
-    after the first, or ``seconds`` of wall-clock time pass. ``chunks()`` yields what arrived since
-    the last call, in arrival order; ``ready`` is set once the socket listens."""
+    after the first, or ``seconds`` of wall-clock time pass (None: no limit). ``events()`` yields, chunk
+    by chunk, what arrived since the chunk before, in arrival order; ``ready`` is set once the socket
+    listens."""
 
-    def __init__(self, url: str, size: tuple[int, int], *, fmt: str = "t64_x16_y16_on8", idle_s: float = 2.0,
-                 seconds: float | None = None, wait_first_s: float = 60.0):
+    def __init__(self, url: str, size: tuple[int, int], *, fmt: str, idle_s: float, wait_first_s: float,
+                 seconds: float | None):
         if fmt not in FORMATS:
             raise ValueError(f"udp.format={fmt!r}: expected one of {sorted(FORMATS)}")
         self.address = parse_address(url)
@@ -147,14 +150,14 @@ class UdpSource:
                 self.stats.events += count
                 self.stats.backlog_max = max(self.stats.backlog_max, count)
                 if chunks:
-                    yield {k: np.concatenate([c[k] for c in chunks]) for k in "xytp"}
+                    yield concat(chunks)
         finally:
             self._running = False
             thread.join()
             sock.close()
 
 
-def send(chunks, url: str, *, fmt: str = "t64_x16_y16_on8", speed: float = 1.0,
+def send(chunks, url: str, *, fmt: str, speed: float = 1.0,
          events_per_packet: int = EVENTS_PER_PACKET) -> int:
     """Send time-ordered event chunks to ``udp://HOST:PORT`` at the recording's own pace (``speed``
     times real time; 0: as fast as possible). Returns the number of events sent."""

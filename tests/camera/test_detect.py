@@ -13,16 +13,14 @@ import pytest
 import torch
 
 from dagr_lite.camera.aedat import write_aedat4
-from dagr_lite.camera.detect import VideoSettings, run_detect
+from dagr_lite.camera.detect import run_detect
 from dagr_lite.camera.recording import concat, open_recording, take
 from dagr_lite.camera.sensor import Sensor, SensorError
 from dagr_lite.camera.udp import UdpSource, send
 from dagr_lite.data.collate import collate
-from dagr_lite.engine.checkpoint import load_checkpoint
-from dagr_lite.engine.checkpoint import trained_sample
+from dagr_lite.engine.checkpoint import load_checkpoint, trained_sample
 from dagr_lite.stream import StreamingDetector
-from tests.settings import sample_set
-from tests.settings import EVAL
+from tests.settings import EVAL, UDP, sample_set, video_settings
 
 FRAMES = 10  # frames of the stub's first test video used
 CONF = 0.0
@@ -51,7 +49,7 @@ def test_detect_on_a_written_aedat4_answers_what_the_batch_model_answers(stub_vi
     path = write_aedat4(tmp_path / "davis.aedat4", stub_video["events"], stub_video["size"], stub_video["frames"])
     stream = StreamingDetector.from_checkpoint(ckpt, conf_threshold=CONF, nms_threshold=EVAL["nms_threshold"])
     summary = run_detect(stream, open_recording(path), Sensor(stub_video["size"]), tmp_path / "out", rate_hz=1,
-                         video=VideoSettings(enabled=False), progress=False)
+                         video=video_settings(enabled=False), progress=False)
     answers = {a["t_us"]: a for a in lines(tmp_path / "out")}
     assert summary["answers"] == len(answers) and summary["events_in"] == len(stub_video["events"]["t"])
 
@@ -96,8 +94,9 @@ def test_a_larger_camera_with_a_declared_crop_and_scale_gives_the_same_detection
     large = write_aedat4(tmp_path / "large.aedat4", events, (640, 480), frames)
     for name, path, sensor in (("small", small, Sensor(stub_video["size"])),
                                ("large", large, Sensor((640, 480), crop=(0, 60, 640, 360), scale=2))):
-        run_detect(StreamingDetector.from_checkpoint(ckpt, conf_threshold=CONF, nms_threshold=EVAL["nms_threshold"]), open_recording(path), sensor,
-                   tmp_path / name, rate_hz=200, video=VideoSettings(enabled=name == "large", max_seconds=0.1),
+        stream = StreamingDetector.from_checkpoint(ckpt, conf_threshold=CONF, nms_threshold=EVAL["nms_threshold"])
+        run_detect(stream, open_recording(path), sensor, tmp_path / name, rate_hz=200,
+                   video=video_settings(enabled=name == "large", max_seconds=0.1),
                    progress=False)
     small_answers, large_answers = lines(tmp_path / "small"), lines(tmp_path / "large")
     assert [a["t_us"] for a in small_answers] == [a["t_us"] for a in large_answers]
@@ -107,17 +106,17 @@ def test_a_larger_camera_with_a_declared_crop_and_scale_gives_the_same_detection
     assert (tmp_path / "large" / "detections.mp4").stat().st_size > 0
     with pytest.raises(SensorError, match=r"the 640x480 sensor gives 640x480.*sensor.scale=2 sensor.crop=\[0,60,640,360\]"):
         run_detect(StreamingDetector.from_checkpoint(ckpt, **EVAL), open_recording(large), Sensor((640, 480)),
-                   tmp_path / "refused", rate_hz=100, progress=False)
+                   tmp_path / "refused", rate_hz=100, video=video_settings(), progress=False)
     with pytest.raises(FileExistsError, match="small/summary.json already exists; choose another out="):
         run_detect(StreamingDetector.from_checkpoint(ckpt, **EVAL), open_recording(small), Sensor(stub_video["size"]),
-                   tmp_path / "small", rate_hz=100, progress=False)
+                   tmp_path / "small", rate_hz=100, video=video_settings(), progress=False)
 
 
 def test_a_hybrid_needs_frames_and_says_so(stub_video, trained_checkpoints, tmp_path):
     path = write_aedat4(tmp_path / "events_only.aedat4", stub_video["events"], stub_video["size"])
     with pytest.raises(ValueError, match="events_only.aedat4: the model is a hybrid and needs frames"):
         run_detect(StreamingDetector.from_checkpoint(trained_checkpoints["hybrid"], **EVAL), open_recording(path),
-                   Sensor(stub_video["size"]), tmp_path / "out", rate_hz=100, progress=False)
+                   Sensor(stub_video["size"]), tmp_path / "out", rate_hz=100, video=video_settings(), progress=False)
 
 
 def free_port() -> int:
@@ -129,20 +128,20 @@ def free_port() -> int:
 def test_a_live_udp_stream_on_loopback_is_read_whole_and_answered(stub_video, trained_checkpoints, tmp_path):
     url = f"udp://127.0.0.1:{free_port()}"
     events = take(stub_video["events"], stub_video["events"]["t"] < 150_000)
-    source = UdpSource(url, stub_video["size"], idle_s=1.0, wait_first_s=30)
+    source = UdpSource(url, stub_video["size"], **{**UDP, "idle_s": 1.0, "wait_first_s": 30.0}, seconds=None)
     sent = []
 
     def sender():
         source.ready.wait(30)
         time.sleep(0.2)
-        sent.append(send([events], url, speed=1.0))
+        sent.append(send([events], url, fmt=UDP["fmt"], speed=1.0))
 
     thread = threading.Thread(target=sender)
     thread.start()
     stream = StreamingDetector.from_checkpoint(trained_checkpoints["events_only"], conf_threshold=CONF,
                                                nms_threshold=EVAL["nms_threshold"])
     summary = run_detect(stream, source, Sensor(stub_video["size"]), tmp_path / "live", rate_hz=100, live=True,
-                         video=VideoSettings(enabled=False))
+                         video=video_settings(enabled=False))
     thread.join()
     assert sent == [len(events["t"])]
     assert summary["udp"]["events"] == summary["events_in"] == len(events["t"])
@@ -151,3 +150,19 @@ def test_a_live_udp_stream_on_loopback_is_read_whole_and_answered(stub_video, tr
     # events); what it answered is all written.
     assert summary["answers"] == len(lines(tmp_path / "live")) >= 1
     assert lines(tmp_path / "live")[-1]["t_us"] <= int(events["t"][-1]) + 1  # (answered at the latest event + 1 us)
+
+
+def test_the_readers_and_sensors_defaults_are_conf_detects():
+    """A recording read and a sensor made without settings are what ``python detect.py`` reads by
+    default: the one value, held equal here, not two that drift."""
+    import dataclasses
+
+    from omegaconf import OmegaConf
+
+    from dagr_lite.camera.recording import ORDER, ORDER_WINDOW_US
+    from tests.settings import CONF
+
+    conf = OmegaConf.load(CONF / "detect.yaml")
+    assert (conf.order, conf.order_window_us) == (ORDER, ORDER_WINDOW_US)
+    defaults = {f.name: f.default for f in dataclasses.fields(Sensor) if f.name != "size"}
+    assert defaults == {key: conf.sensor[key] for key in defaults}
