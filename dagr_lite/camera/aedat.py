@@ -17,6 +17,8 @@ from typing import Iterable
 import flatbuffers
 import numpy as np
 
+from dagr_lite.data.writer import temporary_name
+
 MAGIC = b"#!AER-DAT4.0\r\n"
 EVENT_STRUCT = np.dtype([("t", "<i8"), ("x", "<i2"), ("y", "<i2"), ("on", "u1"), ("pad", "u1", (3,))])
 FRAME_FORMAT = {1: 0, 3: 16}  # channels -> AEDAT4 FrameFormat (GRAY = 0, BGR = 16)
@@ -103,7 +105,7 @@ def write_aedat4(path: Path | str, events: dict[str, np.ndarray] | Iterable[dict
     chunks = [events] if isinstance(events, dict) else events
     frames = iter(frames or ())
     next_frame = next(frames, None)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
+    tmp = temporary_name(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
         with open(tmp, "wb") as out:

@@ -312,3 +312,11 @@ def test_recording_statistics_place_hot_pixels_of_a_large_sensor(tmp_path):
     stats = recording_stats(tmp_path / "big.es", tmp_path / "stats")
     assert stats["hot_pixels"][0]["x"] == 1200 and stats["hot_pixels"][0]["y"] == 700
     assert stats["hot_pixels"][0]["events"] == 200
+
+
+def test_a_failed_aedat4_write_leaves_no_file(tmp_path):
+    events = camera_events(n=1000)
+    wrong = [(int(events["t"][500]), np.zeros((HEIGHT + 1, WIDTH, 3), np.uint8))]  # a frame of another size
+    with pytest.raises(ValueError, match=r"expected \(48, 64"):
+        write_aedat4(tmp_path / "cam.aedat4", events, (WIDTH, HEIGHT), wrong)
+    assert list(tmp_path.iterdir()) == []
