@@ -30,7 +30,7 @@ def recording_stats(path: Path | str, out: Path | str, *, size: tuple[int, int] 
     on = off = repeats = 0
     t_first = t_last = None
     counts = {"on": np.zeros(0, np.int64), "off": np.zeros(0, np.int64)}  # events per 10 ms bin
-    last_key = None
+    carried = np.zeros(0, np.int64)  # keys of the last microsecond read, which the next chunk may share
     for chunk in tqdm(rec.events(), desc=f"reading {Path(path).name}", unit=" chunk"):
         t = chunk["t"]
         t_first = int(t[0]) if t_first is None else t_first
@@ -39,10 +39,11 @@ def recording_stats(path: Path | str, out: Path | str, *, size: tuple[int, int] 
         per_pixel += np.bincount(pixel, minlength=width * height)
         on += int(chunk["p"].sum())
         off += int(len(t) - chunk["p"].sum())
-        key = (t - t_first) * (width * height) + pixel  # events sharing pixel and microsecond: same key, adjacent once sorted
-        key = np.sort(key) if last_key is None else np.sort(np.concatenate([[last_key], key]))
-        repeats += int(np.sum(key[1:] == key[:-1]))
-        last_key = key[-1]
+        # Events sharing pixel and microsecond share a key, adjacent once sorted; the last microsecond's
+        # keys go on to the next chunk, whose pairs with them count (those among them counted already).
+        key = np.sort(np.concatenate([carried, (t - t_first) * (width * height) + pixel]))
+        repeats += int(np.sum(key[1:] == key[:-1])) - int(np.sum(carried[1:] == carried[:-1]))
+        carried = key[key >= (t_last - t_first) * (width * height)]
         index = (t - t_first) // BIN_US
         for name, mask in (("on", chunk["p"] == 1), ("off", chunk["p"] == 0)):
             add = np.bincount(index[mask], minlength=int(index[-1]) + 1)

@@ -320,3 +320,22 @@ def test_a_failed_aedat4_write_leaves_no_file(tmp_path):
     with pytest.raises(ValueError, match=r"expected \(48, 64"):
         write_aedat4(tmp_path / "cam.aedat4", events, (WIDTH, HEIGHT), wrong)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_recording_statistics_count_repeats_across_chunk_boundaries(tmp_path, monkeypatch):
+    import dagr_lite.camera.recording as recording
+    from dagr_lite.apps.recording_stats import recording_stats
+
+    rng = np.random.default_rng(4)
+    t = np.sort(rng.integers(0, 40, 300)) * 20_000  # about 7 events per microsecond, 20 ms apart, on few pixels
+    x, y = rng.integers(0, 3, 300), rng.integers(0, 2, 300)
+    with h5py.File(tmp_path / "cam.h5", "w") as h5:
+        for key, values in (("x", x), ("y", y), ("t", t), ("p", rng.integers(0, 2, 300))):
+            h5[f"events/{key}"] = values.astype(np.int64)
+        h5["timeidx"] = np.array([0], np.int64)
+    keys = t * 6 + y * 3 + x
+    expected = 300 - len(np.unique(keys))
+    for chunk in (1 << 18, 7, 1):  # one chunk; chunks that cut microseconds; one event a chunk
+        monkeypatch.setattr(recording, "H5_CHUNK", chunk)
+        stats = recording_stats(tmp_path / "cam.h5", tmp_path / f"stats{chunk}", size=(3, 2))
+        assert stats["events_sharing_pixel_and_microsecond"] == expected, chunk
