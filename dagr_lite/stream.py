@@ -361,15 +361,13 @@ class StreamingDetector:
         ``model_size = (width, height)`` runs the weights at another input size: they do not depend
         on it (convolutions, and node coordinates normalised by the input's size), while the graph's
         radius stays in pixels, so accuracy at another size is for a measurement to say."""
-        import dataclasses
-
-        from dagr_lite.engine.checkpoint import load_checkpoint, load_model, trained_sample
+        from dagr_lite.engine.checkpoint import at_model_size, load_checkpoint, load_model, trained_sample
         from dagr_lite.nn.detector import DetectorConfig
 
         state = load_checkpoint(path)
         detector = DetectorConfig.from_dict(state["detector"])
-        if model_size is not None:
-            detector = dataclasses.replace(detector, width=int(model_size[0]), height=int(model_size[1]))
+        if model_size is not None:  # as evaluate.py model_size=data runs it
+            detector = at_model_size("data", detector, (int(model_size[1]), int(model_size[0])), {})
         model = load_model(state, detector, (detector.height, detector.width), str(path))
         data = trained_sample(state)
         kwargs = {"context_us": data["context_us"], "window_us": data["window_us"],

@@ -166,3 +166,13 @@ def test_the_readers_and_sensors_defaults_are_conf_detects():
     assert (conf.order, conf.order_window_us) == (ORDER, ORDER_WINDOW_US)
     defaults = {f.name: f.default for f in dataclasses.fields(Sensor) if f.name != "size"}
     assert defaults == {key: conf.sensor[key] for key in defaults}
+
+
+def test_a_checkpoint_runs_at_the_sensors_size_with_its_own_weights(trained_checkpoints):
+    """``sensor.model_size=sensor``: the same weights, a detector built at the sensor's size."""
+    ckpt = trained_checkpoints["events_only"]
+    trained = StreamingDetector.from_checkpoint(ckpt, **EVAL)
+    at_sensor = StreamingDetector.from_checkpoint(ckpt, model_size=(640, 360), **EVAL)
+    assert (at_sensor.width, at_sensor.height) == (640, 360) != (trained.width, trained.height)
+    ours, theirs = trained.model.state_dict(), at_sensor.model.state_dict()
+    assert ours.keys() == theirs.keys() and all(torch.equal(ours[k], theirs[k]) for k in ours)
