@@ -113,6 +113,7 @@ _RULES = {
     "model.time_scale_us": ("a positive number (microseconds)", lambda v: _number(v) and v > 0),
     "data.window_us": ("a positive integer (microseconds)", lambda v: _integer(v) and v > 0),
     "data.refractory_us": ("an integer >= 0 (microseconds; 0: every event)", lambda v: _integer(v) and v >= 0),
+    "data.event_picture": ("true or false", lambda v: isinstance(v, bool)),
     "data.max_events": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
     "loader.batch_size": ("a positive integer", lambda v: _integer(v) and v > 0),
     "loader.num_workers": ("an integer >= 0", lambda v: _integer(v) and v >= 0),
@@ -159,12 +160,15 @@ def check_values(cfg: DictConfig) -> None:
 
 
 def dataset_root(dataset: DictConfig) -> Path:
-    """The dataset folder: ``dataset.root``, or for the stub dataset the (generated) cache copy."""
+    """The dataset folder: ``dataset.root``, or for a built-in dataset (stub, ego) the (generated) cache copy."""
     if dataset.root is None:
-        if dataset.name != "stub":
-            raise ConfigError(f"dataset.root of {dataset.name} is null: pass dataset.root=/path/to/dataset")
-        from dagr_lite.synth.stub import stub_root
-        return stub_root()
+        if dataset.name == "stub":
+            from dagr_lite.synth.stub import stub_root
+            return stub_root()
+        if dataset.name == "ego":
+            from dagr_lite.synth.ego import ego_root
+            return ego_root()
+        raise ConfigError(f"dataset.root of {dataset.name} is null: pass dataset.root=/path/to/dataset")
     root = Path(dataset.root).expanduser()
     if not root.is_dir():
         raise ConfigError(f"dataset.root={root} of {dataset.name} is not a folder (expected a dataset holding "
@@ -193,13 +197,15 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
                                  translate=augment.translate, min_box_size=augment.min_box_size,
                                  image_dropout=augment.image_dropout if hybrid else 0.0)
     image_size = (dataset.height, dataset.width) if dataset.height is not None else None
+    picture = bool(data.get("event_picture", False))
     return EventEgoHands(dataset_root(dataset), split, image_age=image_age,
-                         event_span="image" if with_image else "window", window_us=data.window_us,
+                         event_span="image" if with_image and not picture else "window", window_us=data.window_us,
                          context_us=data.context_us, refractory_us=data.refractory_us, max_events=data.max_events,
                          first_frame=first_frame,
                          fps=dataset.fps, image_size=image_size, transform=transform,
                          clip_boxes=data.clip_boxes, labelled_only=bool(data.get("labelled_only", False)),
-                         seed=cfg.seed, age_power=data.train_image_age_power if train else 0.0)
+                         seed=cfg.seed, age_power=data.train_image_age_power if train else 0.0,
+                         event_picture=picture)
 
 
 def graph_spec(model: DictConfig) -> EventGraphSpec | None:

@@ -370,6 +370,10 @@ class StreamingDetector:
             detector = at_model_size("data", detector, (int(model_size[1]), int(model_size[0])), {})
         model = load_model(state, detector, (detector.height, detector.width), str(path))
         data = trained_sample(state)
+        if data["event_picture"]:
+            raise ValueError(f"{path}: this model reads a picture of events in place of the camera frame "
+                             "(data.event_picture, the dense peer of benchmarks/dense_peer.py); the streaming "
+                             "detector runs models that read camera frames and events")
         kwargs = {"context_us": data["context_us"], "window_us": data["window_us"],
                   "refractory_us": data["refractory_us"], **kwargs}
         return cls(model.to(device), **kwargs)

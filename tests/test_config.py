@@ -25,9 +25,9 @@ def compose_cfg(name, overrides=()):
 
 
 def test_groups_hold_the_expected_options():
-    assert options("dataset") == ["custom", "stub", "v1", "v2", "v3", "v4", "v5", "v6"]
+    assert options("dataset") == ["custom", "ego", "stub", "v1", "v2", "v3", "v4", "v5", "v6"]
     assert {"hybrid", "events_only", "image_only"} <= set(options("model"))
-    assert options("optim") == ["adamw", "sgd"] and options("recipe") == ["stub"]
+    assert options("optim") == ["adamw", "sgd"] and options("recipe") == ["ego", "quick", "stub"]
     assert options("data") == options("loader") == options("eval") == ["default"]
 
 
@@ -42,6 +42,14 @@ def test_every_option_composes_and_resolves(config, group, tmp_path):
         else:
             assert cfg[group].name == option
         assert cfg.dataset.root == str(tmp_path)
+
+
+def test_built_in_datasets_train_with_the_quick_recipe():
+    quick = resolve_config(compose_cfg("train", ["dataset=custom", "dataset.root=/data/mine", "recipe=quick"]))
+    for name in ("stub", "ego"):
+        cfg = resolve_config(compose_cfg("train", [f"dataset={name}"]))
+        assert cfg.dataset.name == name and cfg.dataset.root is None
+        assert cfg.trainer == quick.trainer and cfg.optim == quick.optim
 
 
 def test_default_dataset_is_the_stub_with_its_short_recipe():

@@ -17,7 +17,7 @@ that size (by default 12 / 2 / 2 train / valid / test videos of 2 s, ``--stub-vi
 ``--stub-seconds`` to change it; upscaled from the stub's 320x180 so the hands keep their
 proportions) into ``OUT/source``.
 
-Training uses the stub's short recipe (``conf/recipe/stub.yaml``, composed as ``recipe=stub``) with
+Training uses the quick CPU recipe (``conf/recipe/quick.yaml``, composed as ``recipe=quick``) with
 ``trainer.max_minutes`` as the budget in place of its length.
 """
 from __future__ import annotations
@@ -34,7 +34,7 @@ from dagr_lite.data import format as fmt
 from dagr_lite.data.writer import write_frame, write_text_atomically
 from dagr_lite.synth.build import VERSIONS, BuildSettings, build, folder_jobs
 
-RECIPE = ["recipe=stub", "trainer.image_every=0"]  # conf/recipe/stub.yaml itself; the budget replaces its length
+RECIPE = ["recipe=quick", "trainer.image_every=0"]  # conf/recipe/quick.yaml itself; the budget replaces its length
 METRICS = ("AP50", "AP75", "mAP")
 
 

@@ -28,6 +28,32 @@ MAX_LISTED_PROBLEMS = 10
 # Which events a sample holds (see :func:`sample_start_us`): bounded by the image and the window
 # (models with an image), or by the window alone.
 EVENT_SPANS = ("image", "window")
+# The event picture (:func:`event_picture`): a pixel's count of each polarity saturates at this many events.
+PICTURE_COUNT_FULL = 8
+
+
+def event_picture(x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray, t_end_us: float, window_us: float,
+                  height: int, width: int) -> np.ndarray:
+    """A picture of events for a dense CNN: ``(H, W, 3)`` uint8 with channel 0 the ON count, 1 the
+    OFF count (each ``255 * min(count, PICTURE_COUNT_FULL) / PICTURE_COUNT_FULL``) and 2 the
+    recency of each pixel's latest event, ``255 * (1 - (t_end_us - t_last) / window_us)`` (0: no event).
+
+    The dense peer the event branch is measured against reads this picture of the events-only
+    sample in place of the camera frame (``data.event_picture``)."""
+    picture = np.zeros((height, width, 3), np.float64)
+    if len(t):
+        pixel = y.astype(np.int64) * width + x.astype(np.int64)
+        for channel, polarity in ((0, 1), (1, 0)):
+            counts = np.bincount(pixel[p == polarity], minlength=height * width)
+            picture[..., channel] = np.minimum(counts, PICTURE_COUNT_FULL).reshape(height, width)
+        picture[..., :2] *= 255.0 / PICTURE_COUNT_FULL
+        last = np.full(height * width, -np.inf)
+        np.maximum.at(last, pixel, t.astype(np.float64))
+        seen = np.isfinite(last)
+        recency = np.zeros(height * width)
+        recency[seen] = np.clip(1 - (t_end_us - last[seen]) / window_us, 0, 1) * 255.0
+        picture[..., 2] = recency.reshape(height, width)
+    return np.round(picture).astype(np.uint8)
 
 
 def sample_start_us(t_query_us: float, window_us: int, t_image_us: float | None = None, context_us: int = 0) -> float:
@@ -191,6 +217,8 @@ class EventEgoHands(Dataset):
         labelled_only: samples only at frames with a label entry (sparse labels: an unlabelled
             frame is unknown, not empty); by default every frame is a sample, unlabelled ones empty.
         seed: seed of the image ages and of ``transform``'s generator.
+        event_picture: the image is :func:`event_picture` of the sample's events instead of the
+            camera frame (needs ``event_span="window"``): the dense peer of the event branch.
     """
 
     def __init__(self, root: Path | str, split: str, *, image_age: int | Sequence[int], window_us: int,
@@ -199,7 +227,8 @@ class EventEgoHands(Dataset):
                  fps: float = fmt.DEFAULT_FPS,
                  image_size: Sequence[int] | None = None, videos: Sequence[str] | None = None,
                  transform: Callable[[Sample, np.random.Generator], Sample] | None = None,
-                 clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0, age_power: float = 0.0):
+                 clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0, age_power: float = 0.0,
+                 event_picture: bool = False):
         if split not in fmt.SPLITS:
             raise ValueError(f"split must be one of {fmt.SPLITS}, got {split!r}")
         self.age_range = age_range(image_age)
@@ -210,6 +239,10 @@ class EventEgoHands(Dataset):
             raise ValueError(f"event_span must be one of {EVENT_SPANS}, got {event_span!r}")
         if window_us <= 0:
             raise ValueError(f"window_us must be > 0, got {window_us}")
+        if event_picture and event_span != "window":
+            raise ValueError("event_picture reads the events of the window alone: it needs event_span='window', "
+                             f"got {event_span!r}")
+        self.event_picture = bool(event_picture)
         if context_us < 0:
             raise ValueError(f"context_us must be >= 0, got {context_us}")
         if refractory_us < 0:
@@ -368,7 +401,10 @@ class EventEgoHands(Dataset):
         events = np.stack([raw["x"].astype(np.float32), raw["y"].astype(np.float32),
                            (raw["t"] - t_image).astype(np.float32),
                            raw["p"].astype(np.float32)], axis=1).reshape(-1, 4)  # (N, 4)
-        image = self.image_of(v, image_frame)  # (H, W, 3)
+        if self.event_picture:
+            image = event_picture(raw["x"], raw["y"], raw["t"], raw["p"], t_end, self.window_us, height, width)
+        else:
+            image = self.image_of(v, image_frame)  # (H, W, 3)
         sample = Sample(events=torch.from_numpy(events),
                         image=torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))),  # (3, H, W)
                         boxes=torch.from_numpy(np.array(boxes, dtype=np.float32).reshape(-1, 4)),

@@ -53,9 +53,9 @@ def load_checkpoint(path: Path | str) -> dict:
 
 
 # The data settings that define a model's input: taken from the checkpoint unless overridden.
-SAMPLE_KEYS = ("image_age", "window_us", "context_us", "refractory_us", "max_events")
+SAMPLE_KEYS = ("image_age", "window_us", "context_us", "refractory_us", "max_events", "event_picture")
 # Sample keys newer than some checkpoints, with the value that gives those checkpoints' samples.
-SAMPLE_ADDED_LATER = {"refractory_us": 0}
+SAMPLE_ADDED_LATER = {"refractory_us": 0, "event_picture": False}
 
 
 def trained_sample(state: dict) -> dict:

@@ -14,6 +14,7 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from scipy.ndimage import zoom as nd_zoom
@@ -42,14 +43,21 @@ def default_cache_dir() -> Path:
 
 def stub_root(cache_dir: Path | str | None = None) -> Path:
     """The stub dataset, generated on first use into the cache folder (atomically)."""
-    root = Path(cache_dir or default_cache_dir()) / f"stub-v{STUB_VERSION}"
+    return cached_dataset(f"stub-v{STUB_VERSION}", generate_stub, "stub", cache_dir)
+
+
+def cached_dataset(folder: str, generate: Callable[[Path], Path], label: str,
+                   cache_dir: Path | str | None = None) -> Path:
+    """``<cache>/<folder>``, made by ``generate(tmp)`` on first use and renamed into place, so a
+    half-written dataset is never read and two processes making it at once both end with one copy."""
+    root = Path(cache_dir or default_cache_dir()) / folder
     if root.is_dir():
         return root
     root.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=root.name + ".tmp", dir=root.parent))
-    print(f"generating the stub dataset into {root} (once)", flush=True)
+    print(f"generating the {label} dataset into {root} (once)", flush=True)
     try:
-        generate_stub(tmp)
+        generate(tmp)
         os.rename(tmp, root)
     except OSError:
         if not root.is_dir():  # another process finished first: use its copy
@@ -61,6 +69,29 @@ def stub_root(cache_dir: Path | str | None = None) -> Path:
 
 # Finger layout of a hand: angle from the hand's axis (rad), length and width relative to the palm.
 _FINGERS = ((-0.55, 0.9, 0.22), (-0.2, 1.05, 0.22), (0.12, 1.0, 0.22), (0.42, 0.85, 0.2), (1.2, 0.75, 0.25))
+
+
+def paint_ellipse(image: np.ndarray, xx: np.ndarray, yy: np.ndarray, ellipse: tuple, colour: np.ndarray
+                  ) -> tuple[slice, slice, np.ndarray] | None:
+    """Paint ellipse ``(cx, cy, a, b, angle)`` (centre, semi-axes in px, angle in rad) into the
+    ``(H, W, 3)`` ``image`` in ``colour``, shaded darker towards its rim (a rounded look); ``xx``,
+    ``yy``: the pixel centres. Returns the painted pixels as ``(rows, cols, inside)`` (None when
+    the ellipse lies outside the image)."""
+    cx, cy, a, b, angle = ellipse
+    h, w = image.shape[:2]
+    ex, ey = HandScene._extent(a, b, angle)
+    c0, c1 = max(int(cx - ex) - 1, 0), min(int(cx + ex) + 2, w)
+    r0, r1 = max(int(cy - ey) - 1, 0), min(int(cy + ey) + 2, h)
+    if c0 >= c1 or r0 >= r1:
+        return None
+    dx, dy = xx[r0:r1, c0:c1] - cx, yy[r0:r1, c0:c1] - cy
+    u = (dx * np.cos(angle) + dy * np.sin(angle)) / a
+    v = (-dx * np.sin(angle) + dy * np.cos(angle)) / b
+    r = u * u + v * v
+    inside = r <= 1
+    shade = colour * (0.7 + 0.3 * (1 - r[..., None]))
+    image[r0:r1, c0:c1][inside] = shade[inside]
+    return slice(r0, r1), slice(c0, c1), inside
 
 
 class HandScene:
@@ -142,20 +173,8 @@ class HandScene:
         image = ((1 - fy) * ((1 - fx) * bg[y0:y0 + h, x0:x0 + w] + fx * bg[y0:y0 + h, x0 + 1:x0 + 1 + w])
                  + fy * ((1 - fx) * bg[y0 + 1:y0 + 1 + h, x0:x0 + w] + fx * bg[y0 + 1:y0 + 1 + h, x0 + 1:x0 + 1 + w]))
         for parts, skin in zip(self._ellipses(t), self.skin):
-            for cx, cy, a, b, angle in parts:
-                ex, ey = self._extent(a, b, angle)
-                c0, c1 = max(int(cx - ex) - 1, 0), min(int(cx + ex) + 2, w)
-                r0, r1 = max(int(cy - ey) - 1, 0), min(int(cy + ey) + 2, h)
-                if c0 >= c1 or r0 >= r1:
-                    continue
-                dx, dy = self.xx[r0:r1, c0:c1] - cx, self.yy[r0:r1, c0:c1] - cy
-                u = (dx * np.cos(angle) + dy * np.sin(angle)) / a
-                v = (-dx * np.sin(angle) + dy * np.cos(angle)) / b
-                r = u * u + v * v
-                inside = r <= 1
-                shade = skin * (0.7 + 0.3 * (1 - r[..., None]))  # rounded look: darker at the rim
-                region = image[r0:r1, c0:c1]
-                region[inside] = shade[inside]
+            for ellipse in parts:
+                paint_ellipse(image, self.xx, self.yy, ellipse, skin)
         gain = 0.8 + 0.2 * np.sin(2 * np.pi * self.light_freq * t + self.light_phase)
         return np.clip(image * gain, 0, 255)
 
@@ -183,15 +202,27 @@ def generate_stub(out: Path | str, *, seconds: float = STUB_SECONDS, splits: dic
                   seed: int = 0, upsample: int = STUB_UPSAMPLE, dvs_model: str = STUB_DVS_MODEL,
                   compression: str | None = "blosc", progress: bool = True) -> Path:
     """Write the stub dataset to ``out``; videos are ``stub_000``, ``stub_001``, ... in split order."""
+    return write_scenes(out, lambda index: HandScene(seed * 1000 + index, seconds=seconds), "stub",
+                        splits or STUB_SPLITS, lambda video: dvs_model, upsample=upsample, seed=seed,
+                        compression=compression, progress=progress)
+
+
+def write_scenes(out: Path | str, scene_of: Callable[[int], "HandScene"], prefix: str, splits: dict[str, int],
+                 dvs_model_of: Callable[[str], str], *, upsample: int, seed: int, compression: str | None,
+                 progress: bool) -> Path:
+    """Render, emulate and write one synthetic scene per video, ``<prefix>_000``, ... in split order
+    (``scene_of(index)``, a frame source with ``boxes(k)``), each with the DVS preset
+    ``dvs_model_of(video)``, and every frame's boxes as the labels."""
     out = Path(out)
-    jobs = [split for split, count in (splits or STUB_SPLITS).items() for _ in range(count)]
+    jobs = [split for split, count in splits.items() for _ in range(count)]
     labels = {}
-    for index, split in enumerate(tqdm(jobs, desc="stub videos", unit="video", disable=not progress)):
-        video = f"stub_{index:03d}"
-        scene = HandScene(seed * 1000 + index, seconds=seconds)
+    for index, split in enumerate(tqdm(jobs, desc=f"{prefix} videos", unit="video", disable=not progress)):
+        video = f"{prefix}_{index:03d}"
+        scene = scene_of(index)
         with VideoWriter(out, split, video, num_frames=scene.num_frames, height=scene.height, width=scene.width,
                          compression=compression) as writer:
-            emulate_video(scene, writer, params=preset(dvs_model), upsample=upsample, seed=seed * 1000 + index)
+            emulate_video(scene, writer, params=preset(dvs_model_of(video)), upsample=upsample,
+                          seed=seed * 1000 + index)
         labels[video] = {k: scene.boxes(k) for k in range(scene.num_frames)}
     write_labels(out, labels)
     return out

@@ -68,15 +68,15 @@ def test_the_experiment_checks_its_arguments_before_any_work(tmp_path, option, v
     assert list(tmp_path.iterdir()) == []  # nothing rendered, built or trained
 
 
-def test_versions_train_with_the_stub_recipe_itself(tmp_path):
-    """Every key the stub recipe sets has the recipe's value in a version's training config, but
+def test_versions_train_with_the_quick_recipe_itself(tmp_path):
+    """Every key the quick recipe sets has the recipe's value in a version's training config, but
     the length, which the budget replaces (and the validation and picture intervals)."""
     from omegaconf import OmegaConf
 
     from dagr_lite.config import compose_config
     from dagr_lite.apps.versions import version_config
 
-    recipe = OmegaConf.load(Path(__file__).resolve().parents[2] / "conf" / "recipe" / "stub.yaml")
+    recipe = OmegaConf.load(Path(__file__).resolve().parents[2] / "conf" / "recipe" / "quick.yaml")
     stub = compose_config("train", [])
     ours = version_config(tmp_path / "root", tmp_path / "run", minutes=4.0, steps=None, seed=0)
     budget = {"trainer.max_steps", "trainer.max_epochs", "trainer.max_minutes", "trainer.schedule_by",

@@ -1,0 +1,44 @@
+"""The event picture (the dense peer's input) against a per-event loop, and the dataset that reads it."""
+import numpy as np
+import pytest
+
+from dagr_lite.data.dataset import PICTURE_COUNT_FULL, event_picture
+from dagr_lite.synth.stub import stub_root
+from tests.settings import sample_set
+
+
+def _picture_by_loop(x, y, t, p, t_end, window, height, width):
+    on, off = np.zeros((height, width)), np.zeros((height, width))
+    last = np.full((height, width), np.nan)
+    for xi, yi, ti, pi in zip(x, y, t, p):
+        (on if pi == 1 else off)[yi, xi] += 1
+        last[yi, xi] = ti if np.isnan(last[yi, xi]) else max(last[yi, xi], ti)
+    recency = np.where(np.isnan(last), 0.0, np.clip(1 - (t_end - np.nan_to_num(last)) / window, 0, 1) * 255)
+    counts = [np.minimum(c, PICTURE_COUNT_FULL) * 255 / PICTURE_COUNT_FULL for c in (on, off)]
+    return np.round(np.stack([*counts, recency], axis=2)).astype(np.uint8)
+
+
+def test_event_picture_equals_a_per_event_loop():
+    rng = np.random.default_rng(0)
+    height, width, n = 9, 13, 2000
+    x, y = rng.integers(0, width, n), rng.integers(0, height, n)
+    t, p = np.sort(rng.integers(0, 30_000, n)), rng.integers(0, 2, n)
+    got = event_picture(x, y, t, p, 30_000, 33_333, height, width)
+    np.testing.assert_array_equal(got, _picture_by_loop(x, y, t, p, 30_000, 33_333, height, width))
+    assert got[..., 0].max() == 255 and got[..., 1].max() == 255  # some pixel saturates at this density
+    assert not event_picture(x[:0], y[:0], t[:0], p[:0], 0, 33_333, height, width).any()
+
+
+def test_a_dataset_with_the_event_picture_reads_the_window_not_the_frame():
+    with pytest.raises(ValueError, match="event_span='window'"):
+        sample_set(stub_root(), "valid", event_picture=True)
+    frames = sample_set(stub_root(), "valid", event_span="window")
+    pictures = sample_set(stub_root(), "valid", event_span="window", event_picture=True)
+    for index in (0, 40):
+        a, b = frames[index], pictures[index]
+        np.testing.assert_array_equal(a.events.numpy(), b.events.numpy())  # the same sample's events
+        e = b.events.numpy()
+        expected = _picture_by_loop(e[:, 0].astype(int), e[:, 1].astype(int), e[:, 2] + b.t_image_us, e[:, 3],
+                                    b.t_end_us, 33_333, 180, 320)
+        np.testing.assert_array_equal(b.image.numpy().transpose(1, 2, 0), expected)
+        assert not np.array_equal(a.image.numpy(), b.image.numpy())

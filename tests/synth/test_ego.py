@@ -1,0 +1,107 @@
+"""The ego dataset: valid, deterministic, and hard in the ways it claims (camera motion, flicker,
+hands that rest and leave, occlusion, noisy events), with boxes that hold each hand's visible pixels."""
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from dagr_lite.data import format as fmt
+from dagr_lite.data.check import check_dataset
+from dagr_lite.data.events import EventFile
+from dagr_lite.synth import ego
+from dagr_lite.synth.ego import EgoScene, generate_ego
+from dagr_lite.synth.stub import generate_stub
+from tests.settings import sample_set
+
+
+def test_ego_is_a_valid_dataset_whose_videos_are_each_clean_or_noisy(tmp_path):
+    root = generate_ego(tmp_path / "ego", seconds=0.5, splits={"train": 2, "valid": 1}, progress=False)
+    assert check_dataset(root, decode_frames=True) == []
+    ds = sample_set(root, "train", image_size=(180, 320))
+    assert len(ds) == 2 * 14
+    assert sum(len(ds[i].boxes) for i in range(len(ds))) > 0
+    # The same scenes with every video clean or noisy (other events: noise, leak, a 30 Hz bandwidth), and
+    # mixed gives each video exactly one of the two.
+    counts = {}
+    for model in ("clean", "noisy", "mixed"):
+        out = generate_ego(tmp_path / model, seconds=0.3, splits={"train": 2}, dvs_model=model, progress=False)
+        counts[model] = [EventFile(fmt.events_path(out, "train", f"ego_{i:03d}")).read(0, 10**9)["t"].size
+                         for i in range(2)]
+    assert all(n != c for n, c in zip(counts["noisy"], counts["clean"]))
+    assert all(m in (c, n) for m, c, n in zip(counts["mixed"], counts["clean"], counts["noisy"]))
+
+
+def test_generation_is_deterministic(tmp_path):
+    a = generate_ego(tmp_path / "a", seconds=0.2, splits={"train": 1}, progress=False)
+    b = generate_ego(tmp_path / "b", seconds=0.2, splits={"train": 1}, progress=False)
+    read = lambda root: EventFile(fmt.events_path(root, "train", "ego_000")).read(0, 10**9)  # noqa: E731
+    for name in "xytp":
+        np.testing.assert_array_equal(read(a)[name], read(b)[name])
+    assert (a / fmt.LABELS_FILE).read_text() == (b / fmt.LABELS_FILE).read_text()
+
+
+def test_the_camera_pans_by_several_pixels_a_frame_and_the_light_flickers():
+    speeds, flickering = [], 0
+    for seed in range(8):
+        scene = EgoScene(seed)
+        path = np.array([scene.camera(k / scene.fps) for k in range(scene.num_frames)])
+        speeds.append(np.abs(np.diff(path, axis=0)).max(axis=1))
+        flickering += scene.flicker_amp > 0
+    speeds = np.concatenate(speeds)
+    assert np.median(speeds) >= 2 and speeds.max() >= 6  # pans of several pixels a frame, not a jitter
+    assert flickering >= 4
+
+
+def test_hands_rest_leave_and_come_back():
+    rests = returns = 0
+    for seed in range(8):
+        scene = EgoScene(seed)
+        for i, hand in enumerate(scene.hand, start=1):
+            times = np.arange(scene.num_frames) / scene.fps
+            centres = np.array([scene._position(hand, t) for t in times])
+            moved = np.linalg.norm(np.diff(centres, axis=0), axis=1)
+            rests += np.any(moved < 1e-9)
+            visible = [np.count_nonzero(scene.paint(t)[1] == i) >= ego.MIN_VISIBLE_PIXELS for t in times]
+            gone = np.flatnonzero(~np.array(visible))
+            returns += len(gone) > 0 and gone[0] > 0 and any(visible[gone[0]:])
+    assert rests >= 4 and returns >= 1
+
+
+def test_boxes_hold_each_hands_visible_pixels_and_occlusion_hides_them():
+    occluded = 0
+    for seed in range(6):
+        scene = EgoScene(seed)
+        for k in range(0, scene.num_frames, 5):
+            image, owner = scene.paint(k / scene.fps)
+            boxes = scene.boxes(k)
+            shown = [i for i in range(1, len(scene.hand) + 1) if np.count_nonzero(owner == i) >= ego.MIN_VISIBLE_PIXELS]
+            assert len(boxes) <= len(shown)
+            for x, y, w, h in boxes.astype(int):  # tight: the visible pixels touch every edge
+                inside = owner[y:y + h, x:x + w] > 0
+                assert inside[0].any() and inside[-1].any() and inside[:, 0].any() and inside[:, -1].any()
+            if scene.occluder is not None:
+                (cx, cy), (hw, hh) = scene._occluder(k / scene.fps)
+                r0, r1 = max(int(cy - hh), 0), min(int(np.ceil(cy + hh)), scene.height)
+                c0, c1 = max(int(cx - hw), 0), min(int(np.ceil(cx + hw)), scene.width)
+                assert not owner[r0:r1, c0:c1].any()  # nothing behind the object counts as hand
+                occluded += 1
+    assert occluded > 0
+
+
+def test_ego_has_skin_coloured_background_and_moves_more_than_the_stub(tmp_path):
+    """More events per second than the stub (its background holds still): the camera's motion is in them."""
+    stub = generate_stub(tmp_path / "stub", seconds=0.3, splits={"train": 2}, progress=False)
+    hard = generate_ego(tmp_path / "ego", seconds=0.3, splits={"train": 2}, dvs_model="clean", progress=False)
+    count = lambda root, name: sum(EventFile(fmt.events_path(root, "train", f"{name}_{i:03d}")).read(0, 10**9)["t"].size
+                                   for i in range(2))  # noqa: E731
+    assert count(hard, "ego") > 1.5 * count(stub, "stub")
+    world = EgoScene(0).world
+    skin_like = (world[..., 0] > world[..., 2] + 20) & (world[..., 0] > world[..., 1] + 10)
+    assert skin_like.mean() > 0.005
+
+
+def test_ego_config_describes_the_generated_data():
+    conf = yaml.safe_load((Path(__file__).resolve().parents[2] / "conf" / "dataset" / "ego.yaml").read_text())
+    assert (conf["height"], conf["width"]) == (ego.EGO_HEIGHT, ego.EGO_WIDTH)
+    assert (conf["upsample"], conf["dvs_model"]) == (ego.EGO_UPSAMPLE, ego.EGO_DVS_MODEL)
+    assert conf["name"] == "ego" and conf["root"] is None
