@@ -624,7 +624,8 @@ class StreamingDetector:
         rows = torch.arange(old, old + m, device=self.device)
         batch = torch.zeros(m, dtype=torch.int64, device=self.device)
         with self._part("first stage (new nodes)"):
-            segment.h[0].extend(branch.level_input(0, branch.node_features(events), pos, batch, self._sampler()))
+            features = branch.node_features(events, segment.pos.view, local, first=old)
+            segment.h[0].extend(branch.level_input(0, features, pos, batch, self._sampler()))
             op = GraphOperator(local, old + m, in_degree=segment.in_degree.view, rows=rows)
             for b, block in enumerate(branch.stages[0]):
                 segment.h[b + 1].extend(block(segment.h[b].view, op))

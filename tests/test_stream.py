@@ -148,6 +148,18 @@ def test_streaming_equals_the_batch_model_at_any_moment(variant, weights, late_q
 
 
 @pytest.mark.parametrize("variant", ["hybrid", "events_only"])
+def test_streaming_with_neighbourhood_geometry_equals_the_batch_model(variant):
+    """Nodes that carry their causal neighbourhood's shape: computed for new nodes only, and at the
+    horizon's start from the window's own graph, as the batch model does."""
+    model = trained(small_model(variant, seed=4, geometry=True))
+    rng = np.random.default_rng(13)
+    events = random_stream(rng, 2500, 250_000)
+    images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 190_000)]
+    checks, largest, _ = replay(model, events, images, seed=8)
+    assert checks >= 20 and largest >= 300
+
+
+@pytest.mark.parametrize("variant", ["hybrid", "events_only"])
 @pytest.mark.parametrize("weights", ["untrained", "trained"])
 def test_towers_recomputed_at_changed_cells_only_equal_the_batch_model(variant, weights, monkeypatch):
     """Events in a corner of a larger frame, the towers never run whole after an image: each

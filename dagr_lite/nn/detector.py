@@ -148,6 +148,9 @@ class DetectorConfig:
             hybrid's head has image towers gated by the age (true), so that a streaming answer
             recomputes the towers only where event maps changed; false: they join the fusion
             before the towers (as in checkpoints saved before the key).
+        geometry: event nodes also carry the shape of their causal neighbourhood
+            (:func:`~dagr_lite.nn.event_branch.neighbourhood_geometry`); false in checkpoints saved
+            before the key.
     """
 
     height: int
@@ -167,6 +170,7 @@ class DetectorConfig:
     late_query: bool
     event_head_weight: float = 0.0
     image_stem: str = "patch"
+    geometry: bool = False
 
     def __post_init__(self):
         if not (self.use_events or self.use_image):
@@ -201,7 +205,7 @@ class DetectorConfig:
 
 
 # Config keys newer than some checkpoints, with the value that gives those checkpoints' models.
-_ADDED_LATER = {"event_head_weight": 0.0, "image_stem": "conv", "late_query": False}
+_ADDED_LATER = {"event_head_weight": 0.0, "image_stem": "conv", "late_query": False, "geometry": False}
 
 
 class Detector(nn.Module):
@@ -217,7 +221,7 @@ class Detector(nn.Module):
             self.events = EventBranch(height=cfg.height, width=cfg.width, channels=cfg.event_channels,
                                       strides=cfg.strides, graph=cfg.graph,
                                       time_scale_us=cfg.time_scale_us if cfg.use_image else None,
-                                      blocks=cfg.event_blocks, image_channels=fuse)
+                                      blocks=cfg.event_blocks, image_channels=fuse, geometry=cfg.geometry)
         else:
             self.events = None
         if cfg.use_image and cfg.use_events:

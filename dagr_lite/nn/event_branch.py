@@ -1,7 +1,9 @@
 """The event branch: causal GCN stages on the event graph, voxel pooling, dense maps per stride.
 
 Events become graph nodes at ``(x, y, beta * t)`` with features polarity (+-1), position
-normalised to [0, 1] (x / W, y / H) and, in a model with an image, the time since the image. A stage of GCN blocks runs on the full event
+normalised to [0, 1] (x / W, y / H), in a model with an image the time since the image and, with
+``geometry``, the shape of the node's causal neighbourhood (:func:`neighbourhood_geometry`: where
+its earlier neighbours lie in space and time, the local motion a GCN's isotropic sum cannot see). A stage of GCN blocks runs on the full event
 graph, then the graph is max-pooled into ``stride``-pixel cells for each output stride in turn,
 with more GCN blocks after each pooling; each pooled level is written out as a dense map
 ``(B, C, H / stride, W / stride)`` for the detection head.
@@ -23,6 +25,30 @@ from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.gcn import GCNConv, GraphOperator
 
 ImageSampler = Callable[[torch.Tensor, torch.Tensor, int], torch.Tensor]
+
+
+GEOMETRY_FEATURES = 10
+
+
+def neighbourhood_geometry(pos: torch.Tensor, edge_index: torch.Tensor, radius: float, max_neighbors: int,
+                           first: int = 0) -> torch.Tensor:
+    """``(N - first, 10)`` features of each node ``i >= first`` from its incoming edges ``j -> i``:
+    with ``d = (pos_j - pos_i) / radius`` (``dx, dy, dt``; ``dt <= 0``, earlier neighbours), the means
+    of ``d`` (3), of ``d * d`` (3) and of ``dx dt, dy dt, dx dy`` (3) over the neighbours, and the
+    in-degree over ``max_neighbors`` (0 and zeros for a node without neighbours).
+
+    They depend on the node's edges alone, which the causal graph fixes when the node arrives, so
+    they never change afterwards (the streaming detector computes them for new nodes only).
+    ``first``: the nodes whose features are wanted are ``first, first + 1, ...`` (every edge's
+    destination among them); ``pos`` holds every node an edge names."""
+    n = len(pos) - first
+    src, dst = edge_index[0], edge_index[1] - first
+    d = (pos[src] - pos[edge_index[1]]) / radius  # (E, 3)
+    dx, dy, dt = d.unbind(dim=1)
+    terms = torch.cat([d, d * d, torch.stack([dx * dt, dy * dt, dx * dy], dim=1)], dim=1)  # (E, 9)
+    sums = terms.new_zeros(n, 9).index_add_(0, dst, terms)
+    degree = torch.bincount(dst, minlength=n).to(pos.dtype)  # (n,)
+    return torch.cat([sums / degree.clamp(min=1).unsqueeze(1), (degree / max_neighbors).unsqueeze(1)], dim=1)
 
 
 class GCNBlock(nn.Module):
@@ -55,6 +81,7 @@ class EventBranch(nn.Module):
             (events' ``t`` counts from the image); None: no time feature (a model without an image).
         blocks: GCN blocks per stage.
         image_channels: image feature channels joined at each level (input, then each stride).
+        geometry: nodes also carry :func:`neighbourhood_geometry` (10 features).
 
     Shapes:
         events ``(N, 4)`` x, y, t (us since the image), p; batch ``(N,)`` sorted ->
@@ -62,7 +89,8 @@ class EventBranch(nn.Module):
     """
 
     def __init__(self, *, height: int, width: int, channels: Sequence[int], strides: Sequence[int],
-                 graph: EventGraphSpec, time_scale_us: float | None, blocks: int, image_channels: Sequence[int] | None = None):
+                 graph: EventGraphSpec, time_scale_us: float | None, blocks: int, image_channels: Sequence[int] | None = None,
+                 geometry: bool = False):
         super().__init__()
         if len(channels) != len(strides) + 1:
             raise ValueError(f"channels needs one entry for the input stage and one per stride: "
@@ -75,24 +103,35 @@ class EventBranch(nn.Module):
         if len(self.image_channels) != len(channels):
             raise ValueError(f"image_channels needs {len(channels)} entries, got {len(self.image_channels)}")
         self.out_channels = tuple(channels[1:])
-        in_features = 3 if time_scale_us is None else 4
+        self.geometry = bool(geometry)
+        in_features = (3 if time_scale_us is None else 4) + (GEOMETRY_FEATURES if self.geometry else 0)
         self.stages = nn.ModuleList()
         for level, out in enumerate(channels):
             width_in = (in_features if level == 0 else channels[level - 1]) + self.image_channels[level]
             self.stages.append(nn.ModuleList(GCNBlock(width_in if b == 0 else out, out) for b in range(blocks)))
 
-    def node_features(self, events: torch.Tensor) -> torch.Tensor:
-        """``(N, 3)`` polarity in {-1, 1}, x / W, y / H, and with a time scale ``(N, 4)`` with the
-        time since the image, ``t / time_scale_us``.
+    def node_features(self, events: torch.Tensor, pos: torch.Tensor | None = None,
+                      edge_index: torch.Tensor | None = None, first: int = 0) -> torch.Tensor:
+        """``(N, 3)`` polarity in {-1, 1}, x / W, y / H, with a time scale a fourth column, the time
+        since the image, ``t / time_scale_us``, and with ``geometry`` the ten columns of
+        :func:`neighbourhood_geometry` (which need the nodes' positions ``pos`` and graph
+        ``edge_index``; ``events`` are then the nodes from ``first`` on, ``pos`` every node).
 
-        Each depends on the event alone and on the image's time, never on a window's start or on
-        the time of a query, so a node's features are fixed once its event has arrived.
+        Each depends on the event alone, its causal neighbourhood and the image's time, never on a
+        window's start or on the time of a query, so a node's features are fixed once its event has
+        arrived.
         """
         x, y, t, p = events.unbind(dim=1)
         columns = [2 * p - 1, x / self.width, y / self.height]
         if self.time_scale_us is not None:
             columns.append(t / self.time_scale_us)
-        return torch.stack(columns, dim=1)
+        features = torch.stack(columns, dim=1)
+        if not self.geometry:
+            return features
+        if pos is None or edge_index is None:
+            raise ValueError("an event branch with geometry needs the nodes' positions and graph for their features")
+        shape = neighbourhood_geometry(pos, edge_index, self.spec.radius, self.spec.max_neighbors, first)
+        return torch.cat([features, shape.to(features.dtype)], dim=1)
 
     def forward(self, events: torch.Tensor, batch: torch.Tensor, batch_size: int,
                 image_sampler: ImageSampler | None = None, edge_index: torch.Tensor | None = None
@@ -134,7 +173,8 @@ class EventBranch(nn.Module):
             edge_index = self.spec.edges(events, batch)
         edge_index = edge_index.to(events.device)  # (2, E)
         pos = self.spec.positions(events)  # (N, 3)
-        return self._stage(0, self.node_features(events), pos, batch, edge_index, image_sampler), pos, edge_index
+        features = self.node_features(events, pos, edge_index)
+        return self._stage(0, features, pos, batch, edge_index, image_sampler), pos, edge_index
 
     def level_input(self, level: int, x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor,
                     image_sampler: ImageSampler | None) -> torch.Tensor:

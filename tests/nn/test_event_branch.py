@@ -54,3 +54,44 @@ def test_no_events_give_zero_maps_and_the_image_hook_joins_with_gradient():
     out = branch(events, torch.zeros(100, dtype=torch.long), batch_size=1, image_sampler=sampler)
     sum(m.sum() for m in out).backward()
     assert image_feature.grad is not None and image_feature.grad.abs() > 0
+
+
+def test_neighbourhood_geometry_equals_a_loop_over_each_nodes_neighbours():
+    from dagr_lite.nn.event_branch import neighbourhood_geometry
+
+    events = events_of(400, 3).double()
+    batch = torch.zeros(400, dtype=torch.long)
+    edges = SPEC.edges(events, batch)
+    pos = SPEC.positions(events)
+    got = neighbourhood_geometry(pos, edges, SPEC.radius, SPEC.max_neighbors)
+    for i in range(400):
+        src = edges[0][edges[1] == i]
+        row = [0.0] * 9
+        for j in src.tolist():
+            dx, dy, dt = ((pos[j] - pos[i]) / SPEC.radius).tolist()
+            assert dt <= 0  # an earlier neighbour
+            for k, v in enumerate([dx, dy, dt, dx * dx, dy * dy, dt * dt, dx * dt, dy * dt, dx * dy]):
+                row[k] += v / len(src)
+        torch.testing.assert_close(got[i], torch.tensor(row + [len(src) / SPEC.max_neighbors], dtype=torch.float64),
+                                   rtol=0, atol=1e-12)
+    assert got[:, 9].max() > 0 and (got[:, 9] == 0).any()  # nodes with neighbours, and the first ones alone
+    # The features of the nodes from `first` on, from their edges alone, equal the whole graph's.
+    late = edges[:, edges[1] >= 250]
+    torch.testing.assert_close(neighbourhood_geometry(pos, late, SPEC.radius, SPEC.max_neighbors, first=250), got[250:])
+
+
+def test_a_branch_with_geometry_reads_the_neighbourhood_and_refuses_features_without_a_graph():
+    import pytest
+
+    torch.manual_seed(0)
+    branch = EventBranch(height=48, width=64, channels=(8, 16, 16, 24), strides=STRIDES, graph=SPEC, time_scale_us=None,
+                         blocks=1, geometry=True)
+    events = events_of(300, 0)
+    batch = torch.zeros(300, dtype=torch.long)
+    assert branch.stages[0][0].conv.in_channels == 3 + 10
+    maps = branch(events, batch, batch_size=1)
+    moved = events.clone()
+    moved[150:, 0] = (moved[150:, 0] + 1).clamp(max=63)  # other neighbourhoods, the same polarities
+    assert not torch.allclose(maps[0], branch(moved, batch, batch_size=1)[0])
+    with pytest.raises(ValueError, match="positions and graph"):
+        branch.node_features(events)
