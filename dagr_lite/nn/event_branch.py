@@ -112,10 +112,10 @@ class EventBranch(nn.Module):
 
     def node_features(self, events: torch.Tensor, pos: torch.Tensor | None = None,
                       edge_index: torch.Tensor | None = None, first: int = 0) -> torch.Tensor:
-        """``(N, 3)`` polarity in {-1, 1}, x / W, y / H, with a time scale a fourth column, the time
-        since the image, ``t / time_scale_us``, and with ``geometry`` the ten columns of
+        """``(N, 3)`` polarity in {-1, 1}, x / W, y / H; with ``geometry`` then the ten columns of
         :func:`neighbourhood_geometry` (which need the nodes' positions ``pos`` and graph
-        ``edge_index``; ``events`` are then the nodes from ``first`` on, ``pos`` every node).
+        ``edge_index``; ``events`` are then the nodes from ``first`` on, ``pos`` every node); with a
+        time scale last the time since the image, ``t / time_scale_us``.
 
         Each depends on the event alone, its causal neighbourhood and the image's time, never on a
         window's start or on the time of a query, so a node's features are fixed once its event has
@@ -123,15 +123,16 @@ class EventBranch(nn.Module):
         """
         x, y, t, p = events.unbind(dim=1)
         columns = [2 * p - 1, x / self.width, y / self.height]
+        if self.geometry:
+            if pos is None or edge_index is None:
+                raise ValueError("an event branch with geometry needs the nodes' positions and graph for its features")
+            shape = neighbourhood_geometry(pos, edge_index, self.spec.radius, self.spec.max_neighbors, first)
+            columns.extend(shape.to(events.dtype).unbind(dim=1))
+        # the time comes last: an events-only branch's inputs are then a hybrid's first columns, so a
+        # warm start widens its first layer by appending (nn/warm_start.py)
         if self.time_scale_us is not None:
             columns.append(t / self.time_scale_us)
-        features = torch.stack(columns, dim=1)
-        if not self.geometry:
-            return features
-        if pos is None or edge_index is None:
-            raise ValueError("an event branch with geometry needs the nodes' positions and graph for their features")
-        shape = neighbourhood_geometry(pos, edge_index, self.spec.radius, self.spec.max_neighbors, first)
-        return torch.cat([features, shape.to(features.dtype)], dim=1)
+        return torch.stack(columns, dim=1)
 
     def forward(self, events: torch.Tensor, batch: torch.Tensor, batch_size: int,
                 image_sampler: ImageSampler | None = None, edge_index: torch.Tensor | None = None
