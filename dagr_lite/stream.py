@@ -621,6 +621,10 @@ class StreamingDetector:
         segment.pos.extend(pos)
         segment.in_degree.extend(torch.bincount(edges[1] - first_id, minlength=m))
         local = edges - segment.base
+        # An edge from a node that left the segment (before the earliest window start of any later
+        # answer) only reaches nodes in the prefix that each answer recomputes from the window's own
+        # graph: the first stage here leaves it out rather than read a row that is gone.
+        local = local[:, local[0] >= 0]
         rows = torch.arange(old, old + m, device=self.device)
         batch = torch.zeros(m, dtype=torch.int64, device=self.device)
         with self._part("first stage (new nodes)"):

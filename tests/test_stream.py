@@ -234,6 +234,31 @@ def test_the_hybrid_stays_exact_while_its_events_leave_the_horizon(late_query):
     assert stream._segment.base > 0 and stream._segment.cells is None  # rows were forgotten
 
 
+@pytest.mark.parametrize("geometry", [False, True])
+def test_a_dense_context_that_leaves_before_the_next_events_arrive(geometry):
+    """A fresh image's dense context is ingested, then forgotten in one step when the horizon passes
+    it; the next events arrive with edges to rows that are gone (a camera of millions of events per
+    second: more forgotten rows than new ones). The answers stay the batch model's."""
+    model = trained(small_model("hybrid", seed=6, geometry=geometry))
+    rng = np.random.default_rng(21)
+    t_image = 50_000
+    before = random_stream(rng, 3000, CONTEXT_US)  # 3,000 events in the image's 10 ms context
+    before["t"] += t_image - CONTEXT_US
+    after = random_stream(rng, 300, 45_000)
+    after["t"] += t_image
+    events = {key: np.concatenate([before[key], after[key]]) for key in before}
+    image = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    stream = StreamingDetector(model, context_us=CONTEXT_US, window_us=WINDOW_US, refractory_us=0,
+                               conf_threshold=0.0, nms_threshold=EVAL["nms_threshold"])
+    stream.push_events(**before)
+    stream.push_image(image, t_image)
+    assert check_against_batch(stream, model, events, 3000, image, t_image, t_image) == 3000
+    stream.push_events(**after)
+    base = stream._segment.base
+    check_against_batch(stream, model, events, len(events["t"]), image, t_image, t_image + 45_000)
+    assert stream._segment.base >= base + 3000  # the context's rows were forgotten
+
+
 @pytest.mark.parametrize("variant", ["hybrid", "events_only"])
 def test_streaming_with_a_refractory_period_equals_the_batch_model_on_the_filtered_sample(variant):
     """Hot pixels and bursts: few pixels, several events per pixel and microsecond."""
