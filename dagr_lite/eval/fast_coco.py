@@ -58,7 +58,6 @@ def coco_stats(gt_boxes: list[np.ndarray], dt_boxes: list[np.ndarray], dt_scores
 
     The areas are ``w * h`` of each box (as the evaluator records them for pycocotools too).
     """
-    images = len(gt_boxes)
     order = [np.argsort(-s, kind="mergesort")[: MAX_DETECTIONS[-1]] for s in dt_scores]
     dt, dt_valid = _pad([b[o] for b, o in zip(dt_boxes, order)], 4, 0.0)  # (I, D, 4) by score
     score, _ = _pad([s[o][:, None] for s, o in zip(dt_scores, order)], 1, -np.inf)
