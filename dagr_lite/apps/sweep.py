@@ -9,7 +9,7 @@ frames ``k`` and ``k + 1`` (every ``1/N`` of a frame interval), against boxes in
 linearly between the two frames (:func:`interpolate_boxes`); only frame pairs whose boxes all
 match are used. With ``stream=true`` each point scores what the streaming detector answers when
 fed as a camera feeds it (:func:`streamed_detections`); it reads the same sample as the batch
-model, so the figures agree (tests/eval/test_sweep_stream.py). Writes ``sweep.json``, ``sweep.csv``
+model, so the figures agree (tests/apps/test_sweep_stream.py). Writes ``sweep.json``, ``sweep.csv``
 and ``sweep.png`` into ``out`` and prints
 the table.
 """
