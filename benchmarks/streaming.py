@@ -36,8 +36,10 @@ from dagr_lite.data.dataset import Sample, sample_start_us
 from dagr_lite.data.labels import list_videos
 from dagr_lite.data.writer import VideoWriter
 from dagr_lite.apps.demo import Recording
-from dagr_lite.engine.checkpoint import load_checkpoint
-from dagr_lite.nn.detector import Detector, DetectorConfig
+from dagr_lite.data.spec import SampleSpec
+from dagr_lite.engine.checkpoint import Checkpoint, load_checkpoint
+from dagr_lite.eval.operating import OperatingPoint
+from dagr_lite.nn.detector import Detector
 from dagr_lite.nn.gcn import GCNConv, GraphOperator
 from dagr_lite.stream import StreamingDetector
 from dagr_lite.synth.dvs import DVSParams, preset
@@ -96,12 +98,9 @@ def camera_recording(size: tuple[int, int], seconds: float, rate: float, workdir
                        f"(the last try gave {got:.0f})")
 
 
-def model_at(state: dict, height: int, width: int) -> Detector:
+def model_at(checkpoint: Checkpoint, height: int, width: int) -> Detector:
     """The checkpoint's EMA weights in its architecture at ``height x width`` (the weights do not depend on it)."""
-    cfg = dataclasses.replace(DetectorConfig.from_dict(state["detector"]), height=height, width=width)
-    model = Detector(cfg)
-    model.load_state_dict(state["ema"]["module"])
-    return model.eval()
+    return checkpoint.model(dataclasses.replace(checkpoint.detector, height=height, width=width)).eval()
 
 
 class MacCounter:
@@ -129,8 +128,9 @@ def frame_at(rec: Recording, t_us: float) -> int:
 def stream_run(model: Detector, rec: Recording, update_us: float, t0: float, t1: float, *, context_us: int,
                window_us: int) -> dict:
     """Updates of ``update_us`` over ``[t0, t1)``: latencies, the time spent per part, GCN multiply-adds."""
-    stream = StreamingDetector(model, context_us=context_us, window_us=window_us, refractory_us=0,
-                               conf_threshold=0.25, nms_threshold=0.65)
+    stream = StreamingDetector(model, SampleSpec(window_us=window_us, context_us=context_us, refractory_us=0,
+                                                       max_events=None, event_picture=False),
+                               OperatingPoint(score=0.25, nms_iou=0.65))
     t, ev = rec.events["t"], rec.events
     k = frame_at(rec, t0)
     begin = int(np.searchsorted(t, rec.frame_times[k] - context_us - window_us))
@@ -188,12 +188,11 @@ def full_pass(model: Detector, rec: Recording, t_query: float, *, context_us: in
     return best, macs, len(events)
 
 
-def bench_scene(state: dict, name: str, rec: Recording, args) -> tuple[float, dict[float, dict]]:
+def bench_scene(state: Checkpoint, name: str, rec: Recording, args) -> tuple[float, dict[float, dict]]:
     """Prints the scene's table and where the time goes; returns its event rate and, per update
     size, the speed-up, the real-time factor and the events per second sustained."""
     model = model_at(state, rec.height, rec.width)
-    data = state["config"]["data"]
-    context_us, window_us = data["context_us"], data["window_us"]
+    context_us, window_us = state.sample.context_us, state.sample.window_us
     t0, t1, rate = streamed(rec, args.seconds)
     print(f"\n{name}: {rec.width}x{rec.height}, {(t1 - t0) / 1e6:.2f} s streamed from frame {FIRST_FRAME}, "
           f"{rate / 1e3:.0f}k events/s; {label(state)} model, images at 30 Hz")
@@ -228,10 +227,9 @@ def bench_scene(state: dict, name: str, rec: Recording, args) -> tuple[float, di
     return rate, result
 
 
-def label(state: dict) -> str:
+def label(checkpoint: Checkpoint) -> str:
     """The checkpoint's model name, with ``late query`` where its query maps join the head after its towers."""
-    late = DetectorConfig.from_dict(state["detector"]).late_query
-    return state["config"]["model"]["name"] + (", late query" if late else "")
+    return checkpoint.model_name + (", late query" if checkpoint.detector.late_query else "")
 
 
 def size_of(text: str) -> tuple[int, int]:

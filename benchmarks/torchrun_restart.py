@@ -72,9 +72,9 @@ def main() -> None:
                                env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": python_path()})
     text = log.read_text()
     folders = sorted((out / "runs" / "train").glob("torchrun-*"))
-    import torch
+    from dagr_lite.engine.checkpoint import load_checkpoint
 
-    last = torch.load(folders[0] / "checkpoints" / "last.pt", weights_only=True) if len(folders) == 1 else None
+    last = load_checkpoint(folders[0] / "checkpoints" / "last.pt").training if len(folders) == 1 else None
     checks = {
         "torchrun exited 0": code == 0,
         f"rank 1 died after step {args.fail_at}": f"dying after step {args.fail_at}" in text,

@@ -18,7 +18,7 @@ updated, never recomputed, as the cells only gain members). The pooled stages ar
 full (the pooled graph has a few hundred cells). Without ``late_query`` the recency maps, the
 fusion and the head run over every cell (the query time reaches every cell through the recency
 maps and the image's age); with it the head's towers are rerun only at the cells whose event
-maps changed and the cells their 3x3 layers reach (:class:`_Towers`), and the query time enters
+maps changed and the cells their 3x3 layers reach (:class:`~dagr_lite.nn.head.TowerCache`), and the query time enters
 after the towers, in 1x1 layers over every cell. Image features (and a ``late_query`` hybrid's
 image towers) are computed once per image. Once
 events leave the horizon, the nodes near its start, whose edges or whose neighbours'
@@ -37,6 +37,8 @@ import numpy as np
 import torch
 
 from dagr_lite.data.dataset import refractory_keep, sample_start_us
+from dagr_lite.data.spec import SampleSpec
+from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.graph.pool import PooledGraph, recency_cells, recency_from_latest
 from dagr_lite.graph.streaming import StreamingGraph
 from dagr_lite.nn.detector import Detector
@@ -131,160 +133,6 @@ class _Cells:
                            edge_index=torch.stack([local[src], local[dst]]), cluster=occupied.new_zeros(0))
 
 
-def _grow(mask: torch.Tensor) -> torch.Tensor:
-    """``mask (h, w)`` bool grown by one cell in each direction (its 3x3 neighbourhoods)."""
-    return torch.nn.functional.max_pool2d(mask[None, None].to(torch.float32), 3, stride=1, padding=1)[0, 0] > 0
-
-
-def _norm_act(block: torch.nn.Sequential, y: torch.Tensor) -> torch.Tensor:
-    """A ``conv_bn_act`` block's batch norm (evaluation mode) and activation on rows ``y (n, C)``."""
-    bn = block[1]
-    return block[2](torch.nn.functional.batch_norm(y, bn.running_mean, bn.running_var, bn.weight, bn.bias,
-                                                   False, 0.0, bn.eps))
-
-
-def _flat(x: torch.Tensor) -> torch.Tensor:
-    """``(1, C, h, w) -> (h w, C)``, cells row-major (a map channels-last)."""
-    return x[0].permute(1, 2, 0).reshape(-1, x.shape[1])
-
-
-_OFFSETS: dict[int, torch.Tensor] = {}  # per padded map width: the flat offsets of a 3x3 neighbourhood
-
-
-def _conv3x3_at(padded: torch.Tensor, width: int, weight: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
-    """A 3x3 convolution ("same" padding, no bias) at some cells of a map, from the map zero-padded
-    by one cell and flattened channels-last, ``padded ((h + 2) (w + 2), C)``: ``cells (n,)`` are
-    indices into it (``(row + 1) (w + 2) + column + 1``), ``weight (C_out, 3 3 C)`` the convolution's
-    weight laid out as ``(C_out, row, column, C)``. Returns ``(n, C_out)``."""
-    offsets = _OFFSETS.get(width)
-    if offsets is None:
-        offsets = _OFFSETS[width] = torch.tensor([dy * (width + 2) + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
-    patches = padded[(cells[:, None] + offsets.to(cells.device)[None, :]).reshape(-1)].reshape(len(cells), -1)
-    return patches @ weight.T
-
-
-class _Towers:
-    """The head over a segment's latest event maps, its towers recomputed where the maps changed.
-
-    With ``late_query`` nothing before the towers' outputs depends on the query time: a cell's
-    fused input changes only where its event map does, a first tower layer's output within one
-    cell of such a cell, the second layer's within two. An update compares the new event maps
-    with the last ones (exact equality), runs the pointwise fusion and stem at the changed cells
-    and each 3x3 layer at the cells it can change, from the cached (zero-padded, channels-last)
-    outputs of the layer before; where that is most of a map, the whole map is run instead. A
-    hybrid's image towers run once per image. An answer runs what reads the query maps, all 1x1
-    (the age gates, the late layers and the predictions), over every cell from the cached tower
-    outputs.
-    """
-
-    FULL_FRACTION = 0.5  # run the whole map when the cells to recompute are more than this share of it
-
-    def __init__(self, model: Detector):
-        self.model, head = model, model.head
-        hidden = head.stems[0][0].out_channels
-        self.event_maps: list[torch.Tensor] | None = None
-        self.image_towers: list[tuple[torch.Tensor, torch.Tensor]] | None = None  # flat, per stride
-        self.cache: list[dict] = []  # per stride: flat stem and tower outputs (the stem and first layers padded)
-        # Weights as matrices over rows of cells: 1x1 as (out, in), 3x3 as (out, row, column, in).
-        def matrix(conv):
-            return conv.weight.permute(0, 2, 3, 1).reshape(conv.out_channels, -1)
-        self.weights = []
-        for i in range(len(head.stems)):
-            w = {"stem": matrix(head.stems[i][0])}
-            if model.image is not None:
-                w["fuse"] = matrix(model.fuse[i][0])
-            for name, branch, late in (("cls", head.cls_branches[i], head.cls_late[i]),
-                                       ("reg", head.reg_branches[i], head.reg_late[i])):
-                w[name + "1"], w[name + "2"] = matrix(branch[0][0]), matrix(branch[1][0])
-                late_w = matrix(late[0])  # reads [tower, (gated image tower,) query maps]
-                towers = 2 * hidden if head.has_image else hidden
-                w[name + "_tower"], w[name + "_image"], w[name + "_query"] = \
-                    late_w[:, :hidden], late_w[:, hidden:towers], late_w[:, towers:]
-            for name in ("reg", "obj", "cls"):
-                w[name + "_pred"] = matrix(getattr(head, name + "_preds")[i])
-            if head.has_image:
-                w["gate"] = matrix(head.gates[i])
-            self.weights.append(w)
-
-    def update(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor]) -> None:
-        """Bring the towers up to the event maps ``(1, C, h, w)`` per stride (the image's are fixed)."""
-        if self.event_maps is None:
-            self.cache = [self._full(i, image_maps, event_maps) for i in range(len(event_maps))]
-            if self.model.head.has_image:  # once per image
-                self.image_towers = [tuple(_flat(t) for t in self.model.head.image_towers(i, m))
-                                     for i, m in enumerate(image_maps[1:])]
-        else:
-            for i, (new, old) in enumerate(zip(event_maps, self.event_maps)):
-                if new is old:
-                    continue
-                changed = (new != old).any(dim=1)[0]  # (h, w)
-                if not changed.any():
-                    continue
-                near = _grow(changed)
-                reach = _grow(near)
-                if (image_maps is not None and image_maps[i + 1].shape[-2:] != new.shape[-2:]) or \
-                        int(reach.sum()) > self.FULL_FRACTION * reach.numel():
-                    self.cache[i] = self._full(i, image_maps, event_maps)
-                else:
-                    self._partial(i, new, changed, near, reach)
-        self.event_maps = list(event_maps)
-
-    def answer(self, query: list[torch.Tensor]) -> tuple[torch.Tensor, list[tuple[int, int]]]:
-        """The head's raw output ``(1, A, 5 + C)`` and map shapes for the query maps ``(1, q, h, w)``."""
-        head, outputs, shapes, linear = self.model.head, [], [], torch.nn.functional.linear
-        for i, (cache, q) in enumerate(zip(self.cache, query)):
-            w, q = self.weights[i], _flat(q)
-            cls = cache["cls2"] @ w["cls_tower"].T + q @ w["cls_query"].T
-            reg = cache["reg2"] @ w["reg_tower"].T + q @ w["reg_query"].T
-            if head.has_image:  # the image towers, scaled by the age's gates (one age at every cell)
-                gate = torch.nn.functional.linear(q[:1, -1:], w["gate"], head.gates[i].bias)
-                cls_gate, reg_gate = (2 * torch.sigmoid(gate)).chunk(2, dim=1)
-                cls = cls + (self.image_towers[i][0] * cls_gate) @ w["cls_image"].T
-                reg = reg + (self.image_towers[i][1] * reg_gate) @ w["reg_image"].T
-            cls, reg = _norm_act(head.cls_late[i], cls), _norm_act(head.reg_late[i], reg)
-            outputs.append(torch.cat([linear(reg, w["reg_pred"], head.reg_preds[i].bias),
-                                      linear(reg, w["obj_pred"], head.obj_preds[i].bias),
-                                      linear(cls, w["cls_pred"], head.cls_preds[i].bias)], dim=1))  # (h w, 5 + C)
-            shapes.append(cache["shape"])
-        return torch.cat(outputs)[None], shapes
-
-    def _full(self, i: int, image_maps, event_maps) -> dict:
-        head = self.model.head
-        fused = event_maps[i] if image_maps is None else self.model.fuse_at(i, image_maps[i + 1], event_maps[i])
-        stem = head.stems[i](fused)
-        h, wd = stem.shape[-2:]
-        cache = {"shape": (h, wd), "width": wd,
-                 "image": None if image_maps is None else _flat(image_maps[i + 1]),
-                 "stem": _flat(torch.nn.functional.pad(stem, (1, 1, 1, 1)))}
-        for name, branch in (("cls", head.cls_branches[i]), ("reg", head.reg_branches[i])):
-            first = branch[0](stem)
-            cache[name + "1"] = _flat(torch.nn.functional.pad(first, (1, 1, 1, 1)))
-            cache[name + "2"] = _flat(branch[1](first))
-        return cache
-
-    def _partial(self, i: int, event_map: torch.Tensor, changed: torch.Tensor, near: torch.Tensor,
-                 reach: torch.Tensor) -> None:
-        """Recompute the stem at the ``changed`` cells, the towers' first layers at the cells ``near``
-        them (one cell away at most) and their second layers within ``reach`` (two)."""
-        head, cache, w = self.model.head, self.cache[i], self.weights[i]
-        width = cache["width"]
-
-        def cells(mask):
-            flat = torch.nonzero(mask.flatten()).flatten()  # row-major cell indices
-            return flat, (flat // width + 1) * (width + 2) + flat % width + 1  # and in the padded map
-        flat, padded = cells(changed)
-        x = event_map[0].reshape(event_map.shape[1], -1).index_select(1, flat).T  # (n, C)
-        if cache["image"] is not None:
-            x = _norm_act(self.model.fuse[i], torch.cat([cache["image"][flat], x], dim=1) @ w["fuse"].T)
-        cache["stem"][padded] = _norm_act(head.stems[i], x @ w["stem"].T)
-        _, padded = cells(near)
-        for name, branch in (("cls", head.cls_branches[i]), ("reg", head.reg_branches[i])):
-            cache[name + "1"][padded] = _norm_act(branch[0], _conv3x3_at(cache["stem"], width, w[name + "1"], padded))
-        flat, padded = cells(reach)
-        for name, branch in (("cls", head.cls_branches[i]), ("reg", head.reg_branches[i])):
-            cache[name + "2"][flat] = _norm_act(branch[1], _conv3x3_at(cache[name + "1"], width, w[name + "2"], padded))
-
-
 class _Segment:
     """Everything computed since a time origin: one image's events for a hybrid, or a stretch of an
     events-only stream. Node ids are global (the streaming graph's); row ``i`` of the buffers is
@@ -300,19 +148,28 @@ class _Segment:
         self.events = _Rows(like.new_zeros((0, 4)))  # x, y, t - origin, p
         self.t_abs = _Rows(np.zeros(0))
         self.pos = _Rows(like.new_zeros((0, 3)))
-        width_in = branch.stages[0][0].conv.in_channels
-        self.h = [_Rows(like.new_zeros((0, width_in)))]  # the input of each first-stage block, then its output
-        self.h += [_Rows(like.new_zeros((0, block.conv.out_channels))) for block in branch.stages[0]]
+        # the input of each first-stage block, then its output
+        self.h = [_Rows(like.new_zeros((0, width))) for width in branch.first_stage_widths]
         self.in_degree = _Rows(torch.zeros(0, dtype=torch.int64, device=detector.device))
         self.edges = _Rows(torch.zeros((0, 2), dtype=torch.int64, device=detector.device))  # (src, dst), global ids
         self.cell = _Rows(torch.zeros(0, dtype=torch.int64, device=detector.device))  # first pooled cell, hybrid
         # A hybrid's first pooled cells over every node of the segment: valid until a node leaves the horizon.
-        self.cells = (_Cells(model.cfg.height, model.cfg.width, model.strides[0], branch.stages[0][-1].conv.out_channels,
+        self.cells = (_Cells(model.cfg.height, model.cfg.width, model.strides[0], branch.first_stage_widths[-1],
                              detector.dtype, detector.device) if detector.hybrid else None)
         self.latest = [like.new_full((2 * h * w,), -math.inf) for h, w in detector.map_sizes]
         self.maps: tuple[int, list[torch.Tensor]] | None = None  # a hybrid's event maps, with the node count they saw
         # The head over the segment's latest event maps (models whose query maps enter after the towers).
-        self.towers = _Towers(model) if model.cfg.late_query else None
+        self.towers = model.tower_cache() if model.cfg.late_query else None
+
+
+def check_streamable(use_events: bool, sample: SampleSpec, where: str = "") -> None:
+    """Refuse (``ValueError``, prefixed by ``where``) a model the streaming detector cannot run."""
+    if not use_events:
+        raise ValueError(f"{where}the streaming detector needs a model with an event branch (use_events true)")
+    if sample.event_picture:
+        raise ValueError(f"{where}this model reads a picture of events in place of the camera frame "
+                         "(data.event_picture, the dense peer of benchmarks/dense_peer.py); the streaming "
+                         "detector runs models that read camera frames and events")
 
 
 class StreamingDetector:
@@ -321,62 +178,53 @@ class StreamingDetector:
     Args:
         model: a :class:`Detector` with an event branch (hybrid or events-only); it is put in
             evaluation mode.
-        window_us: the horizon: every model reads the events of ``[t - window_us, t]``.
-        context_us: a hybrid reads no event from before ``image time - context_us``.
-        refractory_us: > 0: an event is dropped when its pixel had an event (kept or not) less than
-            this long before it, decided as it arrives; 0: every event is read.
-        conf_threshold, nms_threshold: score threshold and NMS IoU of the detections.
+        sample: the events it reads (:class:`~dagr_lite.data.spec.SampleSpec`): those of the horizon
+            ``[t - window_us, t]``, for a hybrid none from before ``image time - context_us``, less
+            those a refractory period drops, decided as they arrive.
+        operating: the score threshold and NMS IoU of its answers
+            (:class:`~dagr_lite.eval.operating.OperatingPoint`).
 
     Times are microseconds on the stream's clock. Events come as numpy arrays sorted by time;
     ``x``, ``y`` in pixels of the model's frame size, ``p`` in {0, 1}. Bad input raises
     ``ValueError`` naming what was wrong and leaves the detector as it was.
     """
 
-    def __init__(self, model: Detector, *, context_us: int, window_us: int, refractory_us: int,
-                 conf_threshold: float, nms_threshold: float):
-        if model.events is None:
-            raise ValueError("the streaming detector needs a model with an event branch (use_events true)")
-        if context_us < 0 or window_us <= 0 or refractory_us < 0:
-            raise ValueError(f"context_us and refractory_us must be >= 0 and window_us > 0, got {context_us}, "
-                             f"{refractory_us} and {window_us}")
+    def __init__(self, model: Detector, sample: SampleSpec, operating: OperatingPoint):
+        check_streamable(model.events is not None, sample)
         self.model = model.eval()
         parameter = next(model.parameters())
         self.dtype, self.device = parameter.dtype, parameter.device
         self.hybrid = model.image is not None
-        self.context_us, self.window_us, self.refractory_us = int(context_us), int(window_us), int(refractory_us)
-        self.conf_threshold, self.nms_threshold = float(conf_threshold), float(nms_threshold)
+        self.sample, self.operating = sample, operating
+        self.context_us, self.window_us, self.refractory_us = sample.context_us, sample.window_us, sample.refractory_us
         self.height, self.width = model.cfg.height, model.cfg.width
         self.map_sizes = [(math.ceil(self.height / s), math.ceil(self.width / s)) for s in model.strides]
         spec = model.graph_spec
         # Nodes whose features can reach an event that left the window (events-only).
-        self.reach_us = (len(model.events.stages[0]) + 1) * spec.radius / spec.beta
+        self.reach_us = (len(model.events.first_stage) + 1) * spec.radius / spec.beta
         self.timings: dict[str, float] | None = None  # a dict: seconds spent in each part, summed (profiling)
         self.reset()
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str | torch.device = "cpu",
-                        model_size: tuple[int, int] | None = None, **kwargs) -> "StreamingDetector":
-        """The EMA weights of a training checkpoint, with the horizon and context it was trained with.
+                        model_size: tuple[int, int] | None = None, score: float | None = None,
+                        nms_iou: float | None = None) -> "StreamingDetector":
+        """The EMA weights of a training checkpoint, on the sample it was trained with, answering
+        at its operating point (:class:`~dagr_lite.eval.operating.OperatingPoint`: chosen on the
+        validation split; ``score``, ``nms_iou``: given by name instead).
 
         ``model_size = (width, height)`` runs the weights at another input size: they do not depend
         on it (convolutions, and node coordinates normalised by the input's size), while the graph's
         radius stays in pixels, so accuracy at another size is for a measurement to say."""
-        from dagr_lite.engine.checkpoint import at_model_size, load_checkpoint, load_model, trained_sample
-        from dagr_lite.nn.detector import DetectorConfig
+        from dagr_lite.engine.checkpoint import at_model_size, load_checkpoint
 
-        state = load_checkpoint(path)
-        detector = DetectorConfig.from_dict(state["detector"])
+        checkpoint = load_checkpoint(path)
+        detector = checkpoint.detector
         if model_size is not None:  # as evaluate.py model_size=data runs it
             detector = at_model_size("data", detector, (int(model_size[1]), int(model_size[0])), {})
-        model = load_model(state, detector, (detector.height, detector.width), str(path))
-        data = trained_sample(state)
-        if data["event_picture"]:
-            raise ValueError(f"{path}: this model reads a picture of events in place of the camera frame "
-                             "(data.event_picture, the dense peer of benchmarks/dense_peer.py); the streaming "
-                             "detector runs models that read camera frames and events")
-        kwargs = {"context_us": data["context_us"], "window_us": data["window_us"],
-                  "refractory_us": data["refractory_us"], **kwargs}
-        return cls(model.to(device), **kwargs)
+        check_streamable(detector.use_events, checkpoint.sample, f"{path}: ")
+        operating = checkpoint.operating.with_overrides(score=score, nms_iou=nms_iou)
+        return cls(checkpoint.model(detector).to(device), checkpoint.sample, operating)
 
     @property
     def ready(self) -> bool:
@@ -495,8 +343,8 @@ class StreamingDetector:
         with torch.no_grad():
             raw, shapes = self._head_outputs(t_us)
         with torch.no_grad(), self._part("decode + NMS"):
-            result = postprocess(raw, shapes, self.model.strides, conf_threshold=self.conf_threshold,
-                                 nms_threshold=self.nms_threshold, image_size=(self.height, self.width))[0]
+            result = postprocess(raw, shapes, self.model.strides, conf_threshold=self.operating.score,
+                                 nms_threshold=self.operating.nms_iou, image_size=(self.height, self.width))[0]
         return {"boxes": result["boxes"].cpu().numpy(), "scores": result["scores"].cpu().numpy(),
                 "labels": result["labels"].cpu().numpy(), "t_us": t_us}
 
@@ -515,8 +363,7 @@ class StreamingDetector:
             # No event of the segment has left the horizon: the cells kept up to date serve.
             if segment.maps is None or segment.maps[0] != segment.events.n:  # the pooled stages saw new nodes
                 with self._part("pooled stages"):
-                    maps = self.model.events.pooled_maps(None, None, None, None, 1, self._sampler(),
-                                                         first=segment.cells.graph())
+                    maps = self.model.events.maps_from_first_pool(segment.cells.graph(), self._sampler())
                 segment.maps = (segment.events.n, maps)
             event_maps = segment.maps[1]
         else:
@@ -631,7 +478,7 @@ class StreamingDetector:
             features = branch.node_features(events, segment.pos.view, local, first=old)
             segment.h[0].extend(branch.level_input(0, features, pos, batch, self._sampler()))
             op = GraphOperator(local, old + m, in_degree=segment.in_degree.view, rows=rows)
-            for b, block in enumerate(branch.stages[0]):
+            for b, block in enumerate(branch.first_stage):
                 segment.h[b + 1].extend(block(segment.h[b].view, op))
         with self._part("cells + recency times"):
             self._update_cells(segment, events, pos, batch, edges, old)

@@ -212,15 +212,17 @@ def test_what_conf_sets_has_no_second_default_in_the_code():
     from dagr_lite.data import format as fmt
     from dagr_lite.data.augment import TrainAugment
     from dagr_lite.data.dataset import EventEgoHands
-    from dagr_lite.engine.state import validate
+    from dagr_lite.data.spec import SampleSpec
+    from dagr_lite.engine.state import validate, validation_pass
+    from dagr_lite.eval.operating import OperatingPoint
     from dagr_lite.eval.score import detections_of, save_pictures, score_entries, score_model
     from dagr_lite.nn.head import postprocess
     from dagr_lite.stream import StreamingDetector
 
     required = {EventEgoHands.__init__: ("image_age", "window_us", "context_us", "refractory_us", "max_events"),
-                StreamingDetector.__init__: ("context_us", "window_us", "refractory_us", "conf_threshold",
-                                             "nms_threshold"),
+                StreamingDetector.__init__: ("sample", "operating"),
                 validate: ("backend", "conf_threshold", "nms_threshold"),
+                validation_pass: ("backend", "conf_threshold", "nms_threshold"),
                 score_model: ("backend", "conf_threshold", "nms_threshold"),
                 detections_of: ("conf_threshold", "nms_threshold"), score_entries: ("backend",),
                 save_pictures: ("conf_threshold", "nms_threshold"),
@@ -228,7 +230,10 @@ def test_what_conf_sets_has_no_second_default_in_the_code():
     for function, names in required.items():
         parameters = inspect.signature(function).parameters
         assert [n for n in names if parameters[n].default is not inspect.Parameter.empty] == [], function
-    assert all(f.default is dataclasses.MISSING for f in dataclasses.fields(TrainAugment))
+    for spec in (TrainAugment, SampleSpec):
+        assert all(f.default is dataclasses.MISSING for f in dataclasses.fields(spec)), spec
+    assert [f.name for f in dataclasses.fields(OperatingPoint) if f.default is not dataclasses.MISSING] == \
+        ["f1", "precision", "recall", "chosen_on"]  # what was measured, absent from a point given by hand
     assert compose_cfg("train").data.window_us == fmt.DEFAULT_WINDOW_US
 
 

@@ -10,14 +10,24 @@ import torch
 
 from dagr_lite.data.collate import collate
 from dagr_lite.data.dataset import Sample, sample_start_us
+from dagr_lite.data.spec import SampleSpec
+from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.nn.detector import Detector
 from dagr_lite.nn.head import postprocess
-from dagr_lite.stream import REORIGIN_US, StreamingDetector, _conv3x3_at, _Towers
+from dagr_lite.nn.head import TowerCache, conv3x3_at
+from dagr_lite.stream import REORIGIN_US, StreamingDetector
 from tests.models import small_detector_config
 from tests.settings import EVAL
 
 H, W = 48, 64
 CONTEXT_US, WINDOW_US = 10_000, 33_333
+
+
+def streaming(model: Detector, *, refractory_us: int = 0, score: float = 0.0) -> StreamingDetector:
+    """The streaming detector on this module's sample, answering every box of ``score`` or more."""
+    return StreamingDetector(model, SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=refractory_us,
+                                               max_events=None, event_picture=False),
+                             OperatingPoint(score=score, nms_iou=EVAL["nms_threshold"]))
 
 
 def small_model(variant: str, seed: int = 0, **changes) -> Detector:
@@ -87,8 +97,8 @@ def check_against_batch(stream: StreamingDetector, model: Detector, events: dict
     assert raw.dtype == torch.float64
     torch.testing.assert_close(raw, expected_raw, rtol=0, atol=1e-9)
     answer = stream.detect(t_query)
-    expected = postprocess(expected_raw, shapes, model.strides, conf_threshold=stream.conf_threshold,
-                           nms_threshold=stream.nms_threshold, image_size=(H, W))[0]
+    expected = postprocess(expected_raw, shapes, model.strides, conf_threshold=stream.operating.score,
+                           nms_threshold=stream.operating.nms_iou, image_size=(H, W))[0]
     assert answer["t_us"] == t_query
     np.testing.assert_allclose(answer["boxes"], expected["boxes"].numpy(), rtol=0, atol=1e-9)
     np.testing.assert_allclose(answer["scores"], expected["scores"].numpy(), rtol=0, atol=1e-9)
@@ -108,8 +118,7 @@ def replay(model: Detector, events: dict, images: list, seed: int, *, detect_pro
     """Push ``events`` in random sizes (0, 1 and more), images at their times, and check random
     detect calls (at the latest event or a little later) against the batch model."""
     rng = np.random.default_rng(seed)
-    stream = StreamingDetector(model, context_us=CONTEXT_US, window_us=WINDOW_US, refractory_us=refractory_us,
-                               conf_threshold=0.0, nms_threshold=EVAL["nms_threshold"])
+    stream = streaming(model, refractory_us=refractory_us)
     n, i, checks, largest = len(events["t"]), 0, 0, 0
     pending = sorted(images, key=lambda item: item[1])
     image, t_image = None, None
@@ -164,10 +173,10 @@ def test_streaming_with_neighbourhood_geometry_equals_the_batch_model(variant):
 def test_towers_recomputed_at_changed_cells_only_equal_the_batch_model(variant, weights, monkeypatch):
     """Events in a corner of a larger frame, the towers never run whole after an image: each
     answer recomputes the cells the new event maps can reach, and still equals the batch model."""
-    monkeypatch.setattr(_Towers, "FULL_FRACTION", math.inf)
+    monkeypatch.setattr(TowerCache, "FULL_FRACTION", math.inf)
     partial = []
-    original = _Towers._partial
-    monkeypatch.setattr(_Towers, "_partial", lambda self, *a: partial.append(1) or original(self, *a))
+    original = TowerCache._partial
+    monkeypatch.setattr(TowerCache, "_partial", lambda self, *a: partial.append(1) or original(self, *a))
     model = small_model(variant, seed=6, late_query=True)
     if weights == "trained":
         model = trained(model)
@@ -189,7 +198,7 @@ def test_conv3x3_at_cells_equals_the_convolution():
     padded = torch.nn.functional.pad(x, (1, 1, 1, 1))[0].permute(1, 2, 0).reshape(-1, 5)  # (8 * 11, 5)
     weight = conv.weight.permute(0, 2, 3, 1).reshape(7, -1)
     with torch.no_grad():
-        got = _conv3x3_at(padded, 9, weight, (rows + 1) * 11 + cols + 1)
+        got = conv3x3_at(padded, 9, weight, (rows + 1) * 11 + cols + 1)
         want = conv(x)[0][:, rows, cols].T
     torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
 
@@ -248,8 +257,7 @@ def test_a_dense_context_that_leaves_before_the_next_events_arrive(geometry):
     after["t"] += t_image
     events = {key: np.concatenate([before[key], after[key]]) for key in before}
     image = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
-    stream = StreamingDetector(model, context_us=CONTEXT_US, window_us=WINDOW_US, refractory_us=0,
-                               conf_threshold=0.0, nms_threshold=EVAL["nms_threshold"])
+    stream = streaming(model)
     stream.push_events(**before)
     stream.push_image(image, t_image)
     assert check_against_batch(stream, model, events, 3000, image, t_image, t_image) == 3000
@@ -276,8 +284,7 @@ def test_streaming_with_a_refractory_period_equals_the_batch_model_on_the_filter
 
 def test_events_only_window_empties_and_refills():
     model = small_model("events_only")
-    stream = StreamingDetector(model, context_us=CONTEXT_US, window_us=WINDOW_US, refractory_us=0, conf_threshold=0.0,
-                               nms_threshold=EVAL["nms_threshold"])
+    stream = streaming(model)
     empty = stream.detect(5_000.0)  # nothing pushed yet
     assert empty["boxes"].shape[1] == 4
     rng = np.random.default_rng(0)
@@ -290,8 +297,7 @@ def test_events_only_window_empties_and_refills():
 
 def test_bad_input_is_refused_and_leaves_the_state_valid():
     model = small_model("hybrid")
-    stream = StreamingDetector(model, context_us=CONTEXT_US, window_us=WINDOW_US, refractory_us=0, conf_threshold=0.0,
-                               nms_threshold=EVAL["nms_threshold"])
+    stream = streaming(model)
     rng = np.random.default_rng(1)
     events = random_stream(rng, 600, 40_000)
     image = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
@@ -326,10 +332,8 @@ def test_bad_input_is_refused_and_leaves_the_state_valid():
     stream.push_events(**{k: v[300:] for k, v in events.items()})
     check_against_batch(stream, model, events, 600, image, 5_000, float(events["t"][-1]))
     with pytest.raises(ValueError, match="event branch"):
-        StreamingDetector(Detector(small_detector_config(H, W, variant="image_only")), context_us=CONTEXT_US,
-                          window_us=WINDOW_US, refractory_us=0, **EVAL)
-    events_only = StreamingDetector(small_model("events_only"), context_us=CONTEXT_US, window_us=WINDOW_US,
-                                    refractory_us=0, conf_threshold=0.0, nms_threshold=EVAL["nms_threshold"])
+        streaming(Detector(small_detector_config(H, W, variant="image_only")), score=EVAL["conf_threshold"])
+    events_only = streaming(small_model("events_only"))
     events_only.push_events(**{k: v[:10] for k, v in events.items()})
     for when in (math.nan, math.inf):
         with pytest.raises(ValueError, match="detect time must be finite"):
@@ -342,15 +346,15 @@ def hybrid_checkpoint(trained_checkpoints) -> Path:
     return trained_checkpoints["hybrid"]
 
 
-@pytest.mark.parametrize(("name", "full_fraction"), [("hybrid", _Towers.FULL_FRACTION),
-                                                     ("hybrid_late", _Towers.FULL_FRACTION),
+@pytest.mark.parametrize(("name", "full_fraction"), [("hybrid", TowerCache.FULL_FRACTION),
+                                                     ("hybrid_late", TowerCache.FULL_FRACTION),
                                                      ("hybrid_late", math.inf)])
 def test_from_checkpoint_matches_the_batch_model_in_float32(trained_checkpoints, name, full_fraction, monkeypatch):
     """A trained checkpoint, float32: equal to the batch model to 1e-5 (relative); with
     ``late_query``, the towers run whole where events changed most of a map, or always at the
     changed cells only."""
-    monkeypatch.setattr(_Towers, "FULL_FRACTION", full_fraction)
-    stream = StreamingDetector.from_checkpoint(trained_checkpoints[name], conf_threshold=0.0, nms_threshold=EVAL["nms_threshold"])
+    monkeypatch.setattr(TowerCache, "FULL_FRACTION", full_fraction)
+    stream = StreamingDetector.from_checkpoint(trained_checkpoints[name], score=0.0, nms_iou=EVAL["nms_threshold"])
     assert stream.model.cfg.late_query == name.endswith("_late")
     model = stream.model
     assert stream.context_us == 10_000 and next(model.parameters()).dtype == torch.float32

@@ -19,7 +19,7 @@ from typing import Callable
 from omegaconf import DictConfig
 from omegaconf.errors import MissingMandatoryValue
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+from dagr_lite.config import CONF_DIR
 
 # What a user's mistake raises here: every check of a value, file or folder raises one of these
 # (ConfigError, ResumeError and DatasetFormatError are ValueErrors; FileNotFoundError and

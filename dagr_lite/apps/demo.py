@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from PIL import Image
 from tqdm import tqdm
 
@@ -98,6 +98,7 @@ def write_pictures(out: Path, frames: list, strip: list, playback_fps: float) ->
 def demo(cfg: DictConfig) -> dict:
     """Stream one recording through the detector; write the animation and the strip. Returns their
     paths and the update latencies (seconds)."""
+    print(OmegaConf.to_yaml(cfg), flush=True)
     if cfg.rate_hz <= 0:
         raise ConfigError(f"rate_hz must be positive, got {cfg.rate_hz}")
     if cfg.seconds is not None and not cfg.seconds > 0:
@@ -106,8 +107,8 @@ def demo(cfg: DictConfig) -> dict:
     out = Path(cfg.out if cfg.out is not None else f"runs/demo/{rec.video}.webp")
     check_output(out)
     stream = StreamingDetector.from_checkpoint(cfg.ckpt, device=resolve_device(cfg.device),
-                                               conf_threshold=cfg.conf_threshold,
-                                               nms_threshold=cfg.eval.nms_threshold)
+                                               score=cfg.operating.score, nms_iou=cfg.operating.nms_iou)
+    print(f"{cfg.ckpt}: answers at {stream.operating.describe()}", flush=True)
     if rec.frames[0].shape[:2] != (stream.height, stream.width):
         raise ConfigError(f"{cfg.ckpt}: the model takes {stream.width}x{stream.height} frames, the video "
                           f"{rec.video} has {rec.frames[0].shape[1]}x{rec.frames[0].shape[0]}")

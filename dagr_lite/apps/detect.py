@@ -50,12 +50,13 @@ def detect(cfg: DictConfig) -> dict:
     """Run ``cfg.ckpt`` over ``cfg.input``; returns the summary (see :mod:`dagr_lite.camera.detect`)."""
     if cfg.sensor.model_size not in MODEL_SIZES:
         raise ConfigError(f"sensor.model_size={cfg.sensor.model_size!r}: expected one of {MODEL_SIZES}")
+    print(OmegaConf.to_yaml(cfg), flush=True)
     source = build_source(cfg)
     sensor = build_sensor(cfg, source.size)
     model_size = sensor.output_size if cfg.sensor.model_size == "sensor" else None
     stream = StreamingDetector.from_checkpoint(cfg.ckpt, device=resolve_device(cfg.device), model_size=model_size,
-                                               conf_threshold=cfg.conf_threshold,
-                                               nms_threshold=cfg.eval.nms_threshold)
+                                               score=cfg.operating.score, nms_iou=cfg.operating.nms_iou)
+    print(f"{cfg.ckpt}: answers at {stream.operating.describe()}", flush=True)
     out = Path(cfg.out) if cfg.out is not None else Path("runs/detect") / time.strftime("%Y-%m-%d/%H-%M-%S")
     video = VideoSettings(**OmegaConf.to_container(cfg.video))
     live = isinstance(source, UdpSource)

@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.optimize import linear_sum_assignment
 from tqdm import tqdm
 
 from dagr_lite.apps.cli import user_errors
@@ -35,7 +34,8 @@ from dagr_lite.data.frames import list_frames, read_frame
 from dagr_lite.data.labels import list_videos, read_labels
 from dagr_lite.data.writer import write_labels, write_text_atomically
 from dagr_lite.eval.coco import CocoEvaluator
-from dagr_lite.nn.head import box_iou, postprocess
+from dagr_lite.eval.operating import SCORE_THRESHOLDS, best_score
+from dagr_lite.nn.head import postprocess
 
 # The labeller's detections: boxes from this score, NMS at this IoU (then best_threshold picks the score kept).
 LABEL_SCORE = 0.01
@@ -103,12 +103,8 @@ def train_detector(work: Path, out: Path, *, minutes: float, steps: int | None, 
 def predict_all(checkpoint: Path, root: Path, videos: dict[str, str], *, batch_size: int = 16) -> dict:
     """``{video: {k: (boxes xywh, scores)}}`` of the detector on every frame."""
     from dagr_lite.engine.checkpoint import load_checkpoint
-    from dagr_lite.engine.checkpoint import load_model
-    from dagr_lite.nn.detector import DetectorConfig
 
-    state = load_checkpoint(checkpoint)
-    detector = DetectorConfig.from_dict(state["detector"])
-    model = load_model(state, detector, (detector.height, detector.width), str(checkpoint)).eval()
+    model = load_checkpoint(checkpoint).model().eval()
     out = {}
     for video, split in tqdm(videos.items(), desc="predicting", unit="video"):
         count = len(list_frames(fmt.frames_dir(root, split, video)))
@@ -125,26 +121,12 @@ def predict_all(checkpoint: Path, root: Path, videos: dict[str, str], *, batch_s
     return out
 
 
-def best_threshold(predicted: dict, held: Labels, thresholds=np.arange(0.05, 0.96, 0.05)) -> tuple[float, float]:
+def best_threshold(predicted: dict, held: Labels, thresholds=SCORE_THRESHOLDS) -> tuple[float, float]:
     """The score threshold with the best F1 at IoU >= 0.5 on the held-out frames, and that F1."""
-    best = (0.5, -1.0)
-    for t in thresholds:
-        tp = fp = fn = 0
-        for video, frames in held.items():
-            for k, truth in frames.items():
-                boxes, scores = predicted[video][k]
-                boxes = boxes[scores >= t]
-                matched = 0
-                if len(boxes) and len(truth):
-                    iou = box_iou(torch.as_tensor(fmt.xywh_to_xyxy(boxes)),
-                                  torch.as_tensor(fmt.xywh_to_xyxy(truth))).numpy()
-                    rows, cols = linear_sum_assignment(-iou)
-                    matched = int((iou[rows, cols] >= 0.5).sum())
-                tp, fp, fn = tp + matched, fp + len(boxes) - matched, fn + len(truth) - matched
-        f1 = 2 * tp / max(1, 2 * tp + fp + fn)
-        if f1 > best[1]:
-            best = (float(t), f1)
-    return best
+    frames = [(fmt.xywh_to_xyxy(truth), fmt.xywh_to_xyxy(predicted[video][k][0]), predicted[video][k][1])
+              for video, held_frames in held.items() for k, truth in held_frames.items()]
+    score, (f1, _, _) = best_score(frames, thresholds)
+    return score, f1
 
 
 def quality(held: Labels, method: dict, height: int, width: int) -> dict:

@@ -30,13 +30,13 @@ from dagr_lite.apps.cli import hydra_command
 from dagr_lite.config import ConfigError, build_dataset, resolve_config
 from dagr_lite.data import format as fmt
 from dagr_lite.data.dataset import EventEgoHands, Sample
-from dagr_lite.engine.checkpoint import load_checkpoint
 from dagr_lite.engine.loading import make_loader
 from dagr_lite.engine.runs import resolve_device
 from dagr_lite.data.writer import write_text_atomically
-from dagr_lite.engine.checkpoint import SAMPLE_KEYS, load_model, override, trained_sample
+from dagr_lite.engine.checkpoint import SAMPLE_KEYS, Checkpoint, load_checkpoint, load_model, override
+from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.eval.score import score_entries, score_model
-from dagr_lite.nn.detector import Detector, DetectorConfig
+from dagr_lite.nn.detector import Detector
 from dagr_lite.nn.head import box_iou
 from dagr_lite.stream import StreamingDetector
 
@@ -110,9 +110,7 @@ def streamed_detections(model: Detector, dataset: EventEgoHands, frames: list[tu
         boxes, t_end = point_truth(dataset, v, k, fraction)
         image_frame = k - age
         t_image = dataset.frame_time_us(v, image_frame)
-        stream = StreamingDetector(model, window_us=dataset.window_us, context_us=dataset.context_us,
-                                   refractory_us=dataset.refractory_us, conf_threshold=conf_threshold,
-                                   nms_threshold=nms_threshold)
+        stream = StreamingDetector(model, dataset.sample, OperatingPoint(score=conf_threshold, nms_iou=nms_threshold))
         t_begin = min(t_image, t_end) - dataset.window_us - dataset.context_us - dataset.refractory_us
         events = dataset.events_of(v, max(t_begin, 0), t_end)
         edges = sorted({*range(t_begin, t_end, chunk_us), t_image, t_end})
@@ -181,28 +179,14 @@ def score_point(cfg: DictConfig, model, dataset: EventEgoHands, frames: list[tup
 OVERRIDABLE = tuple(key for key in SAMPLE_KEYS if key != "image_age")
 
 
-def read_checkpoint(path: str) -> dict:
-    """A checkpoint the sweep can score: readable, of this format, with a model and a sample it
-    can rebuild (else an error naming ``path``)."""
-    state = load_checkpoint(path)
-    try:
-        DetectorConfig.from_dict(state["detector"])
-        trained_sample(state)
-    except (KeyError, TypeError, ValueError) as err:
-        raise ValueError(f"{path}: its model or sample settings cannot be read ({err})") from err
-    return state
-
-
-def sweep_checkpoint(cfg: DictConfig, path: str, state: dict, frames: list[tuple[int, int]] | None,
+def sweep_checkpoint(cfg: DictConfig, checkpoint: Checkpoint, frames: list[tuple[int, int]] | None,
                      device: torch.device) -> tuple[list[dict], list[tuple[int, int]], dict]:
     """The rows of one checkpoint at every sweep point, with its own data settings (image age
     aside) unless ``data.*`` overrides them; the frames are found on first use and shared by
-    every later checkpoint. Also returns the overrides (``{"data.key": {"checkpoint", "used"}}``).
-    ``state``: the checkpoint at ``path``, already read (:func:`read_checkpoint`)."""
-    detector = DetectorConfig.from_dict(state["detector"])
-    trained = state["config"]
+    every later checkpoint. Also returns the overrides (``{"data.key": {"checkpoint", "used"}}``)."""
+    detector, path = checkpoint.detector, str(checkpoint.path)
     overrides: dict = {}
-    data = trained_sample(state)
+    data = checkpoint.sample_settings
     data.update({key: override("data", key, data[key], cfg.data.get(key), overrides) for key in OVERRIDABLE})
     run_cfg = OmegaConf.merge(cfg, {"data": data})
     largest = max(cfg.ages)
@@ -216,8 +200,8 @@ def sweep_checkpoint(cfg: DictConfig, path: str, state: dict, frames: list[tuple
             held = f"its videos have {min(lengths)} to {max(lengths)} frames" if lengths else "it has no video"
             raise ConfigError(f"no label frame k >= {largest} (the largest of ages={list(cfg.ages)}){paired} in split "
                               f"{cfg.split}: {held}; give smaller ages")
-    model = load_model(state, detector, dataset.image_size, path).to(device)
-    name = (trained["model"]["name"] + (" (grey image)" if cfg.blank_image else "")
+    model = load_model(checkpoint, detector, dataset.image_size).to(device)
+    name = (checkpoint.model_name + (" (grey image)" if cfg.blank_image else "")
             + (" (streaming)" if cfg.stream else ""))
     changed = "".join(f", {key}={value['used']} (trained with {value['checkpoint']})" for key, value in overrides.items())
     print(f"{path}: {name}, {len(frames)} label frames of {cfg.split}{changed}", flush=True)
@@ -257,12 +241,12 @@ def sweep(cfg: DictConfig) -> dict:
     out = Path(cfg.out)
     device = resolve_device(cfg.device)
     rows, frames, overrides = [], None, {}
-    states = [read_checkpoint(path) for path in cfg.ckpt]  # every one, before any is scored
-    for path, state in zip(cfg.ckpt, states):
-        ckpt_rows, frames, changed = sweep_checkpoint(cfg, path, state, frames, device)
+    checkpoints = [load_checkpoint(path) for path in cfg.ckpt]  # every one, before any is scored
+    for checkpoint in checkpoints:
+        ckpt_rows, frames, changed = sweep_checkpoint(cfg, checkpoint, frames, device)
         rows += ckpt_rows
         if changed:
-            overrides[str(path)] = changed
+            overrides[str(checkpoint.path)] = changed
     out.mkdir(parents=True, exist_ok=True)  # only once there is something to write
     write_results(out, rows, split=cfg.split, between=cfg.between, blank_image=cfg.blank_image, overrides=overrides,
                   stream=cfg.stream)

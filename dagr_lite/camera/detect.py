@@ -247,7 +247,8 @@ class _Runner:
                   "real_time_factor": span_s / self.busy_s if self.busy_s else None,
                   "answers": self.output.answers, "latency_ms_median": 1e3 * float(np.median(latency)),
                   "latency_ms_p95": 1e3 * float(np.percentile(latency, 95)),
-                  "video": None if video_path is None else str(video_path)}
+                  "video": None if video_path is None else str(video_path),
+                  "operating_point": self.stream.operating.as_dict()}
         if getattr(source, "order", None) is not None:
             result["out_of_order_events_sorted"] = source.order.out_of_order
         if getattr(source, "stats", None) is not None:

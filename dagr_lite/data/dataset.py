@@ -21,6 +21,7 @@ from dagr_lite.data import format as fmt
 from dagr_lite.data.errors import DatasetFormatError, Problem
 from dagr_lite.data.events import EventFile
 from dagr_lite.data.frames import frame_header_problems, list_frames, read_frame
+from dagr_lite.data.spec import SampleSpec
 from dagr_lite.data.labels import box_problems, list_videos, read_labels
 
 # At most this many frame problems are listed when the dataset refuses to open.
@@ -280,6 +281,12 @@ class EventEgoHands(Dataset):
         self._sample_video = np.concatenate(sample_video) if sample_video else np.zeros(0, np.int64)
         self._sample_frame = np.concatenate(sample_frame) if sample_frame else np.zeros(0, np.int64)
 
+
+    @property
+    def sample(self) -> SampleSpec:
+        """What each sample's events are (the streaming detector reads the same)."""
+        return SampleSpec(window_us=self.window_us, context_us=self.context_us, refractory_us=self.refractory_us,
+                          max_events=self.max_events, event_picture=self.event_picture)
     def _open_video(self, video: str, labels: dict[int, np.ndarray], clip_boxes: bool):
         frames_dir = fmt.frames_dir(self.root, self.split, video)
         frames = list_frames(frames_dir)

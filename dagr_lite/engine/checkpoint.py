@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -12,7 +13,10 @@ from omegaconf import DictConfig
 
 from dagr_lite.config import ConfigError
 from dagr_lite.data.dataset import EventEgoHands
+from dagr_lite.data.spec import SampleSpec
 from dagr_lite.data.writer import temporary_name
+from dagr_lite.engine.state import STATE_KEYS
+from dagr_lite.eval.operating import UNMEASURED, OperatingPoint
 from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.detector import Detector, DetectorConfig
 
@@ -34,8 +38,10 @@ def save_checkpoint(path: Path, state: dict) -> None:
         raise OSError(f"{path}: the checkpoint could not be written ({err}){kept}") from err
 
 
-def load_checkpoint(path: Path | str) -> dict:
-    """Load a checkpoint safely (``weights_only``); a missing or foreign file gives a clear error."""
+def load_checkpoint(path: Path | str) -> "Checkpoint":
+    """Read a checkpoint safely (``weights_only``): the one place a checkpoint's raw contents are
+    read, and where an older one is upgraded (:func:`upgrade`). A missing, foreign or unreadable
+    file is an error naming it."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: checkpoint file is missing")
@@ -49,19 +55,91 @@ def load_checkpoint(path: Path | str) -> dict:
         raise ValueError(f"{path}: a checkpoint of format {state.get('format')}, but this dagr_lite reads format "
                          f"{CHECKPOINT_FORMAT} (it records the model's architecture and event graph); "
                          "train the model again with this version")
-    return state
+    state = upgrade(state)
+    try:
+        detector = DetectorConfig.from_dict(state["detector"])
+        data = state["config"]["data"]
+        sample, image_age = SampleSpec.from_dict(data), int(data["image_age"])
+        operating = OperatingPoint.from_dict(state["operating"])
+        weights = state["ema"]["module"] if state.get("ema") else state["model"]
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"{path}: its model, sample or operating point cannot be read ({err})") from err
+    training = {key: state[key] for key in (*STATE_KEYS, "position", "world_size", "global_batch_size") if key in state}
+    return Checkpoint(path=path, detector=detector, sample=sample, image_age=image_age, operating=operating,
+                      config=state["config"], weights=weights, training=training)
 
 
-# The data settings that define a model's input: taken from the checkpoint unless overridden.
-SAMPLE_KEYS = ("image_age", "window_us", "context_us", "refractory_us", "max_events", "event_picture")
-# Sample keys newer than some checkpoints, with the value that gives those checkpoints' samples.
+# Keys newer than some checkpoints of this format, with the values that give those checkpoints'
+# models and samples: an older checkpoint is read as what it was trained as.
+DETECTOR_ADDED_LATER = {"event_head_weight": 0.0, "image_stem": "conv", "late_query": False, "geometry": False}
 SAMPLE_ADDED_LATER = {"refractory_us": 0, "event_picture": False}
 
 
-def trained_sample(state: dict) -> dict:
-    """The sample settings a checkpoint was trained with (keys added later at their old value)."""
-    return {**SAMPLE_ADDED_LATER, **{key: state["config"]["data"][key] for key in SAMPLE_KEYS
-                                     if key in state["config"]["data"]}}
+def upgrade(state: dict) -> dict:
+    """A raw checkpoint of this format with every key added since filled in: the detector's and
+    the sample's at the values it was trained with, an operating point (:data:`UNMEASURED`) when
+    it was trained before points were chosen."""
+    state = dict(state)
+    if isinstance(state.get("detector"), dict):
+        state["detector"] = upgraded_detector(state["detector"])
+    config = state.get("config")
+    if isinstance(config, dict) and isinstance(config.get("data"), dict):
+        state["config"] = {**config, "data": {**SAMPLE_ADDED_LATER, **config["data"]}}
+    if state.get("operating") is None:
+        state["operating"] = UNMEASURED.as_dict()
+    return state
+
+
+def upgraded_detector(values: dict) -> dict:
+    """A saved detector config with the keys added since at the values that rebuild its model."""
+    return {**DETECTOR_ADDED_LATER, **values}
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """A training checkpoint, read (:func:`load_checkpoint`).
+
+    Attributes:
+        path: the file it was read from.
+        detector: the model's architecture and event graph; ``sample``: what one sample's events
+            are; ``image_age``: the image age it was validated at first (evaluation's default).
+        operating: the score threshold and NMS IoU a deployed detector answers with.
+        config: the training run's resolved config (read-only: the model's name, the recipe).
+        weights: the EMA weights, the ones validated and deployed.
+        training: what resuming needs: the training state (:class:`~dagr_lite.engine.state.TrainState`),
+            ``position`` in the data, ``world_size`` and ``global_batch_size``.
+    """
+
+    path: Path
+    detector: DetectorConfig
+    sample: SampleSpec
+    image_age: int
+    operating: OperatingPoint
+    config: dict
+    weights: dict
+    training: dict
+
+    @property
+    def model_name(self) -> str:
+        return str((self.config.get("model") or {}).get("name", "a model"))
+
+    @property
+    def sample_settings(self) -> dict:
+        """The data settings of its sample: ``image_age`` and every :class:`SampleSpec` key."""
+        return {"image_age": self.image_age, **self.sample.as_dict()}
+
+    def model(self, detector: DetectorConfig | None = None) -> Detector:
+        """Its detector (or ``detector``, e.g. at another input size) with its EMA weights."""
+        model = Detector(detector or self.detector)
+        try:
+            model.load_state_dict(self.weights)
+        except RuntimeError as err:
+            raise ValueError(f"{self.path}: its weights do not fit the model its config describes ({err})") from err
+        return model
+
+
+# The data settings that define a model's input: taken from the checkpoint unless overridden.
+SAMPLE_KEYS = ("image_age", *SampleSpec.keys())
 
 
 def override(section: str, key: str, trained, given, overrides: dict):
@@ -73,12 +151,12 @@ def override(section: str, key: str, trained, given, overrides: dict):
     return given
 
 
-def settings(cfg: DictConfig, state: dict) -> tuple[dict, DetectorConfig, dict]:
-    """The data settings, the detector and the overrides of an evaluation of checkpoint ``state``."""
-    trained_data = trained_sample(state)
-    detector = DetectorConfig.from_dict(state["detector"])
+def settings(cfg: DictConfig, checkpoint: "Checkpoint") -> tuple[dict, DetectorConfig, dict]:
+    """The data settings, the detector and the overrides of an evaluation of ``checkpoint``."""
+    detector = checkpoint.detector
     overrides: dict = {}
-    data = {key: override("data", key, trained_data[key], cfg.data[key], overrides) for key in SAMPLE_KEYS}
+    data = {key: override("data", key, trained, cfg.data[key], overrides)
+            for key, trained in checkpoint.sample_settings.items()}
     given_graph = {key: value for key, value in cfg.graph.items() if value is not None}
     if given_graph and detector.graph is None:
         raise ConfigError(f"{cfg.ckpt}: graph.{next(iter(given_graph))}={next(iter(given_graph.values()))!r} "
@@ -94,18 +172,13 @@ def settings(cfg: DictConfig, state: dict) -> tuple[dict, DetectorConfig, dict]:
     return data, dataclasses.replace(detector, graph=graph), overrides
 
 
-def load_model(state: dict, detector: DetectorConfig, image_size: tuple[int, int], ckpt: str) -> Detector:
-    """The checkpoint's EMA weights in the detector it describes; frames of another size are refused."""
+def load_model(checkpoint: Checkpoint, detector: DetectorConfig, image_size: tuple[int, int]) -> Detector:
+    """The checkpoint's EMA weights in ``detector``; frames of another size are refused."""
     if (detector.height, detector.width) != tuple(image_size):
-        raise ConfigError(f"{ckpt}: the model was trained on {detector.width}x{detector.height} frames, but the "
-                          f"dataset's frames are {image_size[1]}x{image_size[0]}; evaluate it on data of its size, "
-                          "or give model_size=data to run its weights at the data's size")
-    model = Detector(detector)
-    try:
-        model.load_state_dict(state["ema"]["module"])
-    except RuntimeError as err:
-        raise ValueError(f"{ckpt}: its weights do not fit the model its config describes ({err})") from err
-    return model
+        raise ConfigError(f"{checkpoint.path}: the model was trained on {detector.width}x{detector.height} frames, "
+                          f"but the dataset's frames are {image_size[1]}x{image_size[0]}; evaluate it on data of its "
+                          "size, or give model_size=data to run its weights at the data's size")
+    return checkpoint.model(detector)
 
 
 MODEL_SIZES = ("checkpoint", "data")

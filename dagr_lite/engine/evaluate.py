@@ -24,8 +24,8 @@ from dagr_lite.eval.score import save_pictures, score_model
 def evaluate(cfg: DictConfig) -> dict:
     """Score a checkpoint's EMA weights on ``cfg.split``; writes ``metrics.json`` and ``detections.json``."""
     cfg = resolve_config(cfg)
-    state = load_checkpoint(cfg.ckpt)
-    data, detector, overrides = settings(cfg, state)
+    checkpoint = load_checkpoint(cfg.ckpt)
+    data, detector, overrides = settings(cfg, checkpoint)
     cfg = OmegaConf.merge(cfg, {"data": data})
     check_values(cfg)
     if cfg.model_size not in MODEL_SIZES:
@@ -38,7 +38,7 @@ def evaluate(cfg: DictConfig) -> dict:
     dataset = build_dataset(cfg, cfg.split, train=False, with_image=detector.use_image)
     print(describe_dataset(dataset), flush=True)
     detector = at_model_size(cfg.model_size, detector, dataset.image_size, overrides)
-    model = load_model(state, detector, dataset.image_size, cfg.ckpt).to(device)
+    model = load_model(checkpoint, detector, dataset.image_size).to(device)
     loader = make_loader(dataset, batch_size=cfg.loader.batch_size, num_workers=cfg.loader.num_workers,
                          graph=model.graph_spec, worker_nice=cfg.loader.worker_nice)
     metrics, evaluator = score_model(model, loader, device, backend=cfg.eval.backend,

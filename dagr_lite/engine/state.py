@@ -17,7 +17,8 @@ from torch.utils.data import DataLoader
 
 from dagr_lite.data.collate import Batch
 from dagr_lite.engine.schedule import ModelEMA, warmup_cosine
-from dagr_lite.eval.score import detections_of, score_entries
+from dagr_lite.eval.operating import CANDIDATE_SCORE, NMS_IOUS
+from dagr_lite.eval.score import detection_sets, score_entries
 from dagr_lite.nn.detector import Detector
 
 STATE_KEYS = ("model", "ema", "optimizer", "scheduler", "scaler", "step", "best_metric")
@@ -139,9 +140,20 @@ def validate(state: TrainState, loader: DataLoader, *, backend: str, conf_thresh
     rank's detections into those of every shard in the dataset's order, so every rank scores the
     whole split exactly as one process would.
     """
-    entries = detections_of(state.ema.module, loader, state.device, conf_threshold=conf_threshold,
-                            nms_threshold=nms_threshold, progress=progress, desc=f"validating at step {state.step}")
+    return validation_pass(state, loader, backend=backend, conf_threshold=conf_threshold, nms_threshold=nms_threshold,
+                           progress=progress, gather=gather)[0]
+
+
+def validation_pass(state: TrainState, loader: DataLoader, *, backend: str, conf_threshold: float,
+                    nms_threshold: float, progress: bool = True,
+                    gather: Callable[[list], list] | None = None) -> tuple[dict[str, float], dict[float, list]]:
+    """:func:`validate`'s metrics, and from the same forward passes the candidates of an operating
+    point: ``{NMS IoU: entries}`` for each IoU of :data:`~dagr_lite.eval.operating.NMS_IOUS`, boxes
+    of :data:`~dagr_lite.eval.operating.CANDIDATE_SCORE` or more."""
+    settings = {"coco": (conf_threshold, nms_threshold), **{iou: (CANDIDATE_SCORE, iou) for iou in NMS_IOUS}}
+    sets = detection_sets(state.ema.module, loader, state.device, settings, progress=progress,
+                          desc=f"validating at step {state.step}")
     if gather is not None:
-        entries = gather(entries)
-    metrics, _ = score_entries(entries, backend=backend)
-    return metrics
+        sets = {key: gather(entries) for key, entries in sets.items()}
+    metrics, _ = score_entries(sets.pop("coco"), backend=backend)
+    return metrics, sets

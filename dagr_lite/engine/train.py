@@ -32,8 +32,9 @@ from dagr_lite.engine.loading import EpochSampler, RunSampler, ShardSampler, mak
 from dagr_lite.engine.runs import resolve_device, run_folder, seed_everything, write_run_files
 from dagr_lite.engine.distributed import (Distributed, broadcast_object, cleanup, gather_objects, global_normaliser,
                                           mean_over_ranks, setup, synchronise_batch_norm)
-from dagr_lite.engine.state import TrainState, train_step, validate
+from dagr_lite.engine.state import TrainState, train_step, validation_pass
 from dagr_lite.eval.coco import METRIC_KEYS, format_metrics
+from dagr_lite.eval.operating import NMS_IOUS, OperatingPoint, choose_operating_point
 from dagr_lite.eval.score import render_sample
 from dagr_lite.nn.warm_start import warm_start
 
@@ -202,13 +203,12 @@ def resume(state: TrainState, path: str | Path, checkpoints: Path, place: Distri
     rank 0), so the new run holds its best weights even when it never beats them. Returns the
     checkpoint (its ``position`` says where in the data it stopped)."""
     saved = load_checkpoint(path)
-    ours = state.model.cfg.as_dict()
-    theirs = type(state.model.cfg).from_dict(saved["detector"]).as_dict()  # keys added later at their defaults
+    ours, theirs = state.model.cfg.as_dict(), saved.detector.as_dict()
     if theirs != ours:
         differ = ", ".join(f"{key}: {theirs[key]!r} in the checkpoint, {ours[key]!r} here"
                            for key in ours if theirs[key] != ours[key])
         raise ResumeError(f"resume={path}: the checkpoint's model does not fit this run's ({differ})")
-    state.load_state_dict(saved)
+    state.load_state_dict(saved.training)
     best = Path(path).parent / "best.pt"
     if best.is_file():
         if place.is_main and best.resolve() != (checkpoints / "best.pt").resolve():
@@ -217,7 +217,7 @@ def resume(state: TrainState, path: str | Path, checkpoints: Path, place: Distri
     else:
         state.best_metric = -math.inf  # nothing to carry: the first validation writes best.pt
     if place.is_main:
-        print(f"resumed from {path} at step {state.step} (it ran on {saved.get('world_size', 1)} processes)",
+        print(f"resumed from {path} at step {state.step} (it ran on {saved.training.get('world_size', 1)} processes)",
               flush=True)
     return saved
 
@@ -261,6 +261,7 @@ class TrainLoop:
         self.val_every = self.trainer.val_every or self.steps_per_epoch
         self.losses: list[float] = []
         self.metrics: dict | None = None
+        self.operating: OperatingPoint | None = None  # chosen at each validation, saved with the weights
         if position is None:  # a fresh run, or a checkpoint from before positions were saved
             epoch, start = divmod(state.step, self.steps_per_epoch)
             position = {"epoch": epoch, "offset": start * data.global_batch_size}
@@ -380,6 +381,7 @@ class TrainLoop:
 
     def checkpoint(self) -> dict:
         return {**self.state.state_dict(), "detector": self.state.model.cfg.as_dict(), "config": self.config,
+                "operating": None if self.operating is None else self.operating.as_dict(),
                 "world_size": self.place.world_size, "global_batch_size": self.data.global_batch_size,
                 "position": {"epoch": self.epoch, "offset": self.offset, **self.clock.position()}}
 
@@ -390,34 +392,49 @@ class TrainLoop:
         self.saved_at = time.monotonic()
 
     def save_and_validate(self) -> dict:
-        """Save ``last.pt`` first (a failing validation loses no training), then validate at each
-        validation age and keep ``best.pt`` when the mean mAP over those ages improves.
+        """Validate at each validation age, choose the operating point, then save ``last.pt`` (with
+        both) and ``best.pt`` when the mean mAP over the ages improves. A validation that fails
+        saves ``last.pt`` before the error goes on: no training is lost.
 
         The returned metrics are those of the first age (``data.image_age``), with ``mAP_age<a>``,
         ``AP50_age<a>`` for every age and their ``mAP_mean``.
         """
         state = self.state
-        self.save("last.pt")
-        trainer = self.trainer
-        gather = self.gather_shards if self.place.enabled else None
-        per_age = {age: validate(state, loader, backend=trainer.eval_backend, conf_threshold=trainer.conf_threshold,
-                                 nms_threshold=trainer.nms_threshold, progress=self.place.is_main, gather=gather)
-                   for age, loader in self.data.valid_loaders.items()}
-        metrics = dict(per_age[trainer.image_age])
+        try:
+            per_age, self.operating = self.validate_ages()
+        except BaseException:
+            self.save("last.pt")
+            raise
+        metrics = dict(per_age[self.trainer.image_age])
         for age, values in per_age.items():
             metrics.update({f"mAP_age{age}": values["mAP"], f"AP50_age{age}": values["AP50"]})
         metrics["mAP_mean"] = sum(values["mAP"] for values in per_age.values()) / len(per_age)
         for key in ("mAP", "AP50", "AP75", "mAP_mean", *(f"{m}_age{a}" for a in per_age for m in ("mAP", "AP50"))):
             self.writer.add_scalar(f"val/{key}", metrics[key], state.step)
-        if metrics["mAP_mean"] > state.best_metric or not (self.checkpoints / "best.pt").exists():
-            state.best_metric = max(state.best_metric, metrics["mAP_mean"])
+        improved = metrics["mAP_mean"] > state.best_metric or not (self.checkpoints / "best.pt").exists()
+        state.best_metric = max(state.best_metric, metrics["mAP_mean"])
+        self.save("last.pt")
+        if improved:
             self.save("best.pt")
-            self.save("last.pt")  # with the new best metric
         if self.place.is_main:
             ages = "  ".join(f"age {a}: mAP {v['mAP']:.4f} AP50 {v['AP50']:.4f}" for a, v in per_age.items())
-            print(f"step {state.step}: val {ages}", flush=True)
+            print(f"step {state.step}: val {ages}; operating point {self.operating.describe()}", flush=True)
         self.metrics = metrics
         return metrics
+
+    def validate_ages(self) -> tuple[dict[int, dict], OperatingPoint]:
+        """The EMA's COCO metrics at each validation age, and the operating point chosen over all of them."""
+        trainer = self.trainer
+        gather = self.gather_shards if self.place.enabled else None
+        per_age, candidates = {}, {iou: [] for iou in NMS_IOUS}
+        for age, loader in self.data.valid_loaders.items():
+            per_age[age], by_nms = validation_pass(
+                self.state, loader, backend=trainer.eval_backend, conf_threshold=trainer.conf_threshold,
+                nms_threshold=trainer.nms_threshold, progress=self.place.is_main, gather=gather)
+            for iou, entries in by_nms.items():
+                candidates[iou].extend(entries)
+        chosen_on = f"valid, image age {' and '.join(map(str, per_age))}"
+        return per_age, choose_operating_point(candidates, chosen_on=chosen_on)
 
     def gather_shards(self, entries: list) -> list:
         """Every rank's validation entries, back in the dataset's order (rank ``r`` holds samples
@@ -504,10 +521,9 @@ def start_from(model, path: str | Path, *, verbose: bool = True) -> dict:
     """Start ``model`` from the weights of checkpoint ``path`` (its EMA weights, the ones it was
     validated with) that fit, :func:`~dagr_lite.nn.warm_start.warm_start`."""
     saved = load_checkpoint(path)
-    report = warm_start(model, saved["ema"]["module"] if saved.get("ema") else saved["model"])
+    report = warm_start(model, saved.weights)
     if not report["copied"] and not report["widened"]:
-        source = ((saved.get("config") or {}).get("model") or {}).get("name", "another model")
-        raise ValueError(f"init_from={path}: no weight of that checkpoint ({source}) fits this model; "
+        raise ValueError(f"init_from={path}: no weight of that checkpoint ({saved.model_name}) fits this model; "
                          "nothing to start from")
     if verbose:
         print(f"init_from {path}: {len(report['copied'])} tensors copied, {len(report['widened'])} widened "
@@ -546,7 +562,7 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
     writer = SummaryWriter(str(run_dir / "tensorboard")) if place.is_main else NullWriter()
     try:
         loop = TrainLoop(trainer, OmegaConf.to_container(cfg, resolve=True), state, data, run_dir, writer, clock,
-                         position=saved.get("position") if saved else None)
+                         position=saved.training.get("position") if saved else None)
         metrics = loop.run()
     finally:
         if place.is_main:

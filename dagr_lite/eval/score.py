@@ -24,23 +24,34 @@ def score_model(model: nn.Module, loader: DataLoader, device: torch.device, *, b
     return score_entries(entries, backend=backend)
 
 
-@torch.no_grad()
 def detections_of(model: nn.Module, loader: DataLoader, device: torch.device, *, conf_threshold: float,
                   nms_threshold: float, progress: bool = True, desc: str = "evaluating") -> list[tuple]:
     """``(image name, height, width, true boxes, boxes, scores)`` of every sample of ``loader``, in
     its order (numpy arrays, xyxy): what :func:`score_entries` scores, and what ranks gather."""
+    return detection_sets(model, loader, device, {None: (conf_threshold, nms_threshold)}, progress=progress,
+                          desc=desc)[None]
+
+
+@torch.no_grad()
+def detection_sets(model: nn.Module, loader: DataLoader, device: torch.device, settings: dict, *,
+                   progress: bool = True, desc: str = "evaluating") -> dict:
+    """The entries of :func:`detections_of` under each of several ``settings`` ``{key: (score
+    threshold, NMS IoU)}``, from one pass of the model: ``{key: entries}``."""
     was_training = model.training
     model.eval()
-    entries = []
+    sets: dict = {key: [] for key in settings}
     for batch in tqdm(loader, desc=desc, leave=False, disable=not progress):
         batch = batch.to(device)
-        detections = model(batch, conf_threshold=conf_threshold, nms_threshold=nms_threshold)
+        raw, shapes, _ = model.outputs(batch)
         height, width = batch.images.shape[-2:]
-        for b, det in enumerate(detections):
-            entries.append((fmt.label_key(batch.videos[b], int(batch.frames[b])), int(height), int(width),
-                            batch.boxes[b].cpu().numpy(), det["boxes"].cpu().numpy(), det["scores"].cpu().numpy()))
+        names = [fmt.label_key(batch.videos[b], int(batch.frames[b])) for b in range(len(batch))]
+        truth = [batch.boxes[b].cpu().numpy() for b in range(len(batch))]
+        for key, (conf_threshold, nms_threshold) in settings.items():
+            detections = model.detections(raw, shapes, conf_threshold=conf_threshold, nms_threshold=nms_threshold)
+            sets[key].extend((names[b], int(height), int(width), truth[b], det["boxes"].cpu().numpy(),
+                              det["scores"].cpu().numpy()) for b, det in enumerate(detections))
     model.train(was_training)
-    return entries
+    return sets
 
 
 def score_entries(entries: list[tuple], *, backend: str) -> tuple[dict, CocoEvaluator]:

@@ -28,7 +28,7 @@ from dagr_lite.graph.pool import recency_maps
 from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.blocks import conv_bn_act
 from dagr_lite.nn.event_branch import EventBranch
-from dagr_lite.nn.head import YOLOXHead, postprocess, yolox_losses
+from dagr_lite.nn.head import TowerCache, YOLOXHead, block_rows, postprocess, yolox_losses
 
 
 class _Residual(nn.Module):
@@ -192,9 +192,9 @@ class DetectorConfig:
     @classmethod
     def from_dict(cls, values: dict) -> "DetectorConfig":
         """The config of :meth:`as_dict`'s output; a missing or unknown key is an error naming it
-        (keys added later, such as ``event_head_weight``, take their default when missing)."""
+        (a checkpoint's config from before a key was added is upgraded where checkpoints are read,
+        :func:`dagr_lite.engine.checkpoint.upgrade`)."""
         names = {f.name for f in fields(cls)}
-        values = {**_ADDED_LATER, **values}
         if set(values) != names:
             missing, unknown = sorted(names - set(values)), sorted(set(values) - names)
             raise ValueError(f"detector config: missing keys {missing}, unknown keys {unknown}")
@@ -203,9 +203,6 @@ class DetectorConfig:
                       "recency_us": tuple(values["recency_us"]),
                       "graph": None if graph is None else EventGraphSpec.from_dict(dict(graph))})
 
-
-# Config keys newer than some checkpoints, with the value that gives those checkpoints' models.
-_ADDED_LATER = {"event_head_weight": 0.0, "image_stem": "conv", "late_query": False, "geometry": False}
 
 
 class Detector(nn.Module):
@@ -345,6 +342,16 @@ class Detector(nn.Module):
         parts = [image_map, event_map] if age_plane is None else [image_map, event_map, age_plane]
         return self.fuse[i](torch.cat(parts, dim=1))
 
+    def fuse_rows(self, i: int, image_rows: torch.Tensor, event_rows: torch.Tensor) -> torch.Tensor:
+        """:meth:`fuse_at` at some cells: rows ``(n, C)`` of the image and event maps (no age plane)."""
+        return block_rows(self.fuse[i], torch.cat([image_rows, event_rows], dim=1))
+
+    def tower_cache(self) -> TowerCache:
+        """The head over a stream of event maps, recomputed where they change (``late_query``)."""
+        if self.image is None:
+            return TowerCache(self.head)
+        return TowerCache(self.head, fuse_map=self.fuse_at, fuse_rows=self.fuse_rows)
+
     def event_node_features(self, batch: Batch) -> torch.Tensor:
         """``(N, C)`` features of the batch's event nodes after the event branch's first stage."""
         if self.events is None:
@@ -406,8 +413,7 @@ class Detector(nn.Module):
         ``nms_threshold`` (``eval.*`` in ``conf/``)."""
         if not self.training and (conf_threshold is None or nms_threshold is None):
             raise TypeError("Detector in evaluation mode needs conf_threshold= and nms_threshold= (eval.* in conf/)")
-        maps, query, image_inputs, event_inputs = self._features(batch, image=image)
-        raw, shapes = self.head(maps, query, image_inputs)
+        raw, shapes, event_inputs = self.outputs(batch, image=image)
         if self.training:
             out = yolox_losses(raw, shapes, self.strides, batch.boxes, batch.labels, normaliser=self.loss_normaliser)
             if self.event_head is not None:
@@ -417,5 +423,16 @@ class Detector(nn.Module):
                 out["loss"] = out["loss"] + self.cfg.event_head_weight * events["loss"]
                 out["event_head_loss"] = events["loss"].detach()
             return out
+        return self.detections(raw, shapes, conf_threshold=conf_threshold, nms_threshold=nms_threshold)
+
+    def outputs(self, batch: Batch, *, image: bool = True) -> tuple[torch.Tensor, list[tuple[int, int]], tuple]:
+        """The head's raw output ``(B, A, 5 + classes)``, its map shapes, and the event head's inputs."""
+        maps, query, image_inputs, event_inputs = self._features(batch, image=image)
+        raw, shapes = self.head(maps, query, image_inputs)
+        return raw, shapes, event_inputs
+
+    def detections(self, raw: torch.Tensor, shapes: list[tuple[int, int]], *, conf_threshold: float,
+                   nms_threshold: float) -> list[dict]:
+        """The boxes of :meth:`outputs` of ``conf_threshold`` or more, after NMS at ``nms_threshold``."""
         return postprocess(raw, shapes, self.strides, conf_threshold=conf_threshold, nms_threshold=nms_threshold,
                            image_size=(self.cfg.height, self.cfg.width))

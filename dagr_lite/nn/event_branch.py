@@ -110,6 +110,22 @@ class EventBranch(nn.Module):
             width_in = (in_features if level == 0 else channels[level - 1]) + self.image_channels[level]
             self.stages.append(nn.ModuleList(GCNBlock(width_in if b == 0 else out, out) for b in range(blocks)))
 
+    @property
+    def first_stage(self) -> nn.ModuleList:
+        """The first stage's GCN blocks, over the event nodes (before any pooling)."""
+        return self.stages[0]
+
+    @property
+    def first_stage_widths(self) -> list[int]:
+        """The width of the first stage's input, then of each of its blocks' outputs."""
+        return [self.first_stage[0].conv.in_channels, *(block.conv.out_channels for block in self.first_stage)]
+
+    def maps_from_first_pool(self, first: PooledGraph, image_sampler: ImageSampler | None = None
+                             ) -> list[torch.Tensor]:
+        """The dense maps of one sample whose first pooled graph is known (the streaming detector
+        keeps it up to date as nodes arrive): :meth:`pooled_maps` from there."""
+        return self.pooled_maps(None, None, None, None, 1, image_sampler, first=first)
+
     def node_features(self, events: torch.Tensor, pos: torch.Tensor | None = None,
                       edge_index: torch.Tensor | None = None, first: int = 0) -> torch.Tensor:
         """``(N, 3)`` polarity in {-1, 1}, x / W, y / H; with ``geometry`` then the ten columns of

@@ -298,3 +298,176 @@ def postprocess(raw: torch.Tensor, shapes: list[tuple[int, int]], strides: list[
         kept = nms(bx, sc, nms_threshold, lb)[:max_detections]
         results.append({"boxes": bx[kept], "scores": sc[kept], "labels": lb[kept]})
     return results
+
+
+# ------------------------------------------------------------------ incremental computation
+# Rows: a map channels-last, ``(h w, C)``, cells row-major. A 1x1 or 3x3 convolution applies to rows
+# as a matrix product with its weight laid out ``(C_out, row, column, C_in)``.
+
+def conv_rows(conv: nn.Conv2d) -> torch.Tensor:
+    """The weight of ``conv`` as a matrix over rows: ``(C_out, k k C_in)``."""
+    return conv.weight.permute(0, 2, 3, 1).reshape(conv.out_channels, -1)
+
+
+def norm_act_rows(block: nn.Sequential, y: torch.Tensor) -> torch.Tensor:
+    """A :func:`~dagr_lite.nn.blocks.conv_bn_act` block's batch norm (evaluation mode) and
+    activation on rows ``y (n, C)`` of its convolution's output."""
+    _, bn, act = block
+    return act(F.batch_norm(y, bn.running_mean, bn.running_var, bn.weight, bn.bias, False, 0.0, bn.eps))
+
+
+def block_rows(block: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+    """A 1x1 :func:`~dagr_lite.nn.blocks.conv_bn_act` block on rows ``x (n, C_in)``."""
+    return norm_act_rows(block, x @ conv_rows(block[0]).T)
+
+
+def flat_map(x: torch.Tensor) -> torch.Tensor:
+    """``(1, C, h, w) -> (h w, C)``, cells row-major (a map channels-last)."""
+    return x[0].permute(1, 2, 0).reshape(-1, x.shape[1])
+
+
+def grow(mask: torch.Tensor) -> torch.Tensor:
+    """``mask (h, w)`` bool grown by one cell in each direction (its 3x3 neighbourhoods)."""
+    return F.max_pool2d(mask[None, None].to(torch.float32), 3, stride=1, padding=1)[0, 0] > 0
+
+
+_OFFSETS: dict[int, torch.Tensor] = {}  # per padded map width: the flat offsets of a 3x3 neighbourhood
+
+
+def conv3x3_at(padded: torch.Tensor, width: int, weight: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+    """A 3x3 convolution ("same" padding, no bias) at some cells of a map, from the map zero-padded
+    by one cell and flattened channels-last, ``padded ((h + 2) (w + 2), C)``: ``cells (n,)`` are
+    indices into it (``(row + 1) (w + 2) + column + 1``), ``weight (C_out, 3 3 C)`` the convolution's
+    weight as :func:`conv_rows` lays it out. Returns ``(n, C_out)``."""
+    offsets = _OFFSETS.get(width)
+    if offsets is None:
+        offsets = _OFFSETS[width] = torch.tensor([dy * (width + 2) + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
+    patches = padded[(cells[:, None] + offsets.to(cells.device)[None, :]).reshape(-1)].reshape(len(cells), -1)
+    return patches @ weight.T
+
+
+class TowerCache:
+    """A :class:`YOLOXHead` whose query maps enter after its towers (``late_channels``) over a
+    stream of event maps, its towers recomputed only where the maps changed.
+
+    Nothing before the towers' outputs depends on the query time: a cell's fused input changes
+    only where its event map does, a first tower layer's output within one cell of such a cell,
+    the second layer's within two. :meth:`update` compares the new event maps with the last ones
+    (exact equality), runs the pointwise fusion and stem at the changed cells and each 3x3 layer at
+    the cells it can change, from the cached (zero-padded, channels-last) outputs of the layer
+    before; where that is most of a map, the whole map is run instead. A hybrid's image towers run
+    once per image. :meth:`answer` runs what reads the query maps, all 1x1 (the age gates, the late
+    layers and the predictions), over every cell from the cached tower outputs.
+
+    ``fuse_map(i, image_map, event_map)`` and ``fuse_rows(i, image_rows, event_rows)``: the
+    detector's fusion at stride ``i`` of maps and of rows (a hybrid's; None for events-only).
+    """
+
+    FULL_FRACTION = 0.5  # run the whole map when the cells to recompute are more than this share of it
+
+    def __init__(self, head: "YOLOXHead", fuse_map: Callable | None = None, fuse_rows: Callable | None = None):
+        if not head.late_channels:
+            raise ValueError("a tower cache needs a head whose query maps enter after its towers (late_query)")
+        self.head, self.fuse_map, self.fuse_rows = head, fuse_map, fuse_rows
+        self.event_maps: list[torch.Tensor] | None = None
+        self.image_towers: list[tuple[torch.Tensor, torch.Tensor]] | None = None  # flat, per stride
+        self.cache: list[dict] = []  # per stride: flat stem and tower outputs (the stem and first layers padded)
+        self.weights = [self._weights(i) for i in range(len(head.stems))]
+
+    def _weights(self, i: int) -> dict[str, torch.Tensor]:
+        """Stride ``i``'s weights as matrices over rows; a late layer's split by what it reads:
+        ``[tower, (gated image tower,) query maps]``."""
+        head = self.head
+        hidden = head.stems[i][0].out_channels
+        w = {}
+        for name, branch, late in (("cls", head.cls_branches[i], head.cls_late[i]),
+                                   ("reg", head.reg_branches[i], head.reg_late[i])):
+            w[name + "1"], w[name + "2"] = conv_rows(branch[0][0]), conv_rows(branch[1][0])
+            late_w = conv_rows(late[0])
+            towers = 2 * hidden if head.has_image else hidden
+            w[name + "_tower"], w[name + "_image"], w[name + "_query"] = \
+                late_w[:, :hidden], late_w[:, hidden:towers], late_w[:, towers:]
+        for name in ("reg", "obj", "cls"):
+            w[name + "_pred"] = conv_rows(getattr(head, name + "_preds")[i])
+        if head.has_image:
+            w["gate"] = conv_rows(head.gates[i])
+        return w
+
+    def update(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor]) -> None:
+        """Bring the towers up to the event maps ``(1, C, h, w)`` per stride (the image's are fixed)."""
+        if self.event_maps is None:
+            self.cache = [self._full(i, image_maps, event_maps) for i in range(len(event_maps))]
+            if self.head.has_image:  # once per image
+                self.image_towers = [tuple(flat_map(t) for t in self.head.image_towers(i, m))
+                                     for i, m in enumerate(image_maps[1:])]
+        else:
+            for i, (new, old) in enumerate(zip(event_maps, self.event_maps)):
+                if new is old:
+                    continue
+                changed = (new != old).any(dim=1)[0]  # (h, w)
+                if not changed.any():
+                    continue
+                near = grow(changed)
+                reach = grow(near)
+                if (image_maps is not None and image_maps[i + 1].shape[-2:] != new.shape[-2:]) or \
+                        int(reach.sum()) > self.FULL_FRACTION * reach.numel():
+                    self.cache[i] = self._full(i, image_maps, event_maps)
+                else:
+                    self._partial(i, new, changed, near, reach)
+        self.event_maps = list(event_maps)
+
+    def answer(self, query: list[torch.Tensor]) -> tuple[torch.Tensor, list[tuple[int, int]]]:
+        """The head's raw output ``(1, A, 5 + C)`` and map shapes for the query maps ``(1, q, h, w)``."""
+        head, outputs, shapes, linear = self.head, [], [], F.linear
+        for i, (cache, q) in enumerate(zip(self.cache, query)):
+            w, q = self.weights[i], flat_map(q)
+            cls = cache["cls2"] @ w["cls_tower"].T + q @ w["cls_query"].T
+            reg = cache["reg2"] @ w["reg_tower"].T + q @ w["reg_query"].T
+            if head.has_image:  # the image towers, scaled by the age's gates (one age at every cell)
+                gate = linear(q[:1, -1:], w["gate"], head.gates[i].bias)
+                cls_gate, reg_gate = (2 * torch.sigmoid(gate)).chunk(2, dim=1)
+                cls = cls + (self.image_towers[i][0] * cls_gate) @ w["cls_image"].T
+                reg = reg + (self.image_towers[i][1] * reg_gate) @ w["reg_image"].T
+            cls, reg = norm_act_rows(head.cls_late[i], cls), norm_act_rows(head.reg_late[i], reg)
+            outputs.append(torch.cat([linear(reg, w["reg_pred"], head.reg_preds[i].bias),
+                                      linear(reg, w["obj_pred"], head.obj_preds[i].bias),
+                                      linear(cls, w["cls_pred"], head.cls_preds[i].bias)], dim=1))  # (h w, 5 + C)
+            shapes.append(cache["shape"])
+        return torch.cat(outputs)[None], shapes
+
+    def _full(self, i: int, image_maps, event_maps) -> dict:
+        head = self.head
+        fused = event_maps[i] if image_maps is None else self.fuse_map(i, image_maps[i + 1], event_maps[i])
+        stem = head.stems[i](fused)
+        h, wd = stem.shape[-2:]
+        cache = {"shape": (h, wd), "width": wd,
+                 "image": None if image_maps is None else flat_map(image_maps[i + 1]),
+                 "stem": flat_map(F.pad(stem, (1, 1, 1, 1)))}
+        for name, branch in (("cls", head.cls_branches[i]), ("reg", head.reg_branches[i])):
+            first = branch[0](stem)
+            cache[name + "1"] = flat_map(F.pad(first, (1, 1, 1, 1)))
+            cache[name + "2"] = flat_map(branch[1](first))
+        return cache
+
+    def _partial(self, i: int, event_map: torch.Tensor, changed: torch.Tensor, near: torch.Tensor,
+                 reach: torch.Tensor) -> None:
+        """Recompute the stem at the ``changed`` cells, the towers' first layers at the cells ``near``
+        them (one cell away at most) and their second layers within ``reach`` (two)."""
+        head, cache, w = self.head, self.cache[i], self.weights[i]
+        width = cache["width"]
+
+        def cells(mask):
+            flat = torch.nonzero(mask.flatten()).flatten()  # row-major cell indices
+            return flat, (flat // width + 1) * (width + 2) + flat % width + 1  # and in the padded map
+        flat, padded = cells(changed)
+        x = event_map[0].reshape(event_map.shape[1], -1).index_select(1, flat).T  # (n, C)
+        if cache["image"] is not None:
+            x = self.fuse_rows(i, cache["image"][flat], x)
+        cache["stem"][padded] = block_rows(head.stems[i], x)
+        _, padded = cells(near)
+        for name, branch in (("cls", head.cls_branches[i]), ("reg", head.reg_branches[i])):
+            cache[name + "1"][padded] = norm_act_rows(branch[0], conv3x3_at(cache["stem"], width, w[name + "1"], padded))
+        flat, padded = cells(reach)
+        for name, branch in (("cls", head.cls_branches[i]), ("reg", head.reg_branches[i])):
+            cache[name + "2"][flat] = norm_act_rows(branch[1], conv3x3_at(cache[name + "1"], width, w[name + "2"],
+                                                                          padded))

@@ -9,12 +9,10 @@ from omegaconf import OmegaConf
 from scipy.optimize import linear_sum_assignment
 
 from dagr_lite.config import build_dataset, compose_config
-from dagr_lite.engine.checkpoint import load_checkpoint
 from dagr_lite.engine.loading import make_loader
-from dagr_lite.engine.checkpoint import load_model, trained_sample
+from dagr_lite.engine.checkpoint import load_checkpoint, load_model
 from dagr_lite.eval.score import detections_of
 from dagr_lite.apps.sweep import SweepSamples, streamed_detections, sweep_frames
-from dagr_lite.nn.detector import DetectorConfig
 
 AGES = (1, 3, 10)
 
@@ -32,14 +30,14 @@ def pair_detections(boxes: np.ndarray, scores: np.ndarray, other_boxes: np.ndarr
 @pytest.mark.parametrize("variant,refractory_us", [("hybrid", 0), ("events_only", 0), ("hybrid", 2_000)])
 def test_the_streaming_detector_answers_what_the_sweep_scores(trained_checkpoints, variant, refractory_us, tmp_path):
     checkpoints = trained_checkpoints
-    state = load_checkpoint(checkpoints[variant])
-    detector = DetectorConfig.from_dict(state["detector"])
-    data = {**trained_sample(state), "refractory_us": refractory_us}
+    checkpoint = load_checkpoint(checkpoints[variant])
+    detector = checkpoint.detector
+    data = {**checkpoint.sample_settings, "refractory_us": refractory_us}
     cfg = OmegaConf.merge(compose_config("sweep", [f"ckpt=[{checkpoints[variant]}]", f"out={tmp_path}",
                                                    "split=valid", "loader.num_workers=0"]), {"data": data})
     dataset = build_dataset(cfg, "valid", train=False, with_image=detector.use_image, image_age=max(AGES),
                             first_frame=max(AGES))
-    model = load_model(state, detector, dataset.image_size, str(checkpoints[variant]))
+    model = load_model(checkpoint, detector, dataset.image_size)
     assert next(model.parameters()).dtype == torch.float32
     frames = sweep_frames(dataset, max(AGES), between=0)
     frames = [frames[i] for i in (0, 41, len(frames) - 1)]  # both videos, early and late frames

@@ -4,6 +4,7 @@ path on loopback receives every event it is sent."""
 from __future__ import annotations
 
 import json
+import math
 import socket
 import threading
 import time
@@ -18,9 +19,11 @@ from dagr_lite.camera.recording import concat, open_recording, take
 from dagr_lite.camera.sensor import Sensor, SensorError
 from dagr_lite.camera.udp import UdpSource, send
 from dagr_lite.data.collate import collate
-from dagr_lite.engine.checkpoint import load_checkpoint, trained_sample
+from dagr_lite.engine.checkpoint import load_checkpoint
 from dagr_lite.stream import StreamingDetector
-from tests.settings import EVAL, UDP, sample_set, video_settings
+from dagr_lite.eval.operating import NMS_IOUS, OperatingPoint
+from dagr_lite.nn.head import box_iou
+from tests.settings import EVAL, EVAL_ANSWER, UDP, sample_set, video_settings
 
 FRAMES = 10  # frames of the stub's first test video used
 CONF = 0.0
@@ -44,19 +47,48 @@ def lines(out) -> list[dict]:
     return [json.loads(line) for line in (out / "detections.jsonl").read_text().splitlines()]
 
 
+
+def overlapping_pairs(answer: dict) -> int:
+    """Pairs of boxes of one answer that overlap with IoU >= 0.5 (two boxes on one hand)."""
+    boxes = torch.tensor(answer["boxes"], dtype=torch.float64).reshape(-1, 4)
+    iou = box_iou(boxes, boxes)
+    return int((torch.triu(iou, diagonal=1) >= 0.5).sum())
+
+
+def test_detect_answers_one_box_per_hand_at_the_checkpoints_operating_point(stub_video, trained_checkpoints, tmp_path):
+    checkpoint = load_checkpoint(trained_checkpoints["hybrid"])
+    point = checkpoint.operating
+    assert point.nms_iou in NMS_IOUS and point.chosen_on == "valid, image age 1 and 10" and point.f1 is not None
+    model = checkpoint.model()
+    with torch.no_grad():  # every anchor answers a box 4 strides wide: neighbours overlap with IoU 0.6, as
+        for pred in model.head.reg_preds:  # the several boxes a trained model puts on one hand do
+            pred.weight.zero_()
+            pred.bias.copy_(torch.tensor([0.0, 0.0, math.log(4.0), math.log(4.0)]))
+    path = write_aedat4(tmp_path / "davis.aedat4", stub_video["events"], stub_video["size"], stub_video["frames"])
+    answers = {}
+    for name, nms_iou in (("operating", point.nms_iou), ("coco", EVAL["nms_threshold"])):
+        # a model three steps old scores near its prior: a low score keeps many boxes to compare
+        stream = StreamingDetector(model, checkpoint.sample, OperatingPoint(score=1e-6, nms_iou=nms_iou))
+        run_detect(stream, open_recording(path), Sensor(stub_video["size"]), tmp_path / name, rate_hz=100,
+                   video=video_settings(enabled=False), progress=False)
+        answers[name] = lines(tmp_path / name)
+    assert sum(len(a["boxes"]) for a in answers["operating"]) > 10 * len(answers["operating"]) > 0
+    assert sum(map(overlapping_pairs, answers["coco"])) > 100  # COCO's NMS IoU leaves several boxes on a hand
+    assert sum(map(overlapping_pairs, answers["operating"])) == 0
+
 def test_detect_on_a_written_aedat4_answers_what_the_batch_model_answers(stub_video, trained_checkpoints, tmp_path):
     ckpt = trained_checkpoints["hybrid"]
     path = write_aedat4(tmp_path / "davis.aedat4", stub_video["events"], stub_video["size"], stub_video["frames"])
-    stream = StreamingDetector.from_checkpoint(ckpt, conf_threshold=CONF, nms_threshold=EVAL["nms_threshold"])
+    stream = StreamingDetector.from_checkpoint(ckpt, score=CONF, nms_iou=EVAL["nms_threshold"])
     summary = run_detect(stream, open_recording(path), Sensor(stub_video["size"]), tmp_path / "out", rate_hz=1,
                          video=video_settings(enabled=False), progress=False)
     answers = {a["t_us"]: a for a in lines(tmp_path / "out")}
     assert summary["answers"] == len(answers) and summary["events_in"] == len(stub_video["events"]["t"])
 
-    data = trained_sample(load_checkpoint(ckpt))
-    dataset = sample_set(stub_video["root"], "test", image_age=1, window_us=data["window_us"],
-                            context_us=data["context_us"], refractory_us=data["refractory_us"],
-                            videos=[stub_video["video"]])
+    trained = load_checkpoint(ckpt).sample
+    dataset = sample_set(stub_video["root"], "test", image_age=1, window_us=trained.window_us,
+                         context_us=trained.context_us, refractory_us=trained.refractory_us,
+                         videos=[stub_video["video"]])
     model = stream.model
     checked = 0
     for index in range(len(dataset)):
@@ -65,7 +97,7 @@ def test_detect_on_a_written_aedat4_answers_what_the_batch_model_answers(stub_vi
             continue
         sample = dataset[index]
         with torch.no_grad():
-            expected = model(collate([sample]), conf_threshold=CONF, nms_threshold=stream.nms_threshold)[0]
+            expected = model(collate([sample]), conf_threshold=CONF, nms_threshold=stream.operating.nms_iou)[0]
         answer = answers[int(sample.t_end_us)]
         assert len(answer["boxes"]) == len(expected["boxes"]) > 0, k
         order = np.argsort(-np.asarray(answer["scores"]))
@@ -94,7 +126,7 @@ def test_a_larger_camera_with_a_declared_crop_and_scale_gives_the_same_detection
     large = write_aedat4(tmp_path / "large.aedat4", events, (640, 480), frames)
     for name, path, sensor in (("small", small, Sensor(stub_video["size"])),
                                ("large", large, Sensor((640, 480), crop=(0, 60, 640, 360), scale=2))):
-        stream = StreamingDetector.from_checkpoint(ckpt, conf_threshold=CONF, nms_threshold=EVAL["nms_threshold"])
+        stream = StreamingDetector.from_checkpoint(ckpt, score=CONF, nms_iou=EVAL["nms_threshold"])
         run_detect(stream, open_recording(path), sensor, tmp_path / name, rate_hz=200,
                    video=video_settings(enabled=name == "large", max_seconds=0.1),
                    progress=False)
@@ -105,17 +137,17 @@ def test_a_larger_camera_with_a_declared_crop_and_scale_gives_the_same_detection
         np.testing.assert_allclose(np.asarray(b["boxes"]).reshape(-1, 4), expected, atol=0.05)
     assert (tmp_path / "large" / "detections.mp4").stat().st_size > 0
     with pytest.raises(SensorError, match=r"the 640x480 sensor gives 640x480.*sensor.scale=2 sensor.crop=\[0,60,640,360\]"):
-        run_detect(StreamingDetector.from_checkpoint(ckpt, **EVAL), open_recording(large), Sensor((640, 480)),
+        run_detect(StreamingDetector.from_checkpoint(ckpt, **EVAL_ANSWER), open_recording(large), Sensor((640, 480)),
                    tmp_path / "refused", rate_hz=100, video=video_settings(), progress=False)
     with pytest.raises(FileExistsError, match="small/summary.json already exists; choose another out="):
-        run_detect(StreamingDetector.from_checkpoint(ckpt, **EVAL), open_recording(small), Sensor(stub_video["size"]),
+        run_detect(StreamingDetector.from_checkpoint(ckpt, **EVAL_ANSWER), open_recording(small), Sensor(stub_video["size"]),
                    tmp_path / "small", rate_hz=100, video=video_settings(), progress=False)
 
 
 def test_a_hybrid_needs_frames_and_says_so(stub_video, trained_checkpoints, tmp_path):
     path = write_aedat4(tmp_path / "events_only.aedat4", stub_video["events"], stub_video["size"])
     with pytest.raises(ValueError, match="events_only.aedat4: the model is a hybrid and needs frames"):
-        run_detect(StreamingDetector.from_checkpoint(trained_checkpoints["hybrid"], **EVAL), open_recording(path),
+        run_detect(StreamingDetector.from_checkpoint(trained_checkpoints["hybrid"], **EVAL_ANSWER), open_recording(path),
                    Sensor(stub_video["size"]), tmp_path / "out", rate_hz=100, video=video_settings(), progress=False)
 
 
@@ -138,8 +170,7 @@ def test_a_live_udp_stream_on_loopback_is_read_whole_and_answered(stub_video, tr
 
     thread = threading.Thread(target=sender)
     thread.start()
-    stream = StreamingDetector.from_checkpoint(trained_checkpoints["events_only"], conf_threshold=CONF,
-                                               nms_threshold=EVAL["nms_threshold"])
+    stream = StreamingDetector.from_checkpoint(trained_checkpoints["events_only"], score=CONF, nms_iou=EVAL["nms_threshold"])
     summary = run_detect(stream, source, Sensor(stub_video["size"]), tmp_path / "live", rate_hz=100, live=True,
                          video=video_settings(enabled=False))
     thread.join()
@@ -171,8 +202,8 @@ def test_the_readers_and_sensors_defaults_are_conf_detects():
 def test_a_checkpoint_runs_at_the_sensors_size_with_its_own_weights(trained_checkpoints):
     """``sensor.model_size=sensor``: the same weights, a detector built at the sensor's size."""
     ckpt = trained_checkpoints["events_only"]
-    trained = StreamingDetector.from_checkpoint(ckpt, **EVAL)
-    at_sensor = StreamingDetector.from_checkpoint(ckpt, model_size=(640, 360), **EVAL)
+    trained = StreamingDetector.from_checkpoint(ckpt, **EVAL_ANSWER)
+    at_sensor = StreamingDetector.from_checkpoint(ckpt, model_size=(640, 360), **EVAL_ANSWER)
     assert (at_sensor.width, at_sensor.height) == (640, 360) != (trained.width, trained.height)
     ours, theirs = trained.model.state_dict(), at_sensor.model.state_dict()
     assert ours.keys() == theirs.keys() and all(torch.equal(ours[k], theirs[k]) for k in ours)

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from dagr_lite.data.collate import collate
+from dagr_lite.engine.checkpoint import load_checkpoint
 from dagr_lite.engine.evaluate import evaluate
 from dagr_lite.engine.train import train
 from dagr_lite.eval import METRIC_KEYS
@@ -65,7 +66,7 @@ def test_training_on_the_gpu_lowers_the_loss_and_its_checkpoint_evaluates_on_the
                          "loader.num_workers=2"))
     losses = result["losses"]
     assert len(losses) == 40 and sum(losses[-5:]) / 5 < 0.7 * sum(losses[:5]) / 5
-    saved = torch.load(tmp_path / "run" / "checkpoints" / "last.pt", map_location="cpu", weights_only=False)
+    saved = load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt").training
     assert saved["step"] == 40
     evaluate(config("evaluate", f"ckpt={tmp_path / 'run' / 'checkpoints' / 'last.pt'}", f"run_dir={tmp_path / 'eval'}",
                     "split=valid", "device=cpu", "loader.num_workers=0"))

@@ -10,6 +10,7 @@ import pytest
 import torch
 import torch.multiprocessing as mp
 
+from dagr_lite.engine.checkpoint import load_checkpoint
 from dagr_lite.engine.loading import EpochSampler
 
 STEPS = 4
@@ -72,8 +73,8 @@ def test_ranks_hold_identical_weights_after_every_step_and_match_one_process(run
     tmp, two, one = runs
     assert len(two[0]["sums"]) == STEPS
     assert two[0]["sums"] == two[1]["sums"]  # bit-identical on both ranks after every step
-    ddp = torch.load(tmp / "two" / "checkpoints" / "last.pt", weights_only=True)
-    single = torch.load(tmp / "one" / "checkpoints" / "last.pt", weights_only=True)
+    ddp = load_checkpoint(tmp / "two" / "checkpoints" / "last.pt").training
+    single = load_checkpoint(tmp / "one" / "checkpoints" / "last.pt").training
     assert ddp["world_size"] == 2 and ddp["global_batch_size"] == 4 and single["world_size"] == 1
     where = [{key: saved["position"][key] for key in ("epoch", "offset")} for saved in (ddp, single)]
     assert where[0] == where[1] == {"epoch": 0, "offset": STEPS * 4}

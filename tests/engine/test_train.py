@@ -12,9 +12,11 @@ import dagr_lite.engine.train as train_module
 from dagr_lite.config import ConfigError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.labels import read_labels
+from dagr_lite.engine.checkpoint import load_checkpoint
 from dagr_lite.engine.evaluate import evaluate
 from dagr_lite.engine.schedule import warmup_cosine
 from dagr_lite.engine.train import ResumeError, train
+from dagr_lite.eval.operating import NMS_IOUS
 from dagr_lite.synth.stub import stub_root
 from tests.settings import sample_set
 
@@ -175,7 +177,7 @@ def test_a_time_budget_schedule_decays_by_the_budget_and_stops_there(tmp_path, m
     assert lrs[:3] == pytest.approx([0.5e-3, 1e-3, 1e-3])  # warm-up, then the cosine's top
     assert lrs[6] == pytest.approx(1e-3 * 0.525)  # step 7, halfway through the time left: cos(pi / 2)
     assert lrs[-1] == pytest.approx(1e-3 * 0.05)  # the last step, with the budget spent: the floor
-    saved = torch.load(tmp_path / "run" / "checkpoints" / "last.pt", weights_only=False)
+    saved = load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt").training
     assert saved["position"]["elapsed_s"] == 66.0 and saved["position"]["warmup_end_s"] == 12.0
 
 
@@ -400,21 +402,22 @@ def test_resume_refuses_another_variant_and_keeps_the_best_checkpoint(tmp_path, 
     with pytest.raises(ResumeError, match=r"use_events: False in the checkpoint, True here"):
         train(small(tmp_path / "b", "model=hybrid", "trainer.max_steps=3", f"resume={last}"))
     # The resumed run never beats the old best: its folder still holds the best weights.
-    monkeypatch.setattr(train_module, "validate", lambda *args, **kwargs: {k: 0.0 for k in METRIC_KEYS})
+    monkeypatch.setattr(train_module, "validation_pass",
+                        lambda *args, **kwargs: ({k: 0.0 for k in METRIC_KEYS}, {iou: [] for iou in NMS_IOUS}))
     train(small(tmp_path / "c", "model=image_only", "trainer.max_steps=3", "trainer.val_every=1", f"resume={last}"))
-    best_old = torch.load(tmp_path / "a" / "checkpoints" / "best.pt", weights_only=True)
-    best_new = torch.load(tmp_path / "c" / "checkpoints" / "best.pt", weights_only=True)
+    best_old = load_checkpoint(tmp_path / "a" / "checkpoints" / "best.pt").training
+    best_new = load_checkpoint(tmp_path / "c" / "checkpoints" / "best.pt").training
     assert best_new["step"] == best_old["step"] and best_new["best_metric"] == best_old["best_metric"]
 
 
-def test_last_checkpoint_is_saved_before_validation(tmp_path, monkeypatch):
+def test_last_checkpoint_is_saved_when_validation_fails(tmp_path, monkeypatch):
     def broken(*args, **kwargs):
         raise OSError("a corrupt frame in the valid split")
 
-    monkeypatch.setattr(train_module, "validate", broken)
+    monkeypatch.setattr(train_module, "validation_pass", broken)
     with pytest.raises(OSError, match="corrupt frame"):
         train(small(tmp_path / "run", "model=image_only", "trainer.max_steps=2", "trainer.val_every=2"))
-    saved = torch.load(tmp_path / "run" / "checkpoints" / "last.pt", weights_only=True)
+    saved = load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt").training
     assert saved["step"] == 2
 
 
@@ -466,7 +469,7 @@ def test_sigterm_saves_last_and_the_run_resumes_from_it(tmp_path):
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 143, out
-    step = torch.load(last, weights_only=False)["step"]
+    step = load_checkpoint(last).training["step"]
     assert step >= 1
     assert f"SIGTERM: stopped after step {step} and saved {last}; continue with resume={last}" in out
     assert sorted(p.name for p in last.parent.iterdir()) == ["last.pt"]  # no temporary file left

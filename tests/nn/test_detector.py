@@ -2,6 +2,7 @@ import pytest
 import torch
 
 from dagr_lite.data.collate import collate
+from dagr_lite.engine.checkpoint import upgraded_detector
 from dagr_lite.nn.detector import Detector, DetectorConfig
 from dagr_lite.nn.head import box_iou
 from dagr_lite.synth.stub import stub_root
@@ -115,7 +116,9 @@ def test_a_detector_config_saved_before_the_event_head_loads_without_one():
     saved = small_detector_config(event_head_weight=2.0).as_dict()
     assert DetectorConfig.from_dict(saved).event_head_weight == 2.0
     del saved["event_head_weight"]
-    assert DetectorConfig.from_dict(saved).event_head_weight == 0.0
+    with pytest.raises(ValueError, match="missing keys \\['event_head_weight'\\]"):
+        DetectorConfig.from_dict(saved)  # a checkpoint's older config is upgraded where checkpoints are read
+    assert DetectorConfig.from_dict(upgraded_detector(saved)).event_head_weight == 0.0
     saved["event_heads"] = 1
     with pytest.raises(ValueError, match="unknown keys \\['event_heads'\\]"):
         DetectorConfig.from_dict(saved)
@@ -127,7 +130,7 @@ def test_a_detector_config_saved_before_the_patch_stem_rebuilds_its_conv_stem():
     saved = small_detector_config().as_dict()
     assert saved["image_stem"] == "patch"  # the default of conf/model/hybrid.yaml
     del saved["image_stem"]
-    old = DetectorConfig.from_dict(saved)
+    old = DetectorConfig.from_dict(upgraded_detector(saved))
     assert old.image_stem == "conv"
     assert [type(layer).__name__ for layer in Detector(old).image.stem] == ["Sequential", "Sequential", "_Residual"]
     with pytest.raises(ValueError, match="image_stem must be one of"):

@@ -12,7 +12,7 @@ from dagr_lite.nn.detector import Detector
 from dagr_lite.nn.warm_start import warm_start, widen
 from dagr_lite.synth.stub import stub_root
 from tests.models import small_detector_config
-from tests.settings import sample_set
+from tests.settings import SAMPLE, sample_set
 
 SIZES = dict(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16)
 
@@ -80,7 +80,8 @@ def test_same_shapes_are_copied_and_only_the_event_branch_is_widened():
 
 def _save(path, model):
     torch.save({"format": CHECKPOINT_FORMAT, "model": model.state_dict(),
-                "ema": {"module": model.state_dict(), "updates": 0}, "detector": model.cfg.as_dict()}, path)
+                "ema": {"module": model.state_dict(), "updates": 0}, "detector": model.cfg.as_dict(),
+                "config": {"model": {"name": "events_only"}, "data": {"image_age": 1, **SAMPLE}}}, path)
 
 
 def test_start_from_reads_a_checkpoint_and_refuses_what_cannot_start_a_run(tmp_path):
@@ -94,8 +95,13 @@ def test_start_from_reads_a_checkpoint_and_refuses_what_cannot_start_a_run(tmp_p
                        events_only.state_dict()["events.stages.1.0.norm.weight"])
     foreign = torch.nn.Sequential(torch.nn.Linear(3, 5))
     torch.save({"format": CHECKPOINT_FORMAT, "model": foreign.state_dict(), "ema": None}, tmp_path / "foreign.pt")
-    with pytest.raises(ValueError, match=r"no weight of that checkpoint \(another model\) fits this model"):
+    with pytest.raises(ValueError, match=r"foreign\.pt: its model, sample or operating point cannot be read"):
         start_from(hybrid, tmp_path / "foreign.pt")
+    saved = torch.load(tmp_path / "ev.pt", weights_only=True)
+    torch.save({**saved, "model": foreign.state_dict(), "ema": {"module": foreign.state_dict(), "updates": 0}},
+               tmp_path / "unfit.pt")
+    with pytest.raises(ValueError, match=r"no weight of that checkpoint \(events_only\) fits this model"):
+        start_from(hybrid, tmp_path / "unfit.pt")
     with pytest.raises(FileNotFoundError, match="missing.pt"):
         start_from(hybrid, tmp_path / "missing.pt")
 

@@ -1,0 +1,63 @@
+"""What one sample's events are, owned in one place.
+
+A :class:`SampleSpec` says which events a model reads at a query time ``t`` (docs/design.md, "One
+sample"): those of the horizon ``[t - window_us, t)``, for a model with an image none from before
+``image time - context_us``, less the events a refractory period drops, with a guard on their
+count. A training run records it in its checkpoints; evaluation, the sweep, the streaming
+detector, detect and labelling read it from there (:class:`~dagr_lite.engine.checkpoint.Checkpoint`),
+so a model is always run on the sample it was trained on unless an override says otherwise.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+
+def _integer(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+@dataclass(frozen=True)
+class SampleSpec:
+    """The events of one sample (every time in microseconds).
+
+    Args:
+        window_us: the horizon: every model reads the events of ``[t - window_us, t)``.
+        context_us: a model with an image reads none from before ``image time - context_us``.
+        refractory_us: > 0: an event is dropped when its pixel had one (kept or not) less than
+            this long before it, decided as it arrives; 0: every event is read.
+        max_events: a sample holding more events is refused (never thinned); None: no guard.
+        event_picture: the image is a picture of the events (the dense peer), not a camera frame.
+    """
+
+    window_us: int
+    context_us: int
+    refractory_us: int
+    max_events: int | None
+    event_picture: bool
+
+    def __post_init__(self):
+        checks = {"window_us": (_integer(self.window_us) and self.window_us > 0, "a positive integer"),
+                  "context_us": (_integer(self.context_us) and self.context_us >= 0, "an integer >= 0"),
+                  "refractory_us": (_integer(self.refractory_us) and self.refractory_us >= 0, "an integer >= 0"),
+                  "max_events": (self.max_events is None or (_integer(self.max_events) and self.max_events > 0),
+                                 "a positive integer or None"),
+                  "event_picture": (isinstance(self.event_picture, bool), "true or false")}
+        for name, (ok, expected) in checks.items():
+            if not ok:
+                raise ValueError(f"sample {name} must be {expected}, got {getattr(self, name)!r}")
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def keys(cls) -> tuple[str, ...]:
+        return tuple(field.name for field in fields(cls))
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "SampleSpec":
+        """The spec of a dict holding these keys (others, such as ``image_age``, are ignored); a
+        missing key is an error naming it."""
+        missing = [key for key in cls.keys() if key not in values]
+        if missing:
+            raise ValueError(f"a sample spec needs {missing}, got keys {sorted(values)}")
+        return cls(**{key: values[key] for key in cls.keys()})

@@ -1,0 +1,52 @@
+"""A checkpoint is read in one place, into one typed object; an older one is upgraded there."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dagr_lite.data.spec import SampleSpec
+from dagr_lite.engine.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
+from dagr_lite.eval.operating import NMS_IOUS, UNMEASURED
+from dagr_lite.nn.detector import Detector
+
+
+def raw(path) -> dict:
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+def test_a_trained_checkpoint_reads_as_its_model_sample_and_operating_point(trained_checkpoints):
+    path = trained_checkpoints["hybrid"]
+    checkpoint = load_checkpoint(path)
+    assert isinstance(checkpoint, Checkpoint) and checkpoint.path == path
+    saved = raw(path)
+    assert checkpoint.detector.as_dict() == saved["detector"]
+    assert checkpoint.sample == SampleSpec(**{key: saved["config"]["data"][key] for key in SampleSpec.keys()})
+    assert checkpoint.image_age == saved["config"]["data"]["image_age"] == 1
+    assert checkpoint.operating.nms_iou in NMS_IOUS and checkpoint.operating.as_dict() == saved["operating"]
+    assert checkpoint.model_name == "hybrid" and checkpoint.training["step"] == saved["step"] == 3
+    model = checkpoint.model()
+    assert isinstance(model, Detector)
+    assert all(torch.equal(value, saved["ema"]["module"][key]) for key, value in model.state_dict().items())
+
+
+def test_a_checkpoint_saved_before_later_keys_is_read_as_it_was_trained(trained_checkpoints, tmp_path):
+    old = raw(trained_checkpoints["events_only"])
+    del old["operating"], old["detector"]["geometry"], old["config"]["data"]["refractory_us"]
+    path = tmp_path / "old.pt"
+    save_checkpoint(path, {key: value for key, value in old.items() if key != "format"})
+    checkpoint = load_checkpoint(path)
+    assert checkpoint.operating == UNMEASURED
+    assert checkpoint.detector.geometry is False and checkpoint.sample.refractory_us == 0
+
+
+def test_a_checkpoint_that_cannot_be_read_is_named(trained_checkpoints, tmp_path):
+    broken = raw(trained_checkpoints["events_only"])
+    broken["config"]["data"]["window_us"] = -5
+    path = tmp_path / "broken.pt"
+    save_checkpoint(path, {key: value for key, value in broken.items() if key != "format"})
+    with pytest.raises(ValueError, match=r"broken\.pt: its model, sample or operating point cannot be read "
+                                         r"\(sample window_us must be a positive integer, got -5\)"):
+        load_checkpoint(path)
+    (tmp_path / "other.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match=r"other\.pt: cannot read as a dagr_lite checkpoint"):
+        load_checkpoint(tmp_path / "other.pt")
