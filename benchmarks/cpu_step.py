@@ -23,7 +23,7 @@ import torch
 
 from dagr_lite.config import build_dataset, build_model, compose_config, resolve_config
 from dagr_lite.engine.loading import make_loader
-from dagr_lite.engine.train import cpu_has_bfloat16
+from dagr_lite.engine.precision import cpu_has_bfloat16
 
 
 def step(model, optimizer, batch, dtype: torch.dtype | None) -> None:

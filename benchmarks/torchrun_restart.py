@@ -28,9 +28,10 @@ def python_path() -> str:
 def worker(fail_at: int, overrides: list[str]) -> None:
     """One torchrun process: train.py's entry, with rank 1 dying after step ``fail_at`` on the first attempt."""
     sys.path.insert(0, str(ROOT))
+    import dagr_lite.engine.loop as loop_module
     import dagr_lite.engine.train as train_module
 
-    original = train_module.train_step
+    original = loop_module.train_step
     first_attempt = os.environ.get("TORCHELASTIC_RESTART_COUNT", "0") == "0"
 
     def failing_step(state, batch, **kwargs):
@@ -40,7 +41,7 @@ def worker(fail_at: int, overrides: list[str]) -> None:
             os._exit(1)
         return out
 
-    train_module.train_step = failing_step
+    loop_module.train_step = failing_step
     sys.argv = [str(ROOT / "train.py"), *overrides]
     import hydra
 

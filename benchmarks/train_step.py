@@ -39,7 +39,7 @@ from dagr_lite.data.collate import GraphCollate
 from dagr_lite.data.dataset import Sample
 from dagr_lite.engine.loading import make_loader
 from dagr_lite.engine.runs import resolve_device
-from dagr_lite.engine.train import amp_dtype
+from dagr_lite.engine.precision import amp_dtype
 from dagr_lite.config import build_model, compose_config, resolve_config
 from dagr_lite.synth.stub import HandScene
 

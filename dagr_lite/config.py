@@ -299,3 +299,12 @@ def trainer_settings(cfg: DictConfig) -> TrainerSettings:
     return TrainerSettings(**{key: trainer[key] for key in keys}, events_first=first,
                            image_age=int(cfg.data.image_age), eval_backend=cfg.eval.backend,
                            conf_threshold=float(cfg.eval.conf_threshold), nms_threshold=float(cfg.eval.nms_threshold))
+
+
+def budget_overrides(minutes: float, steps: int | None = None) -> list[str]:
+    """Config overrides that train for ``minutes`` of wall time, or ``steps`` steps if given
+    (still capped by the minutes): what the tools that train to a time budget pass. The learning
+    rate's cosine follows whichever of the two budgets is further along, so it ends decayed."""
+    length = [f"trainer.max_steps={steps}"] if steps else ["trainer.max_steps=null", "trainer.max_epochs=100000"]
+    return [f"trainer.max_minutes={minutes}", "trainer.schedule_by=time", *length]
+

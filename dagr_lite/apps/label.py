@@ -87,7 +87,8 @@ def train_detector(work: Path, out: Path, *, minutes: float, steps: int | None, 
     """``model=image_only`` on the kept labels of ``work``'s training videos (``samples`` frames),
     each frame with its own image; returns its checkpoint."""
     from dagr_lite.config import compose_config
-    from dagr_lite.engine.train import budget_overrides, train
+    from dagr_lite.config import budget_overrides
+    from dagr_lite.engine.train import train
 
     cfg = compose_config("train", ["dataset=custom", f"dataset.root={work}", "model=image_only",
                                    f"run_dir={out / 'train'}", "data.labelled_only=true", f"seed={seed}",

@@ -78,7 +78,7 @@ def version_config(root: Path, run: Path, *, minutes: float, steps: int | None, 
                    overrides: list[str] = ()):
     """The training config of one version: the default hybrid, the stub recipe, the budget."""
     from dagr_lite.config import compose_config
-    from dagr_lite.engine.train import budget_overrides
+    from dagr_lite.config import budget_overrides
 
     return compose_config("train", ["dataset=custom", f"dataset.root={root}", f"run_dir={run}", f"seed={seed}",
                                     *RECIPE, "trainer.val_every=200", *budget_overrides(minutes, steps), *overrides])

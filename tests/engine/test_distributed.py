@@ -29,10 +29,11 @@ def run_training(rank: int, world: int, port: int, run_dir: str, overrides: list
     os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1",
                       MASTER_PORT=str(port))
     torch.set_num_threads(1)
+    import dagr_lite.engine.loop as loop_module
     import dagr_lite.engine.train as train_module
     from tests.engine.test_train import small
 
-    sums, original_step, original_save = [], train_module.train_step, train_module.save_checkpoint
+    sums, original_step, original_save = [], loop_module.train_step, loop_module.save_checkpoint
 
     def recording_step(state, batch, **kwargs):
         result = original_step(state, batch, **kwargs)
@@ -44,7 +45,7 @@ def run_training(rank: int, world: int, port: int, run_dir: str, overrides: list
         if path.name == "last.pt":
             original_save(path.with_name(f"step{state['step']}.pt"), state)
 
-    train_module.train_step, train_module.save_checkpoint = recording_step, keep_copies
+    loop_module.train_step, loop_module.save_checkpoint = recording_step, keep_copies
     result = train_module.train(small(run_dir, *overrides))
     torch.save({"sums": sums, "losses": result["losses"], "metrics": result["metrics"]}, f"{out}.rank{rank}")
 

@@ -123,7 +123,7 @@ def test_the_loaders_graph_is_the_models_own():
 def test_the_cpu_trains_in_bfloat16_only_where_it_has_it_natively(monkeypatch, native):
     from omegaconf import OmegaConf
 
-    import dagr_lite.engine.train as train_module
+    import dagr_lite.engine.precision as train_module
 
     monkeypatch.setattr(train_module, "cpu_has_bfloat16", lambda: native)
     cpu = torch.device("cpu")
@@ -139,7 +139,7 @@ def test_mixed_precision_choices_run_a_step_on_the_cpu():
     scaler (the hybrid's sparse products and the losses stay float32), float16 gets the scaler."""
     from omegaconf import OmegaConf
 
-    from dagr_lite.engine.train import amp_dtype
+    from dagr_lite.engine.precision import amp_dtype
 
     torch.manual_seed(0)
     cfg = resolve_config(compose_config("train", ["model=hybrid", "optim.lr=1e-3"]))

@@ -8,14 +8,16 @@ import numpy as np
 import torch
 from hydra import compose, initialize_config_dir
 
-import dagr_lite.engine.train as train_module
+import dagr_lite.engine.clock as clock_module
+import dagr_lite.engine.loop as loop_module
 from dagr_lite.config import ConfigError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.labels import read_labels
 from dagr_lite.engine.checkpoint import load_checkpoint
 from dagr_lite.engine.evaluate import evaluate
 from dagr_lite.engine.schedule import warmup_cosine
-from dagr_lite.engine.train import ResumeError, train
+from dagr_lite.engine.starting import ResumeError
+from dagr_lite.engine.train import train
 from dagr_lite.eval.operating import NMS_IOUS
 from dagr_lite.synth.stub import stub_root
 from tests.settings import sample_set
@@ -103,7 +105,7 @@ def pycocotools_metrics(detections: list[dict], split: str) -> dict:
 def keep_last_copies(monkeypatch) -> dict:
     """``{step: path}`` of a copy of every ``last.pt`` the run saves."""
     saved = {}
-    original = train_module.save_checkpoint
+    original = loop_module.save_checkpoint
 
     def keep_copies(path, state):
         original(path, state)
@@ -112,7 +114,7 @@ def keep_last_copies(monkeypatch) -> dict:
             original(copy, state)
             saved[state["step"]] = copy
 
-    monkeypatch.setattr(train_module, "save_checkpoint", keep_copies)
+    monkeypatch.setattr(loop_module, "save_checkpoint", keep_copies)
     return saved
 
 
@@ -150,14 +152,14 @@ def six_seconds_a_step(monkeypatch) -> list[float]:
     start, then one after each step; only differences count); returns the learning rate each
     step of the runs uses."""
     readings = itertools.count()
-    monkeypatch.setattr(train_module.TrainingClock, "now", staticmethod(lambda: 6.0 * next(readings)))
-    lrs, original = [], train_module.train_step
+    monkeypatch.setattr(clock_module.TrainingClock, "now", staticmethod(lambda: 6.0 * next(readings)))
+    lrs, original = [], loop_module.train_step
 
     def recording_step(state, batch, **kwargs):
         lrs.append(state.lr)
         return original(state, batch, **kwargs)
 
-    monkeypatch.setattr(train_module, "train_step", recording_step)
+    monkeypatch.setattr(loop_module, "train_step", recording_step)
     return lrs
 
 
@@ -205,7 +207,7 @@ def image_steps(monkeypatch) -> list[tuple[bool, float, float]]:
     """Records, for each training step: whether it reads the image, and the sums of the absolute
     image-reading weights (the event branch's, the fusion's and the head's image stems') and of
     the image branch's weights before it."""
-    seen, original = [], train_module.train_step
+    seen, original = [], loop_module.train_step
 
     @torch.no_grad()
     def sums(model):
@@ -221,7 +223,7 @@ def image_steps(monkeypatch) -> list[tuple[bool, float, float]]:
         seen.append((image, *sums(state.model)))
         return original(state, batch, image=image)
 
-    monkeypatch.setattr(train_module, "train_step", recording_step)
+    monkeypatch.setattr(loop_module, "train_step", recording_step)
     return seen
 
 
@@ -402,7 +404,7 @@ def test_resume_refuses_another_variant_and_keeps_the_best_checkpoint(tmp_path, 
     with pytest.raises(ResumeError, match=r"use_events: False in the checkpoint, True here"):
         train(small(tmp_path / "b", "model=hybrid", "trainer.max_steps=3", f"resume={last}"))
     # The resumed run never beats the old best: its folder still holds the best weights.
-    monkeypatch.setattr(train_module, "validation_pass",
+    monkeypatch.setattr(loop_module, "validation_pass",
                         lambda *args, **kwargs: ({k: 0.0 for k in METRIC_KEYS}, {iou: [] for iou in NMS_IOUS}))
     train(small(tmp_path / "c", "model=image_only", "trainer.max_steps=3", "trainer.val_every=1", f"resume={last}"))
     best_old = load_checkpoint(tmp_path / "a" / "checkpoints" / "best.pt").training
@@ -414,7 +416,7 @@ def test_last_checkpoint_is_saved_when_validation_fails(tmp_path, monkeypatch):
     def broken(*args, **kwargs):
         raise OSError("a corrupt frame in the valid split")
 
-    monkeypatch.setattr(train_module, "validation_pass", broken)
+    monkeypatch.setattr(loop_module, "validation_pass", broken)
     with pytest.raises(OSError, match="corrupt frame"):
         train(small(tmp_path / "run", "model=image_only", "trainer.max_steps=2", "trainer.val_every=2"))
     saved = load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt").training

@@ -7,7 +7,8 @@ from omegaconf import OmegaConf
 from dagr_lite.config import ConfigError, check_values, compose_config
 from dagr_lite.data.collate import collate
 from dagr_lite.engine.checkpoint import CHECKPOINT_FORMAT
-from dagr_lite.engine.train import start_from, start_weights, train
+from dagr_lite.engine.starting import start_from, start_weights
+from dagr_lite.engine.train import train
 from dagr_lite.nn.detector import Detector
 from dagr_lite.nn.warm_start import warm_start, widen
 from dagr_lite.synth.stub import stub_root

@@ -1,0 +1,316 @@
+"""The epochs of a run: its data (:class:`TrainData`), and the loop of steps, logging, pictures,
+checkpoints, validation and the operating point (:class:`TrainLoop`)."""
+from __future__ import annotations
+
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from dagr_lite.config import TrainerSettings, build_dataset
+from dagr_lite.data.dataset import EventEgoHands
+from dagr_lite.engine.checkpoint import describe_dataset, save_checkpoint
+from dagr_lite.engine.clock import TrainingClock
+from dagr_lite.engine.distributed import Distributed, broadcast_object, gather_objects, mean_over_ranks
+from dagr_lite.engine.loading import EpochSampler, RunSampler, ShardSampler, make_loader
+from dagr_lite.engine.state import TrainState, train_step, validation_pass
+from dagr_lite.eval.operating import NMS_IOUS, OperatingPoint, choose_operating_point
+from dagr_lite.eval.score import render_sample
+
+
+@dataclass
+class TrainData:
+    """The datasets and loaders of a run; the loaders build graphs with the model's spec.
+    Validation runs at each image age of ``valid_loaders`` (``data.image_age``, and for a model
+    with an image also the largest training age)."""
+
+    train_set: EventEgoHands
+    sampler: RunSampler
+    train_loader: DataLoader  # one iterator serves the whole run (see RunSampler)
+    valid_loaders: dict[int, DataLoader]
+    batch_size: int  # per process
+    place: Distributed
+
+    @property
+    def global_batch_size(self) -> int:
+        return self.batch_size * self.place.world_size
+
+    @property
+    def steps_per_epoch(self) -> int:
+        """Whole global batches per epoch (an incomplete last one is dropped)."""
+        return len(self.train_set) // self.global_batch_size
+
+
+def validation_ages(cfg: DictConfig) -> list[int]:
+    """``data.image_age``, and for a model with an image the largest training age too."""
+    ages = {cfg.data.image_age}
+    if cfg.model.use_image:
+        ages.add(cfg.data.train_image_age[1])
+    return sorted(ages)
+
+
+def make_data(cfg: DictConfig, train_set: EventEgoHands, model, place: Distributed) -> TrainData:
+    """The training loader (this rank's slice of each global batch), and one validation loader
+    per validation age (this rank's shard)."""
+    with_image = cfg.model.use_image
+    valid_sets = {age: build_dataset(cfg, "valid", train=False, with_image=with_image, image_age=age)
+                  for age in validation_ages(cfg)}
+    if place.is_main:
+        for dataset in (train_set, *valid_sets.values()):
+            print(describe_dataset(dataset), flush=True)
+    batch_size, workers = cfg.loader.batch_size, cfg.loader.num_workers
+    global_batch = batch_size * place.world_size
+    if len(train_set) < global_batch:
+        raise ValueError(f"loader.batch_size={batch_size} x {place.world_size} processes, but the train split has "
+                         f"{len(train_set)} samples: no batch can be made")
+    sampler = RunSampler(EpochSampler(len(train_set), seed=cfg.seed, rank=place.rank, world_size=place.world_size,
+                                      batch_size=batch_size), batch_size)
+    nice = cfg.loader.worker_nice
+    train_loader = make_loader(train_set, batch_size=batch_size, num_workers=workers, sampler=sampler,
+                               graph=model.graph_spec, worker_nice=nice)
+    valid_loaders = {age: make_loader(dataset, batch_size=batch_size, num_workers=workers, graph=model.graph_spec,
+                                      sampler=ShardSampler(len(dataset), rank=place.rank, world_size=place.world_size)
+                                      if place.enabled else None, worker_nice=nice)
+                     for age, dataset in valid_sets.items()}
+    return TrainData(train_set, sampler, train_loader, valid_loaders, batch_size, place)
+
+
+class NullWriter:
+    """What ranks other than 0 log to: nothing."""
+
+    def add_scalar(self, *args, **kwargs) -> None:
+        pass
+
+    def add_image(self, *args, **kwargs) -> None:
+        pass
+
+
+class Terminated(SystemExit):
+    """Training stopped by SIGTERM with ``last.pt`` saved; exits with status 143 (128 + SIGTERM)."""
+
+    def __init__(self, message: str):
+        super().__init__(143)
+        self.message = message
+
+    def __str__(self) -> str:
+        return self.message
+
+
+class TrainLoop:
+    """The epochs of one run: steps, logging, pictures, checkpoints and validation.
+
+    Where it is in the data is ``(epoch, offset)``, the offset counting samples of the epoch's
+    global order, so a run resumed on another number of processes goes on from the same sample.
+
+    ``trainer.events_first`` = f > 0 (a hybrid): for the first fraction f of the schedule the
+    hybrid learns from its events alone. Its weights that read image features start at zero
+    (``Detector.zero_image_weights``) and the steps run with every image feature zero and the
+    image branch idle (``train_step(image=False)``), so those weights stay zero and the hybrid
+    is an events-only model inside the hybrid's layers, validated and saved as the hybrid it is.
+    Then the image joins: the image branch and those weights learn from zero, as after
+    ``init_from`` an events-only checkpoint, in one run.
+    """
+
+    def __init__(self, trainer: TrainerSettings, config: dict, state: TrainState, data: TrainData, run_dir: Path,
+                 writer, clock: TrainingClock, position: dict | None = None):
+        """``config``: the run's resolved config, recorded in every checkpoint; ``clock`` must be the
+        one ``state``'s schedule reads (:func:`make_clock`, :func:`make_state`)."""
+        self.trainer, self.config, self.state, self.data, self.writer = trainer, config, state, data, writer
+        self.clock, self.resumed_position = clock, position
+        self.place = data.place
+        self.checkpoints = run_dir / "checkpoints"
+        self.steps_per_epoch = data.steps_per_epoch
+        self.epoch_samples = self.steps_per_epoch * data.global_batch_size  # of the global order, per epoch
+        self.total = trainer.total_steps(self.steps_per_epoch)
+        self.val_every = self.trainer.val_every or self.steps_per_epoch
+        self.losses: list[float] = []
+        self.metrics: dict | None = None
+        self.operating: OperatingPoint | None = None  # chosen at each validation, saved with the weights
+        if position is None:  # a fresh run, or a checkpoint from before positions were saved
+            epoch, start = divmod(state.step, self.steps_per_epoch)
+            position = {"epoch": epoch, "offset": start * data.global_batch_size}
+        self.epoch, self.offset = int(position["epoch"]), int(position["offset"])
+        if self.offset >= self.epoch_samples:  # saved after an epoch's last batch
+            self.epoch, self.offset = self.epoch + 1, 0
+        self.saved_at = time.monotonic()
+        self.terminated = False  # set by SIGTERM (see run)
+        self.events_first = trainer.events_first
+        self.in_phase = False  # whether the next step is in the events-first phase (set as the loop runs)
+
+    def events_phase(self) -> bool:
+        """Whether the next step is in the ``trainer.events_first`` phase: how far along the schedule
+        is, by steps (and by the time budget with ``schedule_by=time``, whichever is further)."""
+        if not self.events_first:
+            return False
+        done = self.state.step / max(1, self.total)
+        if self.clock.by_time:
+            done = max(done, self.clock.progress())
+        return done < self.events_first
+
+    def run(self) -> dict:
+        """Train to the end of the schedule (or ``trainer.max_minutes``); a SIGTERM (a cluster's
+        notice of preemption, ``kill``'s default) ends it after the step under way, with
+        ``last.pt`` saved, by raising :class:`Terminated`."""
+        if threading.current_thread() is not threading.main_thread():  # signals reach the main thread only
+            return self._run()
+
+        def note(signum, frame):
+            self.terminated = True
+
+        previous = signal.signal(signal.SIGTERM, note)
+        try:
+            return self._run()
+        finally:
+            signal.signal(signal.SIGTERM, previous)
+
+    def _run(self) -> dict:
+        state = self.state
+        self.clock.start(self.resumed_position, state.step)
+        self.in_phase = self.events_phase()  # the first step's
+        by_time = self.clock.by_time  # then the bar counts steps and shows the time left
+        bar = tqdm(total=None if by_time else self.total, initial=state.step, desc="training", unit="step",
+                   disable=not self.place.is_main)
+        if state.step >= self.total or self.clock.spent():  # resumed at the end
+            bar.close()
+            return self.metrics if self.metrics is not None else self.save_and_validate()
+        self.data.sampler.start_at(self.epoch, self.offset)
+        for batch in self.data.train_loader:  # every epoch from here on, one iterator
+            batch = batch.to(state.device, non_blocking=True)
+            in_phase = self.in_phase  # this step's phase, read once
+            out = mean_over_ranks(train_step(state, batch, image=not in_phase), self.place)
+            self.offset += self.data.global_batch_size
+            if self.offset >= self.epoch_samples:
+                self.epoch, self.offset = self.epoch + 1, 0
+            self.losses.append(float(out["loss"]))
+            bar.update(1)
+            bar.set_postfix(loss=f"{self.losses[-1]:.3f}", lr=f"{state.lr:.2e}",
+                            **({"left": f"{self.clock.left_s():.0f}s"} if by_time else {}))
+            self.log(out, batch)
+            if broadcast_object(self.terminated, self.place):
+                self.stop_on_signal(bar)
+            out_of_time = self.read_clock()
+            self.in_phase = self.events_phase()  # the next step's, from this reading
+            if in_phase and not self.in_phase and self.place.is_main:
+                print(f"step {state.step}: the image joins (trainer.events_first={self.events_first})", flush=True)
+            if state.step % self.val_every == 0 or state.step == self.total or out_of_time:
+                self.save_and_validate()
+            elif self.checkpoint_due():
+                self.save("last.pt")
+            if state.step >= self.total or out_of_time:
+                break
+        bar.close()
+        return self.metrics
+
+    def stop_on_signal(self, bar) -> None:
+        self.save("last.pt")
+        bar.close()
+        path = self.checkpoints / "last.pt"
+        if self.place.is_main:
+            print(f"SIGTERM: stopped after step {self.state.step} and saved {path}; continue with resume={path}",
+                  flush=True)
+        raise Terminated(f"stopped by SIGTERM after step {self.state.step} ({path} saved)")
+
+    def read_clock(self) -> bool:
+        """Read the run's clock after a step and, with ``schedule_by=time``, set the next step's
+        learning rate from the reading. Returns True when ``trainer.max_minutes`` is spent: by this
+        process (``schedule_by=steps``), or by the whole run, the time before a resume included
+        (``schedule_by=time``). Every rank reads the same clock, so every rank stops at the same step."""
+        elapsed = self.clock.tick(self.state.step, self.place)
+        if self.clock.by_time:
+            self.state.refresh_lr()  # the next step's rate from this reading, not the one before the step
+        minutes = self.trainer.max_minutes
+        spent = elapsed if self.clock.by_time else elapsed - self.clock.before_s
+        over = minutes is not None and spent > 60 * minutes
+        if over and self.place.is_main:
+            print(f"trainer.max_minutes={minutes} reached at step {self.state.step}", flush=True)
+        return over
+
+    def checkpoint_due(self) -> bool:
+        """``last.pt`` is due every ``trainer.checkpoint_every`` steps or ``trainer.checkpoint_minutes``."""
+        every, minutes = self.trainer.checkpoint_every, self.trainer.checkpoint_minutes
+        due = bool(every) and self.state.step % every == 0
+        if minutes:
+            due = due or bool(broadcast_object(time.monotonic() - self.saved_at > 60 * minutes, self.place))
+        return due
+
+    def log(self, out: dict, batch) -> None:
+        step = self.state.step
+        if step % self.trainer.log_every == 0 or step == self.total:
+            for key, value in out.items():
+                self.writer.add_scalar(f"train/{key}", float(value), step)
+            self.writer.add_scalar("train/lr", self.state.lr, step)
+        if self.place.is_main and self.trainer.image_every and step % self.trainer.image_every == 0:
+            ema = self.state.ema.module.eval()
+            with torch.no_grad():
+                detections = ema(batch, conf_threshold=self.trainer.conf_threshold,
+                                 nms_threshold=self.trainer.nms_threshold)
+            self.writer.add_image("train/sample", render_sample(batch, 0, detections[0]), step, dataformats="HWC")
+
+    def checkpoint(self) -> dict:
+        return {**self.state.state_dict(), "detector": self.state.model.cfg.as_dict(), "config": self.config,
+                "operating": None if self.operating is None else self.operating.as_dict(),
+                "world_size": self.place.world_size, "global_batch_size": self.data.global_batch_size,
+                "position": {"epoch": self.epoch, "offset": self.offset, **self.clock.position()}}
+
+    def save(self, name: str) -> None:
+        """Rank 0 writes ``checkpoints/<name>`` (all ranks hold the same weights)."""
+        if self.place.is_main:
+            save_checkpoint(self.checkpoints / name, self.checkpoint())
+        self.saved_at = time.monotonic()
+
+    def save_and_validate(self) -> dict:
+        """Validate at each validation age, choose the operating point, then save ``last.pt`` (with
+        both) and ``best.pt`` when the mean mAP over the ages improves. A validation that fails
+        saves ``last.pt`` before the error goes on: no training is lost.
+
+        The returned metrics are those of the first age (``data.image_age``), with ``mAP_age<a>``,
+        ``AP50_age<a>`` for every age and their ``mAP_mean``.
+        """
+        state = self.state
+        try:
+            per_age, self.operating = self.validate_ages()
+        except BaseException:
+            self.save("last.pt")
+            raise
+        metrics = dict(per_age[self.trainer.image_age])
+        for age, values in per_age.items():
+            metrics.update({f"mAP_age{age}": values["mAP"], f"AP50_age{age}": values["AP50"]})
+        metrics["mAP_mean"] = sum(values["mAP"] for values in per_age.values()) / len(per_age)
+        for key in ("mAP", "AP50", "AP75", "mAP_mean", *(f"{m}_age{a}" for a in per_age for m in ("mAP", "AP50"))):
+            self.writer.add_scalar(f"val/{key}", metrics[key], state.step)
+        improved = metrics["mAP_mean"] > state.best_metric or not (self.checkpoints / "best.pt").exists()
+        state.best_metric = max(state.best_metric, metrics["mAP_mean"])
+        self.save("last.pt")
+        if improved:
+            self.save("best.pt")
+        if self.place.is_main:
+            ages = "  ".join(f"age {a}: mAP {v['mAP']:.4f} AP50 {v['AP50']:.4f}" for a, v in per_age.items())
+            print(f"step {state.step}: val {ages}; operating point {self.operating.describe()}", flush=True)
+        self.metrics = metrics
+        return metrics
+
+    def validate_ages(self) -> tuple[dict[int, dict], OperatingPoint]:
+        """The EMA's COCO metrics at each validation age, and the operating point chosen over all of them."""
+        trainer = self.trainer
+        gather = self.gather_shards if self.place.enabled else None
+        per_age, candidates = {}, {iou: [] for iou in NMS_IOUS}
+        for age, loader in self.data.valid_loaders.items():
+            per_age[age], by_nms = validation_pass(
+                self.state, loader, backend=trainer.eval_backend, conf_threshold=trainer.conf_threshold,
+                nms_threshold=trainer.nms_threshold, progress=self.place.is_main, gather=gather)
+            for iou, entries in by_nms.items():
+                candidates[iou].extend(entries)
+        chosen_on = f"valid, image age {' and '.join(map(str, per_age))}"
+        return per_age, choose_operating_point(candidates, chosen_on=chosen_on)
+
+    def gather_shards(self, entries: list) -> list:
+        """Every rank's validation entries, back in the dataset's order (rank ``r`` holds samples
+        ``r, r + N, ...``)."""
+        shards = gather_objects(entries, self.place)
+        return [shard[i] for i in range(max(len(x) for x in shards)) for shard in shards if i < len(shard)]

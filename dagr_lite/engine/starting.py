@@ -1,0 +1,99 @@
+"""Where a run starts: resuming a checkpoint (``resume=``, or a torchrun group restarted in its own
+folder), starting from another checkpoint's weights (``init_from=``), and the run folder every rank
+shares."""
+from __future__ import annotations
+
+import math
+import os
+import shutil
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from dagr_lite.engine.checkpoint import Checkpoint, load_checkpoint
+from dagr_lite.engine.distributed import Distributed, broadcast_object
+from dagr_lite.engine.runs import run_folder
+from dagr_lite.engine.state import TrainState
+from dagr_lite.nn.warm_start import warm_start
+
+
+class ResumeError(ValueError):
+    """A checkpoint given as ``resume=`` does not fit this run; the message names both sides."""
+
+
+def resume(state: TrainState, path: str | Path, checkpoints: Path, place: Distributed) -> Checkpoint:
+    """Continue from checkpoint ``path``; its run's ``best.pt`` is carried into ``checkpoints`` (by
+    rank 0), so the new run holds its best weights even when it never beats them. Returns the
+    checkpoint (its ``position`` says where in the data it stopped)."""
+    saved = load_checkpoint(path)
+    ours, theirs = state.model.cfg.as_dict(), saved.detector.as_dict()
+    if theirs != ours:
+        differ = ", ".join(f"{key}: {theirs[key]!r} in the checkpoint, {ours[key]!r} here"
+                           for key in ours if theirs[key] != ours[key])
+        raise ResumeError(f"resume={path}: the checkpoint's model does not fit this run's ({differ})")
+    state.load_state_dict(saved.training)
+    best = Path(path).parent / "best.pt"
+    if best.is_file():
+        if place.is_main and best.resolve() != (checkpoints / "best.pt").resolve():
+            checkpoints.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(best, checkpoints / "best.pt")
+    else:
+        state.best_metric = -math.inf  # nothing to carry: the first validation writes best.pt
+    if place.is_main:
+        print(f"resumed from {path} at step {state.step} (it ran on {saved.training.get('world_size', 1)} processes)",
+              flush=True)
+    return saved
+
+
+def shared_run_folder(cfg: DictConfig, place: Distributed) -> tuple[Path, Path | None]:
+    """The run folder, checked by rank 0 and shared with every rank (nothing is written yet:
+    :func:`_train` makes it once the data, model and state are built), and the checkpoint to
+    resume from: ``resume=``, or, when torchrun restarts a failed group, the run's own ``last.pt``."""
+    restarted = int(os.environ.get("TORCHELASTIC_RESTART_COUNT", "0") or 0) > 0
+    outcome = None
+    if place.is_main:
+        try:
+            own = own_last_checkpoint(cfg) if restarted else None
+            outcome = ("ok", str(own.parent.parent if own else run_folder(cfg, "train", make=False)), own and str(own))
+        except Exception as err:  # rank 0 refuses the run: every rank must stop, not wait
+            outcome = ("error", f"{type(err).__name__}: {err}", None)
+            broadcast_object(outcome, place)
+            raise
+    outcome = broadcast_object(outcome, place)
+    if outcome[0] == "error":
+        raise RuntimeError(f"rank 0 refused the run: {outcome[1]}")
+    resume_from = outcome[2] or cfg.resume
+    return Path(outcome[1]), Path(resume_from) if resume_from else None
+
+
+def own_last_checkpoint(cfg: DictConfig) -> Path | None:
+    """This run's ``checkpoints/last.pt`` when its folder already holds one (a restarted group)."""
+    if cfg.get("run_dir"):
+        folder = Path(cfg.run_dir)
+    else:
+        from hydra.core.hydra_config import HydraConfig
+        folder = Path(HydraConfig.get().runtime.output_dir)
+    last = folder / "checkpoints" / "last.pt"
+    return last if last.is_file() else None
+
+
+def start_weights(cfg: DictConfig, resume_from: Path | None) -> str | None:
+    """The checkpoint ``init_from`` names, when this run starts from it: not when it resumes (a
+    run restarted in its own folder continues from its own ``last.pt``, which holds what training
+    made of those weights; ``check_values`` refuses ``init_from`` beside ``resume``)."""
+    path = cfg.get("init_from")
+    return None if path is None or resume_from is not None else str(path)
+
+
+def start_from(model, path: str | Path, *, verbose: bool = True) -> dict:
+    """Start ``model`` from the weights of checkpoint ``path`` (its EMA weights, the ones it was
+    validated with) that fit, :func:`~dagr_lite.nn.warm_start.warm_start`."""
+    saved = load_checkpoint(path)
+    report = warm_start(model, saved.weights)
+    if not report["copied"] and not report["widened"]:
+        raise ValueError(f"init_from={path}: no weight of that checkpoint ({saved.model_name}) fits this model; "
+                         "nothing to start from")
+    if verbose:
+        print(f"init_from {path}: {len(report['copied'])} tensors copied, {len(report['widened'])} widened "
+              f"with zeros, {len(report['kept'])} at their own initialisation", flush=True)
+    return report
