@@ -17,6 +17,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.augment import TrainAugment
 from dagr_lite.data.dataset import EventEgoHands
@@ -27,7 +28,7 @@ ROOT_ENV = "EVENTEGOHANDS_ROOT"
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 
-class ConfigError(ValueError):
+class ConfigError(UserError):
     """The configuration is incomplete or inconsistent; the message names the key."""
 
 

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dagr_lite.errors import UserError
 from dagr_lite.data.dataset import refractory_keep, sample_start_us
 from dagr_lite.data.spec import SampleSpec
 from dagr_lite.eval.operating import OperatingPoint
@@ -163,11 +164,11 @@ class _Segment:
 
 
 def check_streamable(use_events: bool, sample: SampleSpec, where: str = "") -> None:
-    """Refuse (``ValueError``, prefixed by ``where``) a model the streaming detector cannot run."""
+    """Refuse (:class:`~dagr_lite.errors.UserError`, prefixed by ``where``) a model the streaming detector cannot run."""
     if not use_events:
-        raise ValueError(f"{where}the streaming detector needs a model with an event branch (use_events true)")
+        raise UserError(f"{where}the streaming detector needs a model with an event branch (use_events true)")
     if sample.event_picture:
-        raise ValueError(f"{where}this model reads a picture of events in place of the camera frame "
+        raise UserError(f"{where}this model reads a picture of events in place of the camera frame "
                          "(data.event_picture, the dense peer of benchmarks/dense_peer.py); the streaming "
                          "detector runs models that read camera frames and events")
 
@@ -259,18 +260,18 @@ class StreamingDetector:
         A model without an image branch ignores images."""
         image = np.asarray(image)
         if image.shape != (self.height, self.width, 3) or image.dtype != np.uint8:
-            raise ValueError(f"image must be ({self.height}, {self.width}, 3) uint8 (the model's frame size), "
+            raise UserError(f"image must be ({self.height}, {self.width}, 3) uint8 (the model's frame size), "
                              f"got {image.shape} {image.dtype}")
         t_us = float(t_us)
         if not math.isfinite(t_us):
-            raise ValueError(f"image time must be finite, got {t_us}")
+            raise UserError(f"image time must be finite, got {t_us}")
         if self._t_image is not None and t_us < self._t_image:
-            raise ValueError(f"image at t={t_us:g} us is older than the previous image ({self._t_image:g} us)")
+            raise UserError(f"image at t={t_us:g} us is older than the previous image ({self._t_image:g} us)")
         if not self.hybrid:
             return
         needed_from = sample_start_us(max(t_us, self._last_t), self.window_us, t_us, self.context_us)
         if needed_from < self._kept_from:
-            raise ValueError(f"image at t={t_us:g} us needs the events from {needed_from:g} us, but "
+            raise UserError(f"image at t={t_us:g} us needs the events from {needed_from:g} us, but "
                              f"only those since {self._kept_from:g} us are kept (an image may be at most "
                              f"{MAX_IMAGE_DELAY_US} us older than the latest event)")
         with torch.no_grad(), self._part("image features"):
@@ -286,31 +287,31 @@ class StreamingDetector:
         arrays = {"x": np.asarray(x), "y": np.asarray(y), "t": np.asarray(t), "p": np.asarray(p)}
         for name, values in arrays.items():
             if values.ndim != 1:
-                raise ValueError(f"events {name} must be a 1-D array, got shape {values.shape}")
+                raise UserError(f"events {name} must be a 1-D array, got shape {values.shape}")
             if values.dtype.kind not in "iuf" and len(values):
-                raise ValueError(f"events {name} must be numeric, got dtype {values.dtype}")
+                raise UserError(f"events {name} must be numeric, got dtype {values.dtype}")
         lengths = {name: len(values) for name, values in arrays.items()}
         if len(set(lengths.values())) != 1:
-            raise ValueError(f"events x, y, t, p must have the same length, got {lengths}")
+            raise UserError(f"events x, y, t, p must have the same length, got {lengths}")
         if not lengths["t"]:
             return
         x, y, t, p = (arrays[k].astype(np.float64) for k in ("x", "y", "t", "p"))
         if not np.all(np.isfinite(t)):
-            raise ValueError("events t holds non-finite values")
+            raise UserError("events t holds non-finite values")
         if np.any(np.diff(t) < 0):
             i = int(np.flatnonzero(np.diff(t) < 0)[0])
-            raise ValueError(f"events must be sorted by t: t[{i + 1}]={t[i + 1]:g} < t[{i}]={t[i]:g}")
+            raise UserError(f"events must be sorted by t: t[{i + 1}]={t[i + 1]:g} < t[{i}]={t[i]:g}")
         if t[0] < self._last_t:
-            raise ValueError(f"events must not be older than those pushed before: t[0]={t[0]:g} us < "
+            raise UserError(f"events must not be older than those pushed before: t[0]={t[0]:g} us < "
                              f"{self._last_t:g} us")
         for name, values, size in (("x", x, self.width), ("y", y, self.height)):
             bad = ~((values >= 0) & (values < size))
             if bad.any():
                 i = int(np.flatnonzero(bad)[0])
-                raise ValueError(f"events {name} must lie in [0, {size}) (the sensor), got {name}[{i}]={values[i]:g}")
+                raise UserError(f"events {name} must lie in [0, {size}) (the sensor), got {name}[{i}]={values[i]:g}")
         if not np.all((p == 0) | (p == 1)):
             i = int(np.flatnonzero((p != 0) & (p != 1))[0])
-            raise ValueError(f"events p must be 0 or 1, got p[{i}]={p[i]:g}")
+            raise UserError(f"events p must be 0 or 1, got p[{i}]={p[i]:g}")
         last_t = float(t[-1])
         if self._pixel_last is not None:
             keep = refractory_keep(x, y, t, self.refractory_us, self.width, self._pixel_last)
@@ -329,17 +330,17 @@ class StreamingDetector:
         latest = max(self._last_t, self._t_image if self._t_image is not None else -math.inf)
         if t_us is None:
             if not math.isfinite(latest):
-                raise ValueError("nothing was pushed yet: give detect a time")
+                raise UserError("nothing was pushed yet: give detect a time")
             t_us = latest
         t_us = float(t_us)
         if not math.isfinite(t_us):
-            raise ValueError(f"detect time must be finite, got {t_us}")
+            raise UserError(f"detect time must be finite, got {t_us}")
         if t_us < self._last_t:
-            raise ValueError(f"detect time {t_us:g} us is earlier than the latest event ({self._last_t:g} us)")
+            raise UserError(f"detect time {t_us:g} us is earlier than the latest event ({self._last_t:g} us)")
         if self.hybrid and self._t_image is None:
-            raise ValueError("a hybrid model needs an image before it can detect: call push_image first")
+            raise UserError("a hybrid model needs an image before it can detect: call push_image first")
         if self.hybrid and t_us < self._t_image:
-            raise ValueError(f"detect time {t_us:g} us is earlier than the image ({self._t_image:g} us)")
+            raise UserError(f"detect time {t_us:g} us is earlier than the image ({self._t_image:g} us)")
         with torch.no_grad():
             raw, shapes = self._head_outputs(t_us)
         with torch.no_grad(), self._part("decode + NMS"):

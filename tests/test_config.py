@@ -9,10 +9,10 @@ import torch
 
 from dagr_lite.config import (ConfigError, build_dataset, build_model, build_optimizer, check_values, detector_config,
                               resolve_config)
+from dagr_lite.synth.build import VERSIONS
+from dagr_lite.synth.egohands import EGOHANDS_HEIGHT, EGOHANDS_WIDTH
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
-VERSIONS = {"v1": (720, 1280, 1, 1, "clean"), "v2": (180, 320, 4, 1, "clean"), "v3": (360, 640, 2, 1, "clean"),
-            "v4": (360, 640, 2, 41, "clean"), "v5": (360, 640, 2, 41, "noisy"), "v6": (360, 640, 2, 41, "mixed")}
 
 
 def options(group):
@@ -67,11 +67,13 @@ def test_default_dataset_is_the_stub_with_its_short_recipe():
 
 
 @pytest.mark.parametrize("version", sorted(VERSIONS))
-def test_versions_carry_the_paper_table_and_read_the_root_from_the_environment(version, monkeypatch, tmp_path):
+def test_versions_read_at_the_resolution_the_builder_makes_and_the_root_from_the_environment(version, monkeypatch,
+                                                                                              tmp_path):
     monkeypatch.setenv("EVENTEGOHANDS_ROOT", str(tmp_path))
     cfg = resolve_config(compose_cfg("train", [f"dataset={version}"]))
     d = cfg.dataset
-    assert (d.height, d.width, d.scale, d.upsample, d.dvs_model) == VERSIONS[version]
+    scale = VERSIONS[version]["scale"]  # the builder's table owns how each version is made
+    assert (d.height, d.width) == (EGOHANDS_HEIGHT // scale, EGOHANDS_WIDTH // scale)
     assert d.root == str(tmp_path / version)
     override = resolve_config(compose_cfg("train", [f"dataset={version}", "dataset.root=/data/x"]))
     assert override.dataset.root == "/data/x"
@@ -213,6 +215,7 @@ def test_what_conf_sets_has_no_second_default_in_the_code():
     from dagr_lite.data.augment import TrainAugment
     from dagr_lite.data.dataset import EventEgoHands
     from dagr_lite.data.spec import SampleSpec
+    from dagr_lite.engine.schedule import ModelEMA
     from dagr_lite.engine.state import validate, validation_pass
     from dagr_lite.eval.operating import OperatingPoint
     from dagr_lite.eval.score import detections_of, save_pictures, score_entries, score_model
@@ -226,7 +229,7 @@ def test_what_conf_sets_has_no_second_default_in_the_code():
                 score_model: ("backend", "conf_threshold", "nms_threshold"),
                 detections_of: ("conf_threshold", "nms_threshold"), score_entries: ("backend",),
                 save_pictures: ("conf_threshold", "nms_threshold"),
-                postprocess: ("conf_threshold", "nms_threshold")}
+                postprocess: ("conf_threshold", "nms_threshold"), ModelEMA.__init__: ("decay", "tau")}
     for function, names in required.items():
         parameters = inspect.signature(function).parameters
         assert [n for n in names if parameters[n].default is not inspect.Parameter.empty] == [], function

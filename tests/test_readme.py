@@ -127,3 +127,15 @@ def test_the_quick_commands_run(trained_checkpoints, tmp_path):
                               cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert evaluate.returncode == 0, evaluate.stderr
     assert (tmp_path / "eval" / "metrics.json").is_file()
+
+
+def test_the_version_table_is_the_builders():
+    from dagr_lite.synth.build import VERSIONS
+    from dagr_lite.synth.egohands import EGOHANDS_HEIGHT, EGOHANDS_WIDTH
+
+    rows = re.findall(r"^\| (v\d) \| (\d+) \| (\d+) \| (\d+)x(\d+) \| (\w+) \|$", README, flags=re.M)
+    assert sorted(row[0] for row in rows) == sorted(VERSIONS)
+    for version, upsample, scale, width, height, dvs_model in rows:
+        made = VERSIONS[version]
+        assert (int(upsample), int(scale), dvs_model) == (made["upsample"], made["scale"], made["dvs_model"])
+        assert (int(width), int(height)) == (EGOHANDS_WIDTH // made["scale"], EGOHANDS_HEIGHT // made["scale"])

@@ -20,11 +20,12 @@ from omegaconf import DictConfig
 from omegaconf.errors import MissingMandatoryValue
 
 from dagr_lite.config import CONF_DIR
+from dagr_lite.errors import UserError
 
-# What a user's mistake raises here: every check of a value, file or folder raises one of these
-# (ConfigError, ResumeError and DatasetFormatError are ValueErrors; FileNotFoundError and
-# FileExistsError are OSErrors), with a message that names the key, file or value.
-USER_ERRORS = (ValueError, OSError, MissingMandatoryValue)
+# What a user's mistake raises: UserError (ConfigError, ResumeError, DatasetFormatError, RecordingError,
+# SensorError are UserErrors), OSError (a missing or foreign file, a folder that holds an earlier run,
+# a full disk) and a mandatory config value left out. Any other exception is a bug: its traceback shows.
+USER_ERRORS = (UserError, OSError, MissingMandatoryValue)
 OMEGACONF_DETAIL = re.compile(r"\s+(full_key|object_type|reference_type)[:=]")
 
 

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from dagr_lite.errors import UserError
 from dagr_lite.apps.cli import user_errors
 from dagr_lite.apps.sweep import match_boxes
 from dagr_lite.data import format as fmt
@@ -156,28 +157,28 @@ def label_dataset(root: Path | str, out: Path | str, *, hide: float | None = Non
     """Label every frame of ``root`` into ``out`` (see the module's text); returns the quality report."""
     root, out = Path(root), Path(out)
     if fill not in ("predicted", "interpolated"):
-        raise ValueError(f"fill must be predicted or interpolated, got {fill!r}")
+        raise UserError(f"fill must be predicted or interpolated, got {fill!r}")
     if (out / "bounding_boxes.json").exists():
         raise FileExistsError(f"{out}: holds labels already; choose a new --out")
     option, share = ("--hide", hide) if hide is not None else ("--hold-out", hold_out)
     if not 0 < share < 1:
-        raise ValueError(f"{option}: expected a share of the labelled frames in (0, 1), got {share:g} (the labels "
+        raise UserError(f"{option}: expected a share of the labelled frames in (0, 1), got {share:g} (the labels "
                          "are measured on the frames held out, so some must be and some kept)")
     if not minutes > 0:
-        raise ValueError(f"--minutes: expected a positive training budget in minutes, got {minutes:g}")
+        raise UserError(f"--minutes: expected a positive training budget in minutes, got {minutes:g}")
     if steps is not None and steps <= 0:
-        raise ValueError(f"--steps: expected a positive number of steps, got {steps}")
+        raise UserError(f"--steps: expected a positive number of steps, got {steps}")
     videos = {v: s for s in fmt.SPLITS if (root / s).is_dir() for v in list_videos(root, s)}
     labels = read_labels(root)
     kept, held = split_labels(labels, share=share, seed=seed)
     if not any(held.values()):
         labelled = sum(len(frames) for frames in labels.values())
-        raise ValueError(f"{option} {share:g}: of the {labelled} labelled frames of {root} none is held out (the "
+        raise UserError(f"{option} {share:g}: of the {labelled} labelled frames of {root} none is held out (the "
                          "share of each video's frames rounds to none); give a larger share")
     working_root(root, out / "work", kept)
     samples = sum(len(kept.get(v, {})) for v, split in videos.items() if split == "train")
     if samples == 0:
-        raise ValueError(f"{root}: no labelled frame of a training video is kept to train on")
+        raise UserError(f"{root}: no labelled frame of a training video is kept to train on")
     checkpoint = train_detector(out / "work", out, minutes=minutes, steps=steps, seed=seed, samples=samples)
     predicted = predict_all(checkpoint, root, videos)
     interpolated = {v: {k: with_unit_scores(interpolate_frame(kept.get(v, {}), k)) for k in predicted[v]}

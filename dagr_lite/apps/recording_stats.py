@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from dagr_lite.errors import UserError
 from dagr_lite.apps.event_rate import BIN_US, rate_picture
 from dagr_lite.camera.recording import open_recording
 
@@ -52,7 +53,7 @@ def recording_stats(path: Path | str, out: Path | str, *, size: tuple[int, int] 
             grown[:len(add)] += add
             counts[name] = grown
     if t_first is None:
-        raise ValueError(f"{path}: the recording holds no events")
+        raise UserError(f"{path}: the recording holds no events")
     total = on + off
     duration = max(t_last - t_first, 1) / 1e6
     hot = np.argsort(-per_pixel)[:HOT_PIXELS]

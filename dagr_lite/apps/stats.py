@@ -28,6 +28,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from dagr_lite.errors import UserError
 from dagr_lite.apps.cli import user_errors  # noqa: E402
 from dagr_lite.apps.event_rate import BIN_US, OFF_COLOUR, ON_COLOUR, rate_picture  # noqa: E402
 from dagr_lite.data import format as fmt  # noqa: E402
@@ -197,13 +198,13 @@ def dataset_stats(root: Path | str, out: Path | str, *, videos: list[str] | None
     chosen = list(found) if not videos else videos
     unknown = [v for v in chosen if v not in found]
     if unknown:
-        raise ValueError(f"{root}: videos {unknown} are not in the dataset (it holds {sorted(found)})")
+        raise UserError(f"{root}: videos {unknown} are not in the dataset (it holds {sorted(found)})")
     per_video, all_counts, names = {}, {}, []
     for video in tqdm(chosen, desc="videos", unit="video"):
         per_video[video], all_counts[video] = video_stats(root, found[video], video, labels.get(video, {}), fps)
     short = {v: r["frames"] for v, r in per_video.items() if frame is not None and not 0 <= frame < r["frames"]}
     if pictures and short:  # checked before anything is written
-        raise ValueError(f"--frame {frame}: past the end of {', '.join(f'{v} ({n} frames)' for v, n in short.items())}; "
+        raise UserError(f"--frame {frame}: past the end of {', '.join(f'{v} ({n} frames)' for v, n in short.items())}; "
                          f"give a frame below {min(short.values())}")
     out.mkdir(parents=True, exist_ok=True)
     for video in chosen:

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.writer import write_frame, write_text_atomically
 from dagr_lite.synth.build import VERSIONS, BuildSettings, build, folder_jobs
@@ -50,7 +51,7 @@ def write_stub_source(out: Path, height: int, width: int, *, seconds: float = 2.
     made = out / "source.json"
     if labels_file.exists():
         if made.exists() and json.loads(made.read_text()) != settings:
-            raise ValueError(f"{out} holds a stub source made with {made.read_text().strip()}, not {settings}; "
+            raise UserError(f"{out} holds a stub source made with {made.read_text().strip()}, not {settings}; "
                              f"choose another --out or remove {out}")
         return frames_dir, labels_file, splits_file
     names, labels = {s: [] for s in counts}, {}
@@ -108,14 +109,14 @@ def evaluate_version(root: Path, checkpoint: Path, out: Path) -> dict:
 def check_versions(versions: list[str], minutes: float, steps: int | None) -> None:
     """The experiment's own arguments, checked before any work (rendering, building, training)."""
     if not versions:
-        raise ValueError(f"--versions: expected some of {sorted(VERSIONS)}, comma-separated, got none")
+        raise UserError(f"--versions: expected some of {sorted(VERSIONS)}, comma-separated, got none")
     unknown = [v for v in versions if v not in VERSIONS]
     if unknown:
-        raise ValueError(f"--versions: unknown {unknown}; expected some of {sorted(VERSIONS)}")
+        raise UserError(f"--versions: unknown {unknown}; expected some of {sorted(VERSIONS)}")
     if not minutes > 0:
-        raise ValueError(f"--budget-minutes: expected a positive number of minutes, got {minutes}")
+        raise UserError(f"--budget-minutes: expected a positive number of minutes, got {minutes}")
     if steps is not None and steps <= 0:
-        raise ValueError(f"--steps: expected a positive number of steps, got {steps}")
+        raise UserError(f"--steps: expected a positive number of steps, got {steps}")
 
 
 def run_versions(frames: Path, out: Path, versions: list[str], *, minutes: float, labels: Path | None = None,

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from dagr_lite.errors import UserError
 from dagr_lite.camera.recording import Events, concat, take
 from dagr_lite.camera.render import Mp4Writer, render_moment
 from dagr_lite.camera.sensor import Sensor, fit_sensor
@@ -112,9 +113,9 @@ def run_detect(stream: StreamingDetector, source, sensor: Sensor, out: Path | st
     """Run ``stream`` over ``source`` (a :class:`~dagr_lite.camera.recording.Recording` or a
     :class:`~dagr_lite.camera.udp.UdpSource`); writes into ``out`` (see the module). Returns the summary."""
     if not rate_hz > 0:
-        raise ValueError(f"rate_hz must be positive, got {rate_hz}")
+        raise UserError(f"rate_hz must be positive, got {rate_hz}")
     if stream.hybrid and not source.has_frames:
-        raise ValueError(f"{source.path}: the model is a hybrid and needs frames, but the input carries none; give "
+        raise UserError(f"{source.path}: the model is a hybrid and needs frames, but the input carries none; give "
                          "frames=DIR|VIDEO (with timestamps) or use an events-only checkpoint")
     fit_sensor(sensor, (stream.width, stream.height))
     out = Path(out)

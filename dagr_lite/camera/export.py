@@ -13,6 +13,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from dagr_lite.errors import UserError
 from dagr_lite.camera.aedat import write_aedat4
 from dagr_lite.camera.recording import open_recording
 from dagr_lite.data import format as fmt
@@ -65,14 +66,14 @@ def export_dataset(root: Path | str, out: Path | str, targets: list[str], videos
     root, out = Path(root), Path(out)
     unknown = [t for t in targets if t not in TARGETS]
     if unknown:
-        raise ValueError(f"--to {unknown}: expected some of {sorted(TARGETS)}")
+        raise UserError(f"--to {unknown}: expected some of {sorted(TARGETS)}")
     found = {v: s for s in fmt.SPLITS if (root / s).is_dir() for v in list_videos(root, s)}
     if not found:
-        raise ValueError(f"{root}: no videos in the dataset layout (<root>/<split>/events/<video>.h5)")
+        raise UserError(f"{root}: no videos in the dataset layout (<root>/<split>/events/<video>.h5)")
     chosen = videos or list(found)
     missing = [v for v in chosen if v not in found]
     if missing:
-        raise ValueError(f"{root}: videos {missing} are not in the dataset (it holds {sorted(found)})")
+        raise UserError(f"{root}: videos {missing} are not in the dataset (it holds {sorted(found)})")
     written = []
     for video in tqdm(chosen, desc="export", unit="video"):
         (out / found[video]).mkdir(parents=True, exist_ok=True)

@@ -39,6 +39,7 @@ from typing import Callable, Iterator
 import numba
 import numpy as np
 
+from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.events import EventFile
 from dagr_lite.data.frames import list_frames, read_frame
@@ -58,7 +59,7 @@ H5_CHUNK = 1 << 18  # events per chunk read from an h5 file
 Events = dict  # {"x", "y", "t", "p"}: 1-D numpy arrays of one length
 
 
-class RecordingError(ValueError):
+class RecordingError(UserError):
     """A recording that cannot be read as asked; the message names the file."""
 
 

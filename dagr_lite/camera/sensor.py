@@ -14,12 +14,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dagr_lite.errors import UserError
 from dagr_lite.synth.video import downscale_area
 
 ROTATIONS = (0, 90, 180, 270)
 
 
-class SensorError(ValueError):
+class SensorError(UserError):
     """A sensor setting that does not fit the sensor or the model; the message names the setting."""
 
 

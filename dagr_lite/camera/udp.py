@@ -21,6 +21,7 @@ from urllib.parse import urlparse
 
 import numpy as np
 
+from dagr_lite.errors import UserError
 from dagr_lite.camera.recording import concat
 
 FORMATS = {
@@ -35,7 +36,7 @@ def parse_address(url: str) -> tuple[str, int]:
     """``udp://HOST:PORT`` to ``(host, port)``."""
     parsed = urlparse(url)
     if parsed.scheme != "udp" or not parsed.hostname or parsed.port is None:
-        raise ValueError(f"input={url!r}: a live stream is udp://HOST:PORT")
+        raise UserError(f"input={url!r}: a live stream is udp://HOST:PORT")
     return parsed.hostname, parsed.port
 
 
@@ -78,7 +79,7 @@ class UdpSource:
     def __init__(self, url: str, size: tuple[int, int], *, fmt: str, idle_s: float, wait_first_s: float,
                  seconds: float | None):
         if fmt not in FORMATS:
-            raise ValueError(f"udp.format={fmt!r}: expected one of {sorted(FORMATS)}")
+            raise UserError(f"udp.format={fmt!r}: expected one of {sorted(FORMATS)}")
         self.address = parse_address(url)
         self.url, self.size, self.fmt = url, (int(size[0]), int(size[1])), fmt
         self.idle_s, self.seconds, self.wait_first_s = float(idle_s), seconds, float(wait_first_s)
@@ -110,7 +111,7 @@ class UdpSource:
             sock.bind(self.address)
         except OSError as err:
             sock.close()
-            raise ValueError(f"input={self.url}: cannot listen there ({err})") from err
+            raise UserError(f"input={self.url}: cannot listen there ({err})") from err
         sock.settimeout(0.05)
         self._running = True
         thread = threading.Thread(target=self._receive, args=(sock,), daemon=True)
@@ -123,7 +124,7 @@ class UdpSource:
                 if self.seconds is not None and now - started > self.seconds:
                     return
                 if last_packet is None and now - started > self.wait_first_s:
-                    raise ValueError(f"input={self.url}: no packet in {self.wait_first_s:g} s")
+                    raise UserError(f"input={self.url}: no packet in {self.wait_first_s:g} s")
                 if last_packet is not None and now - last_packet > self.idle_s and not self._queue:
                     return
                 waiting = len(self._queue)

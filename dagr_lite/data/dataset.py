@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.errors import DatasetFormatError, Problem
 from dagr_lite.data.events import EventFile
@@ -133,7 +134,7 @@ def age_range(image_age: int | Sequence[int]) -> tuple[int, int]:
     ages = list(image_age) if isinstance(image_age, Sequence) else [image_age] * 2
     integers = all(isinstance(a, (int, np.integer)) and not isinstance(a, bool) for a in ages)
     if len(ages) != 2 or not integers or not 0 <= ages[0] <= ages[1]:
-        raise ValueError(f"image_age must be an integer >= 0 or a range [low, high] with 0 <= low <= high "
+        raise UserError(f"image_age must be an integer >= 0 or a range [low, high] with 0 <= low <= high "
                          f"(frames; the image is never from the future), got {image_age!r}")
     return int(ages[0]), int(ages[1])
 
@@ -231,25 +232,25 @@ class EventEgoHands(Dataset):
                  clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0, age_power: float = 0.0,
                  event_picture: bool = False):
         if split not in fmt.SPLITS:
-            raise ValueError(f"split must be one of {fmt.SPLITS}, got {split!r}")
+            raise UserError(f"split must be one of {fmt.SPLITS}, got {split!r}")
         self.age_range = age_range(image_age)
         if not (np.isfinite(age_power) and age_power >= 0):
-            raise ValueError(f"age_power must be a number >= 0, got {age_power!r}")
+            raise UserError(f"age_power must be a number >= 0, got {age_power!r}")
         self.age_power = float(age_power)
         if event_span not in EVENT_SPANS:
-            raise ValueError(f"event_span must be one of {EVENT_SPANS}, got {event_span!r}")
+            raise UserError(f"event_span must be one of {EVENT_SPANS}, got {event_span!r}")
         if window_us <= 0:
-            raise ValueError(f"window_us must be > 0, got {window_us}")
+            raise UserError(f"window_us must be > 0, got {window_us}")
         if event_picture and event_span != "window":
-            raise ValueError("event_picture reads the events of the window alone: it needs event_span='window', "
+            raise UserError("event_picture reads the events of the window alone: it needs event_span='window', "
                              f"got {event_span!r}")
         self.event_picture = bool(event_picture)
         if context_us < 0:
-            raise ValueError(f"context_us must be >= 0, got {context_us}")
+            raise UserError(f"context_us must be >= 0, got {context_us}")
         if refractory_us < 0:
-            raise ValueError(f"refractory_us must be >= 0, got {refractory_us}")
+            raise UserError(f"refractory_us must be >= 0, got {refractory_us}")
         if max_events is not None and max_events <= 0:
-            raise ValueError(f"max_events must be positive or None, got {max_events}")
+            raise UserError(f"max_events must be positive or None, got {max_events}")
         self.root, self.split = Path(root), split
         self.event_span, self.window_us, self.context_us = event_span, int(window_us), int(context_us)
         self.max_events, self.refractory_us = max_events, int(refractory_us)

@@ -4,6 +4,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from dagr_lite.errors import UserError
+
 
 @dataclass(frozen=True)
 class Problem:
@@ -17,7 +19,7 @@ class Problem:
         return f"{self.path}: {self.key}: {self.message}" if self.key else f"{self.path}: {self.message}"
 
 
-class DatasetFormatError(ValueError):
+class DatasetFormatError(UserError):
     """A dataset does not follow the layout; the message names the file, key and expectation.
 
     ``problems`` holds each :class:`Problem`; the message lists them one per line.

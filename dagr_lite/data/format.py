@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dagr_lite.errors import UserError
+
 # Splits, folders and files.
 SPLITS = ("train", "valid", "test")
 EVENTS_DIR = "events"
@@ -75,7 +77,7 @@ def frame_time_us(k, fps: float = DEFAULT_FPS, convention: str = WRITTEN_CONVENT
     elif convention == "truncate":
         times = np.trunc(1e6 * ((1.0 / float(fps)) * k))
     else:
-        raise ValueError(f"frame-time convention must be one of {FRAME_TIME_CONVENTIONS}, got {convention!r}")
+        raise UserError(f"frame-time convention must be one of {FRAME_TIME_CONVENTIONS}, got {convention!r}")
     times = times.astype(np.int64)
     return int(times) if times.ndim == 0 else times
 

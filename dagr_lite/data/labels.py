@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.errors import DatasetFormatError, Problem
 
@@ -70,14 +71,14 @@ def parse_boxes(value) -> np.ndarray:
     Raises ``ValueError`` describing what was expected when the value is malformed or not finite.
     """
     if not isinstance(value, list):
-        raise ValueError(f"expected a list of [x_tl, y_tl, w, h] boxes, found {type(value).__name__}")
+        raise UserError(f"expected a list of [x_tl, y_tl, w, h] boxes, found {type(value).__name__}")
     for box in value:
         if (not isinstance(box, (list, tuple)) or len(box) != 4
                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in box)):
-            raise ValueError(f"expected a box [x_tl, y_tl, w, h] of 4 numbers, found {box!r}")
+            raise UserError(f"expected a box [x_tl, y_tl, w, h] of 4 numbers, found {box!r}")
     boxes = np.asarray(value, dtype=np.float64).reshape(-1, 4)
     if not np.all(np.isfinite(boxes)):
-        raise ValueError(f"boxes must be finite, found {boxes[~np.isfinite(boxes).all(axis=1)].tolist()}")
+        raise UserError(f"boxes must be finite, found {boxes[~np.isfinite(boxes).all(axis=1)].tolist()}")
     return boxes
 
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
+from dagr_lite.errors import UserError
+
 
 def _integer(value) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
@@ -44,7 +46,7 @@ class SampleSpec:
                   "event_picture": (isinstance(self.event_picture, bool), "true or false")}
         for name, (ok, expected) in checks.items():
             if not ok:
-                raise ValueError(f"sample {name} must be {expected}, got {getattr(self, name)!r}")
+                raise UserError(f"sample {name} must be {expected}, got {getattr(self, name)!r}")
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -59,5 +61,5 @@ class SampleSpec:
         missing key is an error naming it."""
         missing = [key for key in cls.keys() if key not in values]
         if missing:
-            raise ValueError(f"a sample spec needs {missing}, got keys {sorted(values)}")
+            raise UserError(f"a sample spec needs {missing}, got keys {sorted(values)}")
         return cls(**{key: values[key] for key in cls.keys()})

@@ -16,6 +16,7 @@ import hdf5plugin
 import numpy as np
 from PIL import Image
 
+from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.frames import list_frames
 from dagr_lite.data.labels import load_labels_json
@@ -39,7 +40,7 @@ def _compression_kwargs(compression: str | None) -> dict:
         return {"compression": "gzip", "compression_opts": 4, "shuffle": True}
     if compression == "blosc":
         return dict(hdf5plugin.Blosc(cname="lz4", clevel=5, shuffle=hdf5plugin.Blosc.SHUFFLE))
-    raise ValueError(f"compression must be one of {COMPRESSIONS}, got {compression!r}")
+    raise UserError(f"compression must be one of {COMPRESSIONS}, got {compression!r}")
 
 
 def temporary_name(path: Path) -> Path:
@@ -106,7 +107,7 @@ class EventFileWriter(_Transaction):
         self.path = Path(path)
         _check_target(self.path, overwrite)
         if num_frames < 0:
-            raise ValueError(f"num_frames must be >= 0, got {num_frames}")
+            raise UserError(f"num_frames must be >= 0, got {num_frames}")
         options = _compression_kwargs(compression)
         self.height, self.width = height, width
         self._frame_times = fmt.frame_time_us(np.arange(num_frames), fps, fmt.WRITTEN_CONVENTION)  # (K,)
@@ -128,25 +129,25 @@ class EventFileWriter(_Transaction):
         n = len(arrays[2])
         for name, a in zip("xytp", arrays):
             if len(a) != n:
-                raise ValueError(f"{self.path}: events/{name} has {len(a)} values, events/t has {n}")
+                raise UserError(f"{self.path}: events/{name} has {len(a)} values, events/t has {n}")
         if n == 0:
             return
         x, y, t, p = arrays
         if not all(np.issubdtype(a.dtype, np.integer) for a in arrays):
-            raise ValueError(f"{self.path}: events must be integers, got dtypes "
+            raise UserError(f"{self.path}: events must be integers, got dtypes "
                              f"{[str(a.dtype) for a in arrays]} for x, y, t, p")
         x, y, t = x.astype(np.int64), y.astype(np.int64), t.astype(np.int64)
         if np.any(t[1:] < t[:-1]) or (self._last_t is not None and t[0] < self._last_t):
-            raise ValueError(f"{self.path}: events/t must be sorted ascending across appends")
+            raise UserError(f"{self.path}: events/t must be sorted ascending across appends")
         if t[0] < 0:
-            raise ValueError(f"{self.path}: events/t must be >= 0 (microseconds from the video start), "
+            raise UserError(f"{self.path}: events/t must be >= 0 (microseconds from the video start), "
                              f"found {t[0]}")
         if not np.all((p == 0) | (p == 1)):
-            raise ValueError(f"{self.path}: events/p must be 0 or 1, found {np.unique(p).tolist()}")
+            raise UserError(f"{self.path}: events/p must be 0 or 1, found {np.unique(p).tolist()}")
         for name, a, size in (("x", x, self.width), ("y", y, self.height)):
             limit = size if size is not None else np.iinfo(X_DTYPE).max + 1
             if a.min() < 0 or a.max() >= limit:
-                raise ValueError(f"{self.path}: events/{name} must lie in [0, {limit}), "
+                raise UserError(f"{self.path}: events/{name} must lie in [0, {limit}), "
                                  f"found [{a.min()}, {a.max()}]")
         for key, a in zip(fmt.EVENT_KEYS, (x, y, t, p)):
             dataset = self._datasets[key]
@@ -162,7 +163,7 @@ class EventFileWriter(_Transaction):
             return self.path
         if self._count == 0:
             self.abort()
-            raise ValueError(f"{self.path}: no events were written (a dataset video needs at least one)")
+            raise UserError(f"{self.path}: no events were written (a dataset video needs at least one)")
         self._h5.create_dataset(fmt.KEY_TIMEIDX, data=self._timeidx)
         self._h5.close()
         self._h5 = None
@@ -190,7 +191,7 @@ def write_frame(path: Path | str, image: np.ndarray, *, quality: int = 95, overw
     _check_target(path, overwrite)
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-        raise ValueError(f"{path}: expected an (H, W, 3) uint8 image, got {image.shape} {image.dtype}")
+        raise UserError(f"{path}: expected an (H, W, 3) uint8 image, got {image.shape} {image.dtype}")
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temporary_name(path)
     Image.fromarray(image).save(tmp, format="JPEG", quality=quality)
@@ -240,9 +241,9 @@ class VideoWriter(_Transaction):
     def __init__(self, root: Path | str, split: str, video: str, *, num_frames: int, height: int, width: int,
                  fps: float = fmt.DEFAULT_FPS, compression: str | None = "blosc", overwrite: bool = False):
         if split not in fmt.SPLITS:
-            raise ValueError(f"split must be one of {fmt.SPLITS}, got {split!r}")
+            raise UserError(f"split must be one of {fmt.SPLITS}, got {split!r}")
         if num_frames <= 0:
-            raise ValueError(f"{fmt.frames_dir(root, split, video)}: a video needs at least one frame, "
+            raise UserError(f"{fmt.frames_dir(root, split, video)}: a video needs at least one frame, "
                              f"got num_frames={num_frames}")
         self.root, self.split, self.video = Path(root), split, video
         self.num_frames, self.height, self.width = int(num_frames), int(height), int(width)
@@ -259,9 +260,9 @@ class VideoWriter(_Transaction):
     def add_frame(self, image: np.ndarray) -> None:
         """Write the next frame, an ``(H, W, 3)`` uint8 RGB image."""
         if self.frames_written >= self.num_frames:
-            raise ValueError(f"{self.folder}: more than the {self.num_frames} frames announced")
+            raise UserError(f"{self.folder}: more than the {self.num_frames} frames announced")
         if image.shape[:2] != (self.height, self.width):
-            raise ValueError(f"{self.folder}: frame {self.frames_written} is {image.shape[1]}x{image.shape[0]} "
+            raise UserError(f"{self.folder}: frame {self.frames_written} is {image.shape[1]}x{image.shape[0]} "
                              f"(WxH), expected {self.width}x{self.height}")
         write_frame(self.folder / fmt.frame_name(self.frames_written), image, overwrite=True)
         self.frames_written += 1
@@ -273,7 +274,7 @@ class VideoWriter(_Transaction):
     def close(self) -> Path:
         if self.frames_written != self.num_frames:
             self.abort()
-            raise ValueError(f"{self.folder}: {self.frames_written} frames written, {self.num_frames} announced")
+            raise UserError(f"{self.folder}: {self.frames_written} frames written, {self.num_frames} announced")
         return self._events.close()
 
     def abort(self) -> None:
@@ -289,7 +290,7 @@ def write_video(root: Path | str, split: str, video: str, *, events: dict[str, n
     """
     frames = list(frames)
     if not frames:
-        raise ValueError(f"{fmt.frames_dir(root, split, video)}: no frames given for video {video!r}")
+        raise UserError(f"{fmt.frames_dir(root, split, video)}: no frames given for video {video!r}")
     height, width = frames[0].shape[:2]
     with VideoWriter(root, split, video, num_frames=len(frames), height=height, width=width, fps=fps,
                      compression=compression, overwrite=overwrite) as writer:

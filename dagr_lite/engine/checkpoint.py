@@ -11,6 +11,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig
 
+from dagr_lite.errors import UserError
 from dagr_lite.config import ConfigError
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.data.spec import SampleSpec
@@ -48,11 +49,11 @@ def load_checkpoint(path: Path | str) -> "Checkpoint":
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # unpickling errors come in many types
-        raise ValueError(f"{path}: cannot read as a dagr_lite checkpoint ({err})") from err
+        raise UserError(f"{path}: cannot read as a dagr_lite checkpoint ({err})") from err
     if not isinstance(state, dict) or "model" not in state:
-        raise ValueError(f"{path}: not a dagr_lite checkpoint (expected keys format, model, ema, detector, config, ...)")
+        raise UserError(f"{path}: not a dagr_lite checkpoint (expected keys format, model, ema, detector, config, ...)")
     if state.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path}: a checkpoint of format {state.get('format')}, but this dagr_lite reads format "
+        raise UserError(f"{path}: a checkpoint of format {state.get('format')}, but this dagr_lite reads format "
                          f"{CHECKPOINT_FORMAT} (it records the model's architecture and event graph); "
                          "train the model again with this version")
     state = upgrade(state)
@@ -63,7 +64,7 @@ def load_checkpoint(path: Path | str) -> "Checkpoint":
         operating = OperatingPoint.from_dict(state["operating"])
         weights = state["ema"]["module"] if state.get("ema") else state["model"]
     except (KeyError, TypeError, ValueError) as err:
-        raise ValueError(f"{path}: its model, sample or operating point cannot be read ({err})") from err
+        raise UserError(f"{path}: its model, sample or operating point cannot be read ({err})") from err
     training = {key: state[key] for key in (*STATE_KEYS, "position", "world_size", "global_batch_size") if key in state}
     return Checkpoint(path=path, detector=detector, sample=sample, image_age=image_age, operating=operating,
                       config=state["config"], weights=weights, training=training)
@@ -134,7 +135,7 @@ class Checkpoint:
         try:
             model.load_state_dict(self.weights)
         except RuntimeError as err:
-            raise ValueError(f"{self.path}: its weights do not fit the model its config describes ({err})") from err
+            raise UserError(f"{self.path}: its weights do not fit the model its config describes ({err})") from err
         return model
 
 

@@ -16,6 +16,8 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
+from dagr_lite.errors import UserError
+
 
 @dataclass(frozen=True)
 class Distributed:
@@ -42,11 +44,11 @@ class Distributed:
             try:
                 values[key] = int(text) if text is not None else None
             except ValueError:
-                raise ValueError(f"environment variable {key}={text!r} must be an integer (set by torchrun)") from None
+                raise UserError(f"environment variable {key}={text!r} must be an integer (set by torchrun)") from None
         world = values["WORLD_SIZE"] or 1
         rank = values["RANK"] or 0
         if not 0 <= rank < world:
-            raise ValueError(f"RANK={rank} must be in [0, WORLD_SIZE={world})")
+            raise UserError(f"RANK={rank} must be in [0, WORLD_SIZE={world})")
         return cls(rank=rank, world_size=world, local_rank=values["LOCAL_RANK"] or 0)
 
 

@@ -13,6 +13,7 @@ from omegaconf import DictConfig
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
+from dagr_lite.errors import UserError
 from dagr_lite.config import TrainerSettings, build_dataset
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.checkpoint import describe_dataset, save_checkpoint
@@ -67,7 +68,7 @@ def make_data(cfg: DictConfig, train_set: EventEgoHands, model, place: Distribut
     batch_size, workers = cfg.loader.batch_size, cfg.loader.num_workers
     global_batch = batch_size * place.world_size
     if len(train_set) < global_batch:
-        raise ValueError(f"loader.batch_size={batch_size} x {place.world_size} processes, but the train split has "
+        raise UserError(f"loader.batch_size={batch_size} x {place.world_size} processes, but the train split has "
                          f"{len(train_set)} samples: no batch can be made")
     sampler = RunSampler(EpochSampler(len(train_set), seed=cfg.seed, rank=place.rank, world_size=place.world_size,
                                       batch_size=batch_size), batch_size)

@@ -8,6 +8,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from dagr_lite.errors import UserError
 from dagr_lite.data.writer import write_text_atomically
 
 
@@ -21,7 +22,7 @@ def resolve_device(name: str) -> torch.device:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     device = torch.device(name)
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device={name} was asked for, but CUDA is not available here")
+        raise UserError(f"device={name} was asked for, but CUDA is not available here")
     return device
 
 

@@ -14,7 +14,7 @@ class ModelEMA:
     ``decay`` ramps up as ``decay * (1 - exp(-updates / tau))`` so early averages follow the model.
     """
 
-    def __init__(self, model: nn.Module, decay: float = 0.9998, tau: float = 2000.0):
+    def __init__(self, model: nn.Module, decay: float, tau: float):
         self.module = copy.deepcopy(model).eval()
         for p in self.module.parameters():
             p.requires_grad_(False)

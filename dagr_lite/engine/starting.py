@@ -10,6 +10,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from dagr_lite.errors import UserError
 from dagr_lite.engine.checkpoint import Checkpoint, load_checkpoint
 from dagr_lite.engine.distributed import Distributed, broadcast_object
 from dagr_lite.engine.runs import run_folder
@@ -17,7 +18,7 @@ from dagr_lite.engine.state import TrainState
 from dagr_lite.nn.warm_start import warm_start
 
 
-class ResumeError(ValueError):
+class ResumeError(UserError):
     """A checkpoint given as ``resume=`` does not fit this run; the message names both sides."""
 
 
@@ -91,7 +92,7 @@ def start_from(model, path: str | Path, *, verbose: bool = True) -> dict:
     saved = load_checkpoint(path)
     report = warm_start(model, saved.weights)
     if not report["copied"] and not report["widened"]:
-        raise ValueError(f"init_from={path}: no weight of that checkpoint ({saved.model_name}) fits this model; "
+        raise UserError(f"init_from={path}: no weight of that checkpoint ({saved.model_name}) fits this model; "
                          "nothing to start from")
     if verbose:
         print(f"init_from {path}: {len(report['copied'])} tensors copied, {len(report['widened'])} widened "

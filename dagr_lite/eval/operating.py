@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from scipy.optimize import linear_sum_assignment
 
+from dagr_lite.errors import UserError
 from dagr_lite.nn.head import box_iou
 
 NMS_IOUS = (0.3, 0.35, 0.4, 0.45)                     # the NMS IoUs an operating point is chosen from
@@ -42,9 +43,9 @@ class OperatingPoint:
 
     def __post_init__(self):
         if not 0.0 <= self.score <= 1.0:
-            raise ValueError(f"operating point: score must be in [0, 1], got {self.score!r}")
+            raise UserError(f"operating point: score must be in [0, 1], got {self.score!r}")
         if not 0.0 < self.nms_iou <= 1.0:
-            raise ValueError(f"operating point: nms_iou must be in (0, 1], got {self.nms_iou!r}")
+            raise UserError(f"operating point: nms_iou must be in (0, 1], got {self.nms_iou!r}")
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -102,7 +103,7 @@ def best_score(frames: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
         if best is None or measured[0] > best[1][0]:
             best = (float(score), measured)
     if best is None:
-        raise ValueError("no score threshold to choose from")
+        raise UserError("no score threshold to choose from")
     return best
 
 
@@ -118,5 +119,5 @@ def choose_operating_point(by_nms: dict[float, list[tuple]], chosen_on: str) -> 
             best = OperatingPoint(score=score, nms_iou=float(nms_iou), f1=f1, precision=precision, recall=recall,
                                   chosen_on=chosen_on)
     if best is None:
-        raise ValueError("no NMS IoU to choose from")
+        raise UserError("no NMS IoU to choose from")
     return best

@@ -221,15 +221,17 @@ class Detector(nn.Module):
                                       blocks=cfg.event_blocks, image_channels=fuse, geometry=cfg.geometry)
         else:
             self.events = None
+        # The query maps (recency, and with an image its age) join before the towers (early: at the
+        # fusion, or an events-only head's input) or after them (late_query).
+        late = self.num_query if cfg.late_query else 0
+        early = 0 if cfg.late_query else self.num_recency  # the recency maps, where they join early
         if cfg.use_image and cfg.use_events:
             # 1x1 projections of the image maps (strides 4, 8, 16, 32) sampled at event nodes.
             self.to_nodes = nn.ModuleList(nn.Conv2d(c, cfg.fuse_channels, 1) for c in self.image.channels)
-            # The fusion mixes the image and event maps (and, without late_query, the query maps).
-            early = 0 if cfg.late_query else 1 + self.num_recency
-            self.fuse = nn.ModuleList(conv_bn_act(ci + ce + early, ci, k=1) for ci, ce in
+            # The fusion mixes the image and event maps (and, early, the recency maps and the age plane).
+            age = 0 if cfg.late_query else 1
+            self.fuse = nn.ModuleList(conv_bn_act(ci + ce + early + age, ci, k=1) for ci, ce in
                                       zip(self.image.channels[1:], self.events.out_channels))
-        late = self.num_query if cfg.late_query else 0
-        early = 0 if cfg.late_query else self.num_recency
         head_in = (list(self.image.channels[1:]) if cfg.use_image
                    else [c + early for c in self.events.out_channels])
         self.head = YOLOXHead(head_in, self.strides, hidden=cfg.head_hidden, num_classes=cfg.num_classes,

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.errors import DatasetFormatError
 from dagr_lite.data.frames import frame_size
@@ -82,9 +83,9 @@ class BuildSettings:
 
     def __post_init__(self):
         if self.dvs_model not in DVS_MODELS:
-            raise ValueError(f"DVS model must be one of {DVS_MODELS}, got {self.dvs_model!r}")
+            raise UserError(f"DVS model must be one of {DVS_MODELS}, got {self.dvs_model!r}")
         if self.upsample < 1 or self.scale < 1:
-            raise ValueError(f"upsample and scale must be >= 1, got {self.upsample} and {self.scale}")
+            raise UserError(f"upsample and scale must be >= 1, got {self.upsample} and {self.scale}")
         self.params("clean")  # unknown or bad overrides fail now, not after the first video
 
     def params(self, model: str) -> DVSParams:
@@ -133,7 +134,7 @@ def _labels_at_scale(job: VideoJob, source: FolderSource, scale: int):
     boxes, sources = {}, {}
     for k, (xywh, origin) in job.labels.items():
         if k >= source.num_frames:
-            raise ValueError(f"{job.frames}: labels for frame {k}, but the video has {source.num_frames} frames")
+            raise UserError(f"{job.frames}: labels for frame {k}, but the video has {source.num_frames} frames")
         boxes[k], kept = scale_boxes(xywh, scale, source.height, source.width)
         sources[fmt.label_key(job.name, k)] = [o for o, keep in zip(origin, kept) if keep]
     return boxes, sources
@@ -163,20 +164,20 @@ def _start_build(jobs: list[VideoJob], out: Path, settings: BuildSettings) -> di
     """Refuse repeated names, moved videos and other settings; record the settings; returns the build info."""
     names = [job.name for job in jobs]
     if len(set(names)) != len(names):
-        raise ValueError(f"video names must be unique, got {sorted(n for n in set(names) if names.count(n) > 1)}")
+        raise UserError(f"video names must be unique, got {sorted(n for n in set(names) if names.count(n) > 1)}")
     for job in jobs:
         done = _finished_split(out, job.name)
         if done is not None and done != job.split:
-            raise ValueError(f"{fmt.events_path(out, done, job.name)}: video {job.name} was built into {done}, "
+            raise UserError(f"{fmt.events_path(out, done, job.name)}: video {job.name} was built into {done}, "
                              f"but is now assigned to {job.split}; keep the split or choose a new --out")
     info_path = out / BUILD_INFO
     foreign = [p.name for p in (*(out / split for split in fmt.SPLITS), fmt.labels_path(out)) if p.exists()]
     if foreign and not info_path.exists():
-        raise ValueError(f"{out}: holds a dataset this builder did not make ({', '.join(foreign)}, no {BUILD_INFO}); "
+        raise UserError(f"{out}: holds a dataset this builder did not make ({', '.join(foreign)}, no {BUILD_INFO}); "
                          "choose a new --out")
     info = _read_json(info_path, {"settings": settings.as_dict(), "videos": {}, "skipped": {}})
     if info["settings"] != settings.as_dict():
-        raise ValueError(f"{info_path}: {out} was built with settings {info['settings']}, not "
+        raise UserError(f"{info_path}: {out} was built with settings {info['settings']}, not "
                          f"{settings.as_dict()}; resume with the same settings or choose a new --out")
     out.mkdir(parents=True, exist_ok=True)
     _write_json(info_path, info)
@@ -292,7 +293,7 @@ def video_jobs(paths: list[Path], *, labels: Path | None = None, splits: Path | 
     names = [f.stem for f in files]
     if len(set(names)) != len(names):
         repeated = sorted(n for n in set(names) if names.count(n) > 1)
-        raise ValueError(f"video files must have distinct names, got {repeated}")
+        raise UserError(f"video files must have distinct names, got {repeated}")
     per_video = _given_labels(labels, names, "no video given")
     assignment = _read_splits(splits, names, {"train": names})
     return [VideoJob(n, assignment[n], f, per_video[n]) for n, f in zip(names, files) if n in assignment]
@@ -302,7 +303,7 @@ def container_fps(jobs: list[VideoJob]) -> float:
     """The frame rate the video files state, which must be one for the whole dataset."""
     rates = {job.name: video_fps(job.frames) for job in jobs}
     if len({round(r, 6) for r in rates.values()}) > 1:
-        raise ValueError(f"the videos state different frame rates {rates}; a dataset has one: give --fps")
+        raise UserError(f"the videos state different frame rates {rates}; a dataset has one: give --fps")
     return next(iter(rates.values()))
 
 
@@ -341,11 +342,11 @@ def _parse_overrides(items: list[str]) -> tuple[tuple[str, float], ...]:
     for item in items:
         name, sep, value = item.partition("=")
         if not sep:
-            raise ValueError(f"--dvs takes name=value, got {item!r}")
+            raise UserError(f"--dvs takes name=value, got {item!r}")
         try:
             overrides.append((name, float(value)))
         except ValueError as err:
-            raise ValueError(f"--dvs {name}: {value!r} is not a number") from err
+            raise UserError(f"--dvs {name}: {value!r} is not a number") from err
     return tuple(overrides)
 
 

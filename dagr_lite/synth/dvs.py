@@ -32,6 +32,8 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
+from dagr_lite.errors import UserError
+
 LUMA_WEIGHTS = np.array([0.299, 0.587, 0.114])
 # Shot noise rate at full intensity, as a fraction of the rate in the dark.
 SHOT_NOISE_BRIGHT_FACTOR = 0.25
@@ -56,16 +58,16 @@ class DVSParams:
         for f in fields(self):
             value = getattr(self, f.name)
             if not math.isfinite(value) or value < 0:
-                raise ValueError(f"DVS parameter {f.name} must be finite and >= 0, got {value}")
+                raise UserError(f"DVS parameter {f.name} must be finite and >= 0, got {value}")
         for name in ("pos_threshold", "neg_threshold", "min_threshold", "lin_log_dn"):
             if getattr(self, name) <= 0:
-                raise ValueError(f"DVS parameter {name} must be > 0, got {getattr(self, name)}")
+                raise UserError(f"DVS parameter {name} must be > 0, got {getattr(self, name)}")
 
     def with_overrides(self, **overrides) -> "DVSParams":
         known = {f.name for f in fields(self)}
         unknown = sorted(set(overrides) - known)
         if unknown:
-            raise ValueError(f"unknown DVS parameters {unknown}; known: {sorted(known)}")
+            raise UserError(f"unknown DVS parameters {unknown}; known: {sorted(known)}")
         return replace(self, **overrides)
 
 
@@ -78,7 +80,7 @@ PRESETS = {
 def preset(name: str, **overrides) -> DVSParams:
     """The ``clean`` or ``noisy`` parameters, with any field overridden."""
     if name not in PRESETS:
-        raise ValueError(f"unknown DVS preset {name!r}; expected one of {sorted(PRESETS)}")
+        raise UserError(f"unknown DVS preset {name!r}; expected one of {sorted(PRESETS)}")
     return PRESETS[name].with_overrides(**overrides)
 
 

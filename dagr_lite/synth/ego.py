@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.synth.stub import cached_dataset, paint_ellipse, write_scenes
 from dagr_lite.synth.video import choose_dvs_model
@@ -295,7 +296,7 @@ def generate_ego(out: Path | str, *, seconds: float = EGO_SECONDS, splits: dict[
     ``dvs_model``: ``mixed`` (each video clean or noisy by a draw on its name), ``clean`` or
     ``noisy`` (every video; the same scenes, for measuring mixed training)."""
     if dvs_model not in ("clean", "noisy", "mixed"):
-        raise ValueError(f"dvs_model must be clean, noisy or mixed, got {dvs_model!r}")
+        raise UserError(f"dvs_model must be clean, noisy or mixed, got {dvs_model!r}")
     return write_scenes(out, lambda index: EgoScene(seed * 1000 + index, seconds=seconds), "ego",
                         splits or EGO_SPLITS,
                         lambda video: choose_dvs_model(video, seed=seed) if dvs_model == "mixed" else dvs_model,

@@ -20,6 +20,7 @@ from typing import Callable
 import numpy as np
 import scipy.io
 
+from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.errors import DatasetFormatError
 
@@ -124,7 +125,7 @@ def default_split(videos: list[str], counts: tuple[int, int, int] = (30, 10, 8),
     With the 48 EgoHands videos and the default counts this is 30 train, 10 valid, 8 test.
     """
     if sum(counts) != len(videos):
-        raise ValueError(f"split counts {counts} add up to {sum(counts)}, but there are {len(videos)} videos")
+        raise UserError(f"split counts {counts} add up to {sum(counts)}, but there are {len(videos)} videos")
     order = sorted(videos)
     np.random.default_rng([seed]).shuffle(order)
     n_train, n_valid = counts[0], counts[1]

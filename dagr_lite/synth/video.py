@@ -19,6 +19,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.errors import DatasetFormatError
 from dagr_lite.data.frames import read_frame
@@ -44,10 +45,10 @@ def downscale_area(frame: np.ndarray, scale: int) -> np.ndarray:
     if scale == 1:
         return frame
     if scale < 1 or int(scale) != scale:
-        raise ValueError(f"scale must be a positive integer, got {scale}")
+        raise UserError(f"scale must be a positive integer, got {scale}")
     h, w = frame.shape[0] // scale, frame.shape[1] // scale
     if h == 0 or w == 0:
-        raise ValueError(f"a {frame.shape[1]}x{frame.shape[0]} frame is too small for scale {scale}")
+        raise UserError(f"a {frame.shape[1]}x{frame.shape[0]} frame is too small for scale {scale}")
     cropped = frame[: h * scale, : w * scale]
     return cropped.reshape(h, scale, w, scale, *frame.shape[2:]).mean(axis=(1, 3))
 
@@ -248,7 +249,7 @@ def choose_dvs_model(video: str, *, seed: int = 0, clean_fraction: float = 0.5) 
     ``clean``.
     """
     if not 0 <= clean_fraction <= 1:
-        raise ValueError(f"clean_fraction must be in [0, 1], got {clean_fraction}")
+        raise UserError(f"clean_fraction must be in [0, 1], got {clean_fraction}")
     rng = np.random.default_rng([seed, zlib.crc32(video.encode())])
     return "clean" if rng.random() < clean_fraction else "noisy"
 
@@ -262,7 +263,7 @@ def emulate_video(source: FrameSource, writer: VideoWriter, *, params: DVSParams
     times are those of the data contract, ``round(1e6 * k / fps)``; events are time-sorted.
     """
     if upsample < 1 or int(upsample) != upsample:
-        raise ValueError(f"upsample must be a positive integer, got {upsample}")
+        raise UserError(f"upsample must be a positive integer, got {upsample}")
     emulator = DVSEmulator(source.height, source.width, params, seed=seed)
     frame = source.frame(0)
     emulator.reset(frame, 0.0)

@@ -27,10 +27,12 @@ def write_moving_square_videos(folder, names, *, num_frames=6, height=24, width=
             write_frame(folder / name / f"frame_{k + first_number:0{pad}d}.jpg", image)
 
 
-def test_versions_agree_with_the_dataset_configs():
+def test_how_each_version_is_made_has_one_owner():
+    """The builder's table says how a version is made; its dataset config only reads it (the
+    resolution its scale gives: tests/test_config.py)."""
     for version, settings in VERSIONS.items():
         conf = yaml.safe_load((CONF / f"{version}.yaml").read_text())
-        assert {key: conf[key] for key in settings} == settings
+        assert not set(settings) & set(conf), version
 
 
 def test_folder_input_builds_a_valid_dataset_with_scaled_labels(tmp_path):
