@@ -23,7 +23,7 @@ import numpy as np
 
 from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
-from dagr_lite.synth.stub import cached_dataset, paint_ellipse, write_scenes
+from dagr_lite.synth.stub import boxes_of, cached_dataset, paint_ellipse, write_scenes
 from dagr_lite.synth.video import choose_dvs_model
 
 # Bump when the generated data changes, so caches made by an older recipe are not reused.
@@ -277,15 +277,12 @@ class EgoScene:
         """``(M, 4)`` xywh around the visible pixels of each hand at frame ``k`` (hands showing at
         least ``MIN_VISIBLE_PIXELS`` pixels and ``MIN_BOX_SIZE`` px each way)."""
         owner = self.paint(k / self.fps)[1]
-        out = []
+        corners = []
         for index in range(1, len(self.hand) + 1):
             rows, cols = np.nonzero(owner == index)
-            if len(rows) < MIN_VISIBLE_PIXELS:
-                continue
-            x1, y1, x2, y2 = cols.min(), rows.min(), cols.max() + 1, rows.max() + 1
-            if x2 - x1 >= MIN_BOX_SIZE and y2 - y1 >= MIN_BOX_SIZE:
-                out.append([x1, y1, x2 - x1, y2 - y1])
-        return np.asarray(out, dtype=np.float64).reshape(-1, 4)
+            if len(rows) >= MIN_VISIBLE_PIXELS:
+                corners.append((cols.min(), rows.min(), cols.max() + 1, rows.max() + 1))
+        return boxes_of(corners, MIN_BOX_SIZE)
 
 
 def generate_ego(out: Path | str, *, seconds: float = EGO_SECONDS, splits: dict[str, int] | None = None,

@@ -186,16 +186,20 @@ class HandScene:
 
     def boxes(self, k: int) -> np.ndarray:
         """``(M, 4)`` xywh of the hands visible at frame ``k`` (at least ``MIN_BOX_SIZE`` px each way)."""
-        out = []
+        corners = []
         for parts in self._ellipses(k / self.fps):
             extents = [(cx - ex, cy - ey, cx + ex, cy + ey)
                        for cx, cy, a, b, angle in parts for ex, ey in [self._extent(a, b, angle)]]
             x1, y1 = max(min(e[0] for e in extents), 0.0), max(min(e[1] for e in extents), 0.0)
-            x2 = min(max(e[2] for e in extents), float(self.width))
-            y2 = min(max(e[3] for e in extents), float(self.height))
-            if x2 - x1 >= MIN_BOX_SIZE and y2 - y1 >= MIN_BOX_SIZE:
-                out.append([x1, y1, x2 - x1, y2 - y1])
-        return np.asarray(out, dtype=np.float64).reshape(-1, 4)
+            corners.append((x1, y1, min(max(e[2] for e in extents), float(self.width)),
+                            min(max(e[3] for e in extents), float(self.height))))
+        return boxes_of(corners, MIN_BOX_SIZE)
+
+
+def boxes_of(corners, least: float) -> np.ndarray:
+    """``(M, 4)`` xywh of the boxes of ``corners`` ``(x1, y1, x2, y2)`` at least ``least`` px each way."""
+    out = [[x1, y1, x2 - x1, y2 - y1] for x1, y1, x2, y2 in corners if x2 - x1 >= least and y2 - y1 >= least]
+    return np.asarray(out, dtype=np.float64).reshape(-1, 4)
 
 
 def generate_stub(out: Path | str, *, seconds: float = STUB_SECONDS, splits: dict[str, int] | None = None,
