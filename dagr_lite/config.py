@@ -95,6 +95,10 @@ def _integer(v) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
+def _integers(v, count: int, least: int) -> bool:
+    return isinstance(v, (ListConfig, list, tuple)) and len(v) == count and all(_integer(a) and a >= least for a in v)
+
+
 def _number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
@@ -139,6 +143,21 @@ _RULES = {
     "eval.conf_threshold": ("a number in [0, 1]", lambda v: _number(v) and 0 <= v <= 1),
     "eval.nms_threshold": ("a number in (0, 1]", lambda v: _number(v) and 0 < v <= 1),
     "save_images": ("an integer >= 0", lambda v: _integer(v) and v >= 0),
+    # detect and the demo
+    "rate_hz": ("a positive number (answers per second of recording)", lambda v: _number(v) and v > 0),
+    "seconds": ("a positive number of seconds or null (all of it)", lambda v: v is None or (_number(v) and v > 0)),
+    "overwrite": ("true or false", lambda v: isinstance(v, bool)),
+    "order": ("sort or refuse", lambda v: v in ("sort", "refuse")),
+    "order_window_us": ("an integer >= 0 (microseconds)", lambda v: _integer(v) and v >= 0),
+    "operating.score": ("a number in [0, 1], or null (the checkpoint's)", lambda v: v is None or (_number(v) and 0 <= v <= 1)),
+    "operating.nms_iou": ("a number in (0, 1], or null (the checkpoint's)", lambda v: v is None or (_number(v) and 0 < v <= 1)),
+    "sensor.size": ("[width, height], two positive integers, or null", lambda v: v is None or _integers(v, 2, 1)),
+    "sensor.crop": ("[x0, y0, width, height], four integers (x0, y0 >= 0; width, height > 0), or null",
+                    lambda v: v is None or (_integers(v, 4, 0) and v[2] > 0 and v[3] > 0)),
+    "sensor.rotate": ("one of 0, 90, 180, 270 (degrees clockwise)", lambda v: _integer(v) and v in (0, 90, 180, 270)),
+    "sensor.flip_x": ("true or false", lambda v: isinstance(v, bool)),
+    "sensor.flip_y": ("true or false", lambda v: isinstance(v, bool)),
+    "sensor.scale": ("a positive integer (pixels binned scale x scale)", lambda v: _integer(v) and v > 0),
 }
 _ABSENT = object()
 

@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from dagr_lite.camera.render import render_moment
 from dagr_lite.apps.cli import hydra_command
-from dagr_lite.config import ConfigError, dataset_root
+from dagr_lite.config import ConfigError, check_values, dataset_root
 from dagr_lite.data import format as fmt
 from dagr_lite.data.events import EventFile
 from dagr_lite.data.frames import list_frames, read_frame
@@ -99,10 +99,7 @@ def demo(cfg: DictConfig) -> dict:
     """Stream one recording through the detector; write the animation and the strip. Returns their
     paths and the update latencies (seconds)."""
     print(OmegaConf.to_yaml(cfg), flush=True)
-    if cfg.rate_hz <= 0:
-        raise ConfigError(f"rate_hz must be positive, got {cfg.rate_hz}")
-    if cfg.seconds is not None and not cfg.seconds > 0:
-        raise ConfigError(f"seconds must be a positive number of seconds (null: the whole video), got {cfg.seconds}")
+    check_values(cfg)
     rec = Recording(dataset_root(cfg.dataset), cfg.split, cfg.video)
     out = Path(cfg.out if cfg.out is not None else f"runs/demo/{rec.video}.webp")
     check_output(out)

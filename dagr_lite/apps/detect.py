@@ -10,7 +10,7 @@ from dagr_lite.camera.detect import VideoSettings, run_detect
 from dagr_lite.camera.recording import open_recording
 from dagr_lite.camera.sensor import Sensor
 from dagr_lite.camera.udp import UdpSource
-from dagr_lite.config import ConfigError
+from dagr_lite.config import ConfigError, check_values
 from dagr_lite.engine.runs import resolve_device
 from dagr_lite.stream import StreamingDetector
 
@@ -48,6 +48,7 @@ def build_sensor(cfg: DictConfig, size: tuple[int, int]) -> Sensor:
 
 def detect(cfg: DictConfig) -> dict:
     """Run ``cfg.ckpt`` over ``cfg.input``; returns the summary (see :mod:`dagr_lite.camera.detect`)."""
+    check_values(cfg)
     if cfg.sensor.model_size not in MODEL_SIZES:
         raise ConfigError(f"sensor.model_size={cfg.sensor.model_size!r}: expected one of {MODEL_SIZES}")
     print(OmegaConf.to_yaml(cfg), flush=True)

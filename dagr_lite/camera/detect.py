@@ -29,6 +29,11 @@ from dagr_lite.camera.render import Mp4Writer, render_moment
 from dagr_lite.camera.sensor import Sensor, fit_sensor
 from dagr_lite.stream import StreamingDetector
 
+# A stretch of the recording's clock this long without an event is a jump (a clock reset, a
+# recording resumed, a jump to Unix-epoch microseconds): its periodic answers stop once the last
+# events before it have left the horizon, and resume at the first event after it.
+CLOCK_JUMP_US = 10_000_000
+
 SUMMARY = "summary.json"
 DETECTIONS = "detections.jsonl"
 VIDEO = "detections.mp4"
@@ -158,6 +163,7 @@ class _Runner:
         self.late_dropped = 0  # live: events older than those already read (reported, not hidden)
         self.busy_s = 0.0  # wall time in the detector (push + detect)
         self.t_last: float | None = None
+        self.jumps: list[tuple[float, float]] = []  # (last event before, first event after) each clock jump
         self.wall_start = time.perf_counter()
 
     def feed(self, chunk: Events) -> None:
@@ -165,6 +171,7 @@ class _Runner:
         if self.t_first is None:
             self.t_first = float(chunk["t"][0])
             self.next_stop = self.t_first + self.step_us
+        self._find_jumps(chunk["t"])
         self.t_last = float(chunk["t"][-1])
         self.output.add_events(chunk, self.t_last)
         mapped = self.sensor.events(chunk)
@@ -184,6 +191,24 @@ class _Runner:
             return
         self._answer_until(self.t_last)
 
+    def _find_jumps(self, t: np.ndarray) -> None:
+        """Record each stretch of more than :data:`CLOCK_JUMP_US` without an event, up to ``t``."""
+        times = np.concatenate([[self.t_last if self.t_last is not None else t[0]], t])
+        for i in np.flatnonzero(np.diff(times) > CLOCK_JUMP_US):
+            before, after = float(times[i]), float(times[i + 1])
+            self.jumps.append((before, after))
+            print(f"clock jump: no event from t={before:.0f} us to t={after:.0f} us "
+                  f"({(after - before) / 1e6:.1f} s); answers pause there", flush=True)
+
+    def _skip_jump(self, stop: float) -> bool:
+        """Move a periodic stop that falls inside a jump, past the horizon of the events before it,
+        to the first stop after it; whether it moved."""
+        for before, after in self.jumps:
+            if before + self.stream.window_us + self.step_us <= stop < after:
+                self.next_stop += self.step_us * math.ceil((after - self.next_stop) / self.step_us)
+                return True
+        return False
+
     def _answer_until(self, t_known: float) -> None:
         """Answer at every stop before ``t_known`` (events up to it have all been read)."""
         while True:
@@ -191,6 +216,8 @@ class _Runner:
             stop = min(self.next_stop, frame_t)
             if stop > t_known:
                 return
+            if frame_t > stop and self._skip_jump(stop):
+                continue
             self._answer(stop, frame_due=frame_t <= stop)
             if self.next_stop <= stop:
                 self.next_stop += self.step_us * (1 + math.floor((stop - self.next_stop) / self.step_us))
@@ -238,6 +265,7 @@ class _Runner:
 
     def summary(self, source, video_path: Path | None) -> dict:
         span_s = 0.0 if self.t_first is None else (self.t_last - self.t_first) / 1e6
+        span_s -= sum(after - before for before, after in self.jumps) / 1e6  # the recording, not its jumps
         latency = np.array(self.output.latencies) if self.output.latencies else np.zeros(1)
         result = {"input": str(source.path), "sensor": list(self.sensor.size),
                   "model_input": list(self.sensor.output_size), "events_in": self.events_in,
@@ -249,7 +277,8 @@ class _Runner:
                   "answers": self.output.answers, "latency_ms_median": 1e3 * float(np.median(latency)),
                   "latency_ms_p95": 1e3 * float(np.percentile(latency, 95)),
                   "video": None if video_path is None else str(video_path),
-                  "operating_point": self.stream.operating.as_dict()}
+                  "operating_point": self.stream.operating.as_dict(),
+                  "clock_jumps": [{"from_us": before, "to_us": after} for before, after in self.jumps]}
         if getattr(source, "order", None) is not None:
             result["out_of_order_events_sorted"] = source.order.out_of_order
         if getattr(source, "stats", None) is not None:

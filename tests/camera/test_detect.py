@@ -207,3 +207,24 @@ def test_a_checkpoint_runs_at_the_sensors_size_with_its_own_weights(trained_chec
     assert (at_sensor.width, at_sensor.height) == (640, 360) != (trained.width, trained.height)
     ours, theirs = trained.model.state_dict(), at_sensor.model.state_dict()
     assert ours.keys() == theirs.keys() and all(torch.equal(ours[k], theirs[k]) for k in ours)
+
+
+@pytest.mark.parametrize("jump_us", [100_000_000, 1_700_000_000_000_000])  # 100 s; to Unix-epoch microseconds
+def test_a_clock_that_jumps_is_answered_at_the_jumps_edges_and_reported(trained_checkpoints, jump_us, tmp_path):
+    rng = np.random.default_rng(3)
+    before = np.sort(rng.integers(0, 200_000, 400))
+    after = jump_us + np.sort(rng.integers(0, 200_000, 400))
+    t = np.concatenate([before, after])
+    rows = "".join(f"{ti},{x},{y},{p}\n" for ti, x, y, p in zip(t, rng.integers(0, 320, len(t)),
+                                                                rng.integers(0, 180, len(t)), rng.integers(0, 2, len(t))))
+    path = tmp_path / "jump.csv"
+    path.write_text("t,x,y,on\n" + rows)
+    stream = StreamingDetector.from_checkpoint(trained_checkpoints["events_only"])
+    summary = run_detect(stream, open_recording(path, size=(320, 180)), Sensor((320, 180)), tmp_path / "out",
+                         rate_hz=100, video=video_settings(enabled=False), progress=False)
+    # 0.2 s of events on each side at 100 Hz, and the answers until the events before it left the horizon
+    assert summary["answers"] <= 2 * 21 + 5
+    assert summary["clock_jumps"] == [{"from_us": float(before[-1]), "to_us": float(after[0])}]
+    assert summary["recording_seconds"] == pytest.approx((before[-1] - before[0] + after[-1] - after[0]) / 1e6)
+    times = [a["t_us"] for a in lines(tmp_path / "out")]
+    assert times == sorted(times) and max(times) >= after[-1] and any(t > before[-1] for t in times)
