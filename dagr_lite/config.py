@@ -158,6 +158,9 @@ _RULES = {
     "sensor.flip_x": ("true or false", lambda v: isinstance(v, bool)),
     "sensor.flip_y": ("true or false", lambda v: isinstance(v, bool)),
     "sensor.scale": ("a positive integer (pixels binned scale x scale)", lambda v: _integer(v) and v > 0),
+    "udp.max_backlog_mb": ("a positive number (megabytes)", lambda v: _number(v) and v > 0),
+    "udp.idle_s": ("a positive number (seconds)", lambda v: _number(v) and v > 0),
+    "udp.wait_first_s": ("a positive number (seconds)", lambda v: _number(v) and v > 0),
 }
 _ABSENT = object()
 

@@ -35,7 +35,8 @@ def build_source(cfg: DictConfig):
         if cfg.frames is not None:
             raise ConfigError("frames= goes with a recording; a live stream carries events only")
         return UdpSource(str(cfg.input), size, fmt=cfg.udp.format, idle_s=cfg.udp.idle_s, seconds=cfg.seconds,
-                         wait_first_s=cfg.udp.wait_first_s)
+                         wait_first_s=cfg.udp.wait_first_s,
+                         max_backlog_bytes=int(cfg.udp.max_backlog_mb * 2 ** 20))
     return open_recording(cfg.input, size=size, frames=cfg.frames, frame_times=cfg.frame_times, order=cfg.order,
                           order_window_us=cfg.order_window_us)
 
@@ -65,6 +66,10 @@ def detect(cfg: DictConfig) -> dict:
         print(f"listening on {cfg.input} ({source.size[0]}x{source.size[1]} sensor); Ctrl-C stops", flush=True)
     summary = run_detect(stream, source, sensor, out, rate_hz=cfg.rate_hz, video=video, seconds=cfg.seconds,
                          live=live, overwrite=cfg.overwrite)
+    if not summary["finished"]:
+        print(f"{summary['stopped']}: {summary['events_in']} events read; the outputs in {out} keep their partial "
+              "names (summary.partial.json says what was processed)", flush=True)
+        raise SystemExit(130)
     rtf = summary["real_time_factor"]
     print(f"{summary['events_in']} events, {summary['recording_seconds']:.2f} s of recording, {summary['answers']} "
           f"answers -> {out}\nlatency median {summary['latency_ms_median']:.1f} ms, p95 "

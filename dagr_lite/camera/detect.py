@@ -37,6 +37,13 @@ CLOCK_JUMP_US = 10_000_000
 SUMMARY = "summary.json"
 DETECTIONS = "detections.jsonl"
 VIDEO = "detections.mp4"
+OUTPUTS = (SUMMARY, DETECTIONS, VIDEO)
+
+
+def partial_name(name: str) -> str:
+    """What an output is called until its run finished: ``detections.partial.jsonl``, ..."""
+    stem, suffix = name.rsplit(".", 1)
+    return f"{stem}.partial.{suffix}"
 
 
 @dataclass
@@ -55,8 +62,8 @@ class _Output:
 
     def __init__(self, out: Path, sensor: Sensor, video: VideoSettings, live: bool):
         self.out, self.sensor, self.video, self.live = out, sensor, video, live
-        self.lines = open(out / DETECTIONS, "w")
-        self.mp4 = Mp4Writer(out / VIDEO, fps=video.fps) if video.enabled else None
+        self.lines = open(out / partial_name(DETECTIONS), "w")
+        self.mp4 = Mp4Writer(out / partial_name(VIDEO), fps=video.fps) if video.enabled else None
         self.latencies: list[float] = []
         self.answers = 0
         self.last_picture_t = -math.inf
@@ -101,12 +108,29 @@ class _Output:
         self.mp4.write(render_moment(image, recent, boxes, scores, caption))
 
     def close(self) -> Path | None:
+        """Finish the outputs under their partial names; the video's path (None: none)."""
         self.lines.close()
         return self.mp4.close() if self.mp4 is not None else None
 
+    def discard_video(self) -> None:
+        self.lines.close()
+        if self.mp4 is not None:
+            self.mp4.discard()
+
+
+def publish(out: Path, summary: dict) -> None:
+    """Write the summary and give every output of a finished run its name (the summary last), over
+    those of an earlier run; until then a folder holds the earlier run's outputs whole."""
+    (out / partial_name(SUMMARY)).write_text(json.dumps(summary, indent=1))
+    for name in (DETECTIONS, VIDEO, SUMMARY):
+        if (out / partial_name(name)).exists():
+            (out / partial_name(name)).replace(out / name)
+        elif name == VIDEO:
+            (out / VIDEO).unlink(missing_ok=True)  # this run drew no video: an earlier one's is not its
+
 
 def check_out(out: Path, overwrite: bool) -> None:
-    taken = [out / name for name in (SUMMARY, DETECTIONS, VIDEO) if (out / name).exists()]
+    taken = [out / name for name in OUTPUTS if (out / name).exists()]
     if taken and not overwrite:
         raise FileExistsError(f"{taken[0]} already exists; choose another out= (or overwrite=true)")
     out.mkdir(parents=True, exist_ok=True)
@@ -126,7 +150,7 @@ def run_detect(stream: StreamingDetector, source, sensor: Sensor, out: Path | st
     out = Path(out)
     check_out(out, overwrite)
     output = _Output(out, sensor, video, live)
-    bar = None
+    bar, stopped = None, None
     try:
         runner = _Runner(stream, sensor, output, 1e6 / rate_hz, live, source.frames())
         bar = tqdm(desc=f"detect {Path(str(source.path)).name}", unit=" ev", unit_scale=True,
@@ -138,13 +162,20 @@ def run_detect(stream: StreamingDetector, source, sensor: Sensor, out: Path | st
             runner.feed(chunk)
         runner.finish()
     except KeyboardInterrupt:
-        print("stopped; writing what was made", flush=True)
+        stopped = "interrupted (Ctrl-C)"
+        print(f"stopped; what was made so far is in {out} under partial names", flush=True)
+    except BaseException:
+        output.discard_video()  # no finished-looking video of a failed run; its answers stay partial
+        raise
     finally:
         if bar is not None:
             bar.close()
-        video_path = output.close()
-    summary = runner.summary(source, video_path)
-    (out / SUMMARY).write_text(json.dumps(summary, indent=1))
+    video_path = output.close()
+    summary = {**runner.summary(source, video_path), "finished": stopped is None, "stopped": stopped}
+    if stopped is None:
+        publish(out, {**summary, "video": None if video_path is None else str(out / VIDEO)})
+        return {**summary, "video": None if video_path is None else str(out / VIDEO)}
+    (out / partial_name(SUMMARY)).write_text(json.dumps(summary, indent=1))
     return summary
 
 

@@ -379,7 +379,27 @@ def read_frame_times(path: Path, count: int | None = None) -> np.ndarray:
         i = int(np.argmax(np.diff(times) < 0))
         raise RecordingError(f"{path}: frame times must not decrease; line {i + 2} ({times[i + 1]:g}) is earlier "
                              f"than line {i + 1} ({times[i]:g})")
+    check_frame_interval(path, times)
     return times.astype(np.int64)
+
+
+# Frame intervals a camera gives, in microseconds: 10 kHz to one frame in 10 s.
+FRAME_INTERVAL_US = (100.0, 10_000_000.0)
+
+
+def check_frame_interval(path: Path, times: np.ndarray) -> None:
+    """Refuse frame times whose median interval no camera gives in microseconds (times in seconds
+    or milliseconds, or in nanoseconds), naming the fix."""
+    if len(times) < 2:
+        return
+    interval = float(np.median(np.diff(times)))
+    low, high = FRAME_INTERVAL_US
+    if interval < low:
+        raise RecordingError(f"{path}: the frames are {interval:g} apart in the median; frame times are microseconds "
+                             f"(30 fps: 33333 apart). Times in seconds need x 1e6, in milliseconds x 1e3")
+    if interval > high:
+        raise RecordingError(f"{path}: the frames are {interval:g} us ({interval / 1e6:g} s) apart in the median; "
+                             "frame times are microseconds. Times in nanoseconds need / 1e3")
 
 
 def _folder_frames(folder: Path, times_file: Path | None, size: tuple[int, int]) -> Callable:

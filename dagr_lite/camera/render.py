@@ -68,6 +68,11 @@ class Mp4Writer:
             self.container.mux(packet)
         self.frames += 1
 
+    def discard(self) -> None:
+        """Stop, leaving no file (a run that failed)."""
+        self.container.close()
+        self.tmp.unlink(missing_ok=True)
+
     def close(self) -> Path | None:
         """Finish the file; None (and no file) if no picture was written."""
         if self.frames:

@@ -4,15 +4,26 @@
 ``t32_x16_y15_on1``: 8-byte events, ``<u4`` t (wrapping), ``<u2`` x, ``<u2`` y << 1 | on.
 
 :class:`UdpSource` receives on a thread into a queue, so no datagram waits on the detector; the
-detector drains the queue when it is ready. Events that arrived while it was busy wait there, never
-dropped: the summary says how many waited at most (``backlog_max``) and for how long (``wait_ms_max``). The
-operating system can still drop datagrams when its receive buffer overflows; the source asks for
-a large buffer and counts packets whose time runs backwards (``packets_out_of_order``).
+detector drains the queue when it is ready. The queue is bounded (``max_backlog_bytes``): when the
+stream outpaces the detector, the oldest datagrams are dropped, counted and reported as it happens
+(``backlog_dropped_events``), so memory stays bounded whoever sends. The summary says how many
+events waited at most (``backlog_max``) and for how long (``wait_ms_max``).
+
+Every datagram is checked before its events reach the detector: a length that is not whole
+events, a coordinate off the sensor, times that run backwards inside it, or a first time more
+than ``MAX_AHEAD_US`` ahead of the stream (junk, or another format) reject the whole datagram,
+counted by reason (``packets_rejected``); a run of ``AHEAD_TO_ACCEPT`` datagrams that agree on a
+clock far ahead is taken as the sender's clock jumping (``clock_jumps``). The datagrams of one read
+are put in time order, so datagrams the network swapped are read the same whatever the timing; a
+datagram older than what the detector has read is counted by the detector as late. The operating
+system can still drop datagrams when its receive buffer overflows: the source asks for a large buffer.
 """
 from __future__ import annotations
 
 import collections
+import dataclasses
 import socket
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -30,6 +41,8 @@ FORMATS = {
 }
 RECEIVE_BUFFER = 1 << 24  # bytes asked of the operating system
 EVENTS_PER_PACKET = 100
+MAX_AHEAD_US = 10_000_000  # a datagram starting this far ahead of the stream is refused ...
+AHEAD_TO_ACCEPT = 20       # ... unless this many in a row agree on the new clock (within MAX_AHEAD_US)
 
 
 def parse_address(url: str) -> tuple[str, int]:
@@ -61,6 +74,17 @@ def encode(events: dict, fmt: str) -> bytes:
     return packed.tobytes()
 
 
+def check_datagram(events: dict, payload_size: int, itemsize: int, size: tuple[int, int]) -> str | None:
+    """Why a datagram's events may not reach the detector (None: they may)."""
+    if payload_size == 0 or payload_size % itemsize:
+        return "length"
+    if np.any(events["x"] >= size[0]) or np.any(events["y"] >= size[1]):
+        return "coordinates"
+    if np.any(np.diff(events["t"]) < 0):
+        return "time order"
+    return None
+
+
 @dataclass
 class UdpStats:
     packets: int = 0
@@ -68,6 +92,11 @@ class UdpStats:
     backlog_max: int = 0  # most events waiting in the queue when the detector came to read it
     wait_ms_max: float = 0.0  # longest a packet waited in the queue for the detector
     packets_out_of_order: int = 0  # packets whose first time is earlier than the previous packet's last
+    packets_rejected: dict = dataclasses.field(default_factory=dict)  # reason -> datagrams refused
+    backlog_dropped_packets: int = 0  # the oldest datagrams dropped to keep the queue bounded
+    backlog_dropped_events: int = 0
+    clock_jumps: int = 0  # runs of datagrams that agreed on a clock far ahead, then taken
+    backlog_bytes_max: int = 0  # the most bytes queued at once (at most max_backlog_bytes + one datagram)
 
 
 class UdpSource:
@@ -77,9 +106,15 @@ class UdpSource:
     listens."""
 
     def __init__(self, url: str, size: tuple[int, int], *, fmt: str, idle_s: float, wait_first_s: float,
-                 seconds: float | None):
+                 seconds: float | None, max_backlog_bytes: int):
         if fmt not in FORMATS:
             raise UserError(f"udp.format={fmt!r}: expected one of {sorted(FORMATS)}")
+        if max_backlog_bytes <= 0:
+            raise UserError(f"udp.max_backlog_mb must be positive, got {max_backlog_bytes / 2 ** 20:g}")
+        self.max_backlog_bytes = int(max_backlog_bytes)
+        self._queued_bytes = 0
+        self._lock = threading.Lock()
+        self._clock = {"last_t": -1, "t_high": 0, "ahead": []}  # the stream's time, for checking datagrams
         self.address = parse_address(url)
         self.url, self.size, self.fmt = url, (int(size[0]), int(size[1])), fmt
         self.idle_s, self.seconds, self.wait_first_s = float(idle_s), seconds, float(wait_first_s)
@@ -102,7 +137,73 @@ class UdpSource:
             except socket.timeout:
                 continue
             if n:
-                self._queue.append((time.monotonic(), bytes(buffer[:n])))
+                self._enqueue(time.monotonic(), bytes(buffer[:n]))
+
+    def _enqueue(self, arrival: float, payload: bytes) -> None:
+        """Queue a datagram; over the bound, drop the oldest, counted and said as it happens."""
+        with self._lock:
+            self._queue.append((arrival, payload))
+            self._queued_bytes += len(payload)
+            self.stats.backlog_bytes_max = max(self.stats.backlog_bytes_max, self._queued_bytes)
+            dropped = 0
+            while self._queued_bytes > self.max_backlog_bytes and len(self._queue) > 1:
+                _, old = self._queue.popleft()
+                self._queued_bytes -= len(old)
+                dropped += len(old) // FORMATS[self.fmt].itemsize
+                self.stats.backlog_dropped_packets += 1
+            if dropped:
+                before = self.stats.backlog_dropped_events
+                self.stats.backlog_dropped_events += dropped
+                if before // 100_000 != self.stats.backlog_dropped_events // 100_000 or not before:
+                    print(f"udp: the detector lags the stream; {self.stats.backlog_dropped_events} events dropped "
+                          f"from the oldest so far (udp.max_backlog_mb)", file=sys.stderr, flush=True)
+
+    def _take_queue(self) -> list[tuple[float, bytes]]:
+        with self._lock:
+            arrived = list(self._queue)
+            self._queue.clear()
+            self._queued_bytes = 0
+        return arrived
+
+    def read(self, payloads: list[bytes]) -> dict | None:
+        """The events of the datagrams of one read, those refused left out, in time order (datagrams
+        the network swapped come out the same whatever the timing); None when none is left."""
+        self.stats.packets += len(payloads)
+        chunks = [events for payload in payloads for events in [self._accept(payload)] if events is not None]
+        count = sum(len(c["t"]) for c in chunks)
+        self.stats.events += count
+        self.stats.backlog_max = max(self.stats.backlog_max, count)
+        if not chunks:
+            return None
+        events = concat(chunks)
+        order = np.argsort(events["t"], kind="stable")
+        return {key: value[order] for key, value in events.items()}
+
+    def _accept(self, payload: bytes) -> dict | None:
+        """One datagram's events, or None when it is refused (counted in ``stats.packets_rejected``)."""
+        clock, itemsize = self._clock, FORMATS[self.fmt].itemsize
+        events = decode(payload, self.fmt, clock["t_high"])
+        reason = check_datagram(events, len(payload), itemsize, self.size)
+        if reason is not None:
+            _refuse(self.stats, reason)
+            return None
+        if self.fmt == "t32_x16_y15_on1" and events["t"][0] < clock["last_t"] - (1 << 31):
+            clock["t_high"] += 1 << 32  # the 32-bit clock wrapped
+            events["t"] += 1 << 32
+        if clock["last_t"] >= 0 and events["t"][0] > clock["last_t"] + MAX_AHEAD_US:
+            ahead = clock["ahead"]
+            if ahead and abs(int(events["t"][0]) - ahead[-1]) > MAX_AHEAD_US:
+                ahead.clear()  # not the same new clock
+            ahead.append(int(events["t"][-1]))
+            if len(ahead) < AHEAD_TO_ACCEPT:
+                _refuse(self.stats, "time ahead of the stream")
+                return None
+            self.stats.clock_jumps += 1
+        clock["ahead"] = []
+        if events["t"][0] < clock["last_t"]:
+            self.stats.packets_out_of_order += 1
+        clock["last_t"] = max(clock["last_t"], int(events["t"][-1]))
+        return events
 
     def events(self) -> Iterator[dict]:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -117,7 +218,7 @@ class UdpSource:
         thread = threading.Thread(target=self._receive, args=(sock,), daemon=True)
         thread.start()
         self.ready.set()
-        started, last_packet, last_t, t_high = time.monotonic(), None, -1, 0
+        started, last_packet = time.monotonic(), None
         try:
             while True:
                 now = time.monotonic()
@@ -127,35 +228,23 @@ class UdpSource:
                     raise UserError(f"input={self.url}: no packet in {self.wait_first_s:g} s")
                 if last_packet is not None and now - last_packet > self.idle_s and not self._queue:
                     return
-                waiting = len(self._queue)
-                if not waiting:
+                if not self._queue:
                     time.sleep(0.002)
                     continue
-                arrived = [self._queue.popleft() for _ in range(waiting)]
+                arrived = self._take_queue()
                 last_packet = time.monotonic()
                 self.stats.wait_ms_max = max(self.stats.wait_ms_max, 1e3 * (last_packet - arrived[0][0]))
-                payloads = [payload for _, payload in arrived]
-                chunks = []
-                for payload in payloads:
-                    events = decode(payload, self.fmt, t_high)
-                    if self.fmt == "t32_x16_y15_on1" and len(events["t"]) and events["t"][0] < last_t - (1 << 31):
-                        t_high += 1 << 32  # the 32-bit clock wrapped
-                        events["t"] += 1 << 32
-                    if len(events["t"]):
-                        if events["t"][0] < last_t:
-                            self.stats.packets_out_of_order += 1
-                        last_t = int(events["t"][-1])
-                        chunks.append(events)
-                self.stats.packets += len(payloads)
-                count = sum(len(c["t"]) for c in chunks)
-                self.stats.events += count
-                self.stats.backlog_max = max(self.stats.backlog_max, count)
-                if chunks:
-                    yield concat(chunks)
+                events = self.read([payload for _, payload in arrived])
+                if events is not None:
+                    yield events
         finally:
             self._running = False
             thread.join()
             sock.close()
+
+
+def _refuse(stats: UdpStats, reason: str) -> None:
+    stats.packets_rejected[reason] = stats.packets_rejected.get(reason, 0) + 1
 
 
 def send(chunks, url: str, *, fmt: str, speed: float = 1.0,

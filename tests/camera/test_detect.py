@@ -228,3 +228,61 @@ def test_a_clock_that_jumps_is_answered_at_the_jumps_edges_and_reported(trained_
     assert summary["recording_seconds"] == pytest.approx((before[-1] - before[0] + after[-1] - after[0]) / 1e6)
     times = [a["t_us"] for a in lines(tmp_path / "out")]
     assert times == sorted(times) and max(times) >= after[-1] and any(t > before[-1] for t in times)
+
+
+class _Stopping:
+    """A recording whose reading stops after ``chunks`` chunks with ``error``."""
+
+    def __init__(self, recording, chunks: int, error: BaseException):
+        self.recording, self.chunks, self.error = recording, chunks, error
+        self.path, self.size, self.has_frames = recording.path, recording.size, recording.has_frames
+
+    def frames(self):
+        return self.recording.frames()
+
+    def events(self):
+        for i, chunk in enumerate(self.recording.events()):
+            if i == self.chunks:
+                raise self.error
+            yield chunk
+
+
+def written(out) -> dict:
+    return {p.name: p.read_bytes() for p in sorted(out.iterdir())}
+
+
+def test_an_interrupted_run_keeps_partial_names_and_a_retry_into_the_same_folder_works(stub_video,
+                                                                                       trained_checkpoints, tmp_path):
+    path = write_aedat4(tmp_path / "davis.aedat4", stub_video["events"], stub_video["size"], stub_video["frames"])
+    stream = StreamingDetector.from_checkpoint(trained_checkpoints["hybrid"])
+    out = tmp_path / "out"
+    stopped = _Stopping(open_recording(path), 1, KeyboardInterrupt())
+    summary = run_detect(stream, stopped, Sensor(stub_video["size"]), out, rate_hz=100, video=video_settings(),
+                         progress=False)
+    assert summary["finished"] is False and summary["stopped"] == "interrupted (Ctrl-C)"
+    assert sorted(written(out)) == ["detections.partial.jsonl", "detections.partial.mp4", "summary.partial.json"]
+    assert json.loads((out / "summary.partial.json").read_text())["finished"] is False
+    stream = StreamingDetector.from_checkpoint(trained_checkpoints["hybrid"])
+    summary = run_detect(stream, open_recording(path), Sensor(stub_video["size"]), out, rate_hz=100,
+                         video=video_settings(), progress=False)  # no overwrite needed: nothing was finished
+    assert summary["finished"] is True and summary["video"] == str(out / "detections.mp4")
+    assert {"detections.jsonl", "detections.mp4", "summary.json"} <= set(written(out))
+    assert json.loads((out / "summary.json").read_text())["finished"] is True
+
+
+def test_a_failed_run_over_an_earlier_one_leaves_the_earlier_outputs_whole(stub_video, trained_checkpoints,
+                                                                           tmp_path):
+    path = write_aedat4(tmp_path / "davis.aedat4", stub_video["events"], stub_video["size"], stub_video["frames"])
+    out = tmp_path / "out"
+    stream = StreamingDetector.from_checkpoint(trained_checkpoints["hybrid"])
+    run_detect(stream, open_recording(path), Sensor(stub_video["size"]), out, rate_hz=100, video=video_settings(),
+               progress=False)
+    earlier = written(out)
+    stream = StreamingDetector.from_checkpoint(trained_checkpoints["hybrid"])
+    failing = _Stopping(open_recording(path), 1, OSError("the disk is full"))
+    with pytest.raises(OSError, match="the disk is full"):
+        run_detect(stream, failing, Sensor(stub_video["size"]), out, rate_hz=100, video=video_settings(),
+                   progress=False, overwrite=True)
+    now = written(out)
+    assert {name: now[name] for name in earlier} == earlier  # summary, answers and video of the earlier run
+    assert set(now) - set(earlier) == {"detections.partial.jsonl"}  # no video, no summary of the failed run
