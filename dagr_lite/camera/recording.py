@@ -9,7 +9,7 @@ suffix             camera / format                                read by
 ``.raw``           Prophesee EVT2, EVT2.1, EVT3                   faery
 ``.dat``           Prophesee DAT                                  faery
 ``.es``            Event Stream (ATIS, DVS)                       faery
-``.csv``           ``t,x,y,on`` text                              faery
+``.csv``           ``t,x,y,on`` text                              this module
 ``.h5``            this package's dataset layout                  :class:`~dagr_lite.data.events.EventFile`
 =================  =============================================  ==========================
 
@@ -18,11 +18,11 @@ recording's own clock, which need not start at 0; ``p`` 0 or 1; ``x, y`` as the 
 millions of events never sits in memory whole. Real recordings are not always in time order: with
 ``order="sort"`` events are sorted within a buffer of ``order_window_us``, and an event later than
 that is an error naming where it is; with ``order="refuse"`` the first disorder is an error that
-says how many events are out of order and where the first is. faery's decoders (every format but
-``.h5``) already hold the clock non-decreasing (an event earlier than the one before it comes out at
-that one's time) and refuse an event outside the sensor, so their chunks pass through unscanned;
-``.h5`` chunks get one compiled pass that checks both (tests/camera/test_recording.py pins what
-faery does).
+says how many events are out of order and where the first is. faery's binary decoders (AEDAT4, EVT,
+DAT, ES) already hold the clock non-decreasing (an event earlier than the one before it comes out at
+that one's time: its disorder cannot be seen, sorted or refused) and refuse an event outside the
+sensor, so their chunks pass through unscanned; ``.h5`` and CSV chunks get one compiled pass that
+checks both (tests/camera/test_recording.py pins what faery does).
 
 Frames come from the recording's own frame track (AEDAT4), from a frame folder (``frames=DIR``
 with ``timestamps.txt``, one time in microseconds per image in name order) or a video file
@@ -235,7 +235,7 @@ class Recording:
     def events(self) -> Iterator[Events]:
         """Chunks of events in time order, inside the sensor, ``p`` 0 or 1 (no chunk is empty)."""
         sorter = TimeOrder(str(self.path), self.order_mode, self.order_window_us, self.size,
-                           decoder_checked=self.kind in FAERY_KINDS)
+                           decoder_checked=self.kind in FAERY_KINDS - {"csv"})
         self.order = sorter.stats
         read = 0
         try:
@@ -287,6 +287,33 @@ def _payload_start(data: bytes, dat: bool) -> int:
     return at + 2 if dat else at
 
 
+# How each kind of file begins (what its suffix claims is checked against this).
+MAGIC = {"aedat": (b"#!AER-DAT4",), "es": (b"Event Stream",), "evt": (b"%",), "dat": (b"%",), "h5": (b"\x89HDF",)}
+NAMES = {"aedat": "an AEDAT4 file (.aedat4)", "es": "an Event Stream file (.es)", "h5": "an HDF5 file (.h5)",
+         "evt": "a Prophesee file (.raw or .dat)", "dat": "a Prophesee file (.raw or .dat)"}
+
+
+def sniff(path: Path) -> str | None:
+    """The kind of file ``path`` begins as (None: none of the binary kinds)."""
+    with open(path, "rb") as f:
+        head = f.read(16)
+    return next((kind for kind, starts in MAGIC.items() if head.startswith(starts)), None)
+
+
+def check_kind(path: Path, kind: str) -> None:
+    """Refuse a file whose first bytes are not what its suffix claims, naming what it is; a Prophesee
+    file without its ``%`` header (which says the format and the sensor) is refused too."""
+    found = sniff(path)
+    if kind == "csv" or found == kind or {found, kind} == {"evt", "dat"}:
+        return
+    if found is not None:
+        raise RecordingError(f"{path}: named {path.suffix}, but it is {NAMES[found]}; give it the suffix of its format")
+    if kind in ("evt", "dat"):
+        raise RecordingError(f"{path}: a Prophesee {path.suffix} file begins with its % header (the format, EVT2 "
+                             "or EVT3, and the sensor size); this one has none, so it cannot be read as one")
+    raise RecordingError(f"{path}: named {path.suffix}, but it does not begin as {NAMES[kind]}")
+
+
 def truncation_problem(path: Path, kind: str) -> str | None:
     """Why the file must have been cut short, or None: a CSV whose last line has no end, an EVT or
     DAT file whose payload stops inside a word (a cut at a word boundary cannot be told from a
@@ -329,6 +356,47 @@ def _faery_chunks(path: Path, kind: str, size: tuple[int, int] | None) -> tuple[
                 yield {"x": packet["x"], "y": packet["y"], "t": packet["t"].view(np.int64), "p": packet["on"]}
 
     return dimensions, chunks
+
+
+CSV_CHUNK = 1 << 16  # lines per chunk read from a CSV file
+
+
+def _csv_chunks(path: Path, size: tuple[int, int]) -> tuple[tuple[int, int], Callable]:
+    """A ``t,x,y,on`` CSV (faery's layout: a header line, ``x@W`` and ``y@H`` may name the sensor),
+    read here rather than by faery so that times that run backwards are seen as they are: faery's
+    decoder clamps them to the latest time, which neither sorting nor ``order=refuse`` could then
+    see."""
+    problem = truncation_problem(path, "csv")
+    if problem is not None:
+        raise RecordingError(f"{path}: {problem}; the file is truncated")
+    with open(path) as f:
+        header = f.readline()
+    names = [name.split("@")[0].strip().lower() for name in header.split(",")]
+    if names != ["t", "x", "y", "on"]:
+        raise RecordingError(f"{path}: a CSV recording starts with the header t,x,y,on (faery's layout), got "
+                             f"{header.strip()!r}")
+
+    def chunks() -> Iterator[Events]:
+        import itertools
+
+        with open(path) as f:
+            f.readline()
+            line = 2
+            while True:
+                lines = list(itertools.islice(f, CSV_CHUNK))
+                if not lines:
+                    return
+                try:
+                    block = np.loadtxt(lines, delimiter=",", dtype=np.int64, ndmin=2)
+                except ValueError as err:
+                    raise RecordingError(f"{path}: lines {line} to {line + len(lines) - 1} are not t,x,y,on "
+                                         f"integers ({err})") from err
+                if block.shape[1] != 4:
+                    raise RecordingError(f"{path}: line {line} has {block.shape[1]} values, expected t,x,y,on")
+                line += len(lines)
+                yield {"x": block[:, 1], "y": block[:, 2], "t": block[:, 0], "p": (block[:, 3] > 0).astype(np.uint8)}
+
+    return size, chunks
 
 
 def _aedat_frames(path: Path, size: tuple[int, int]) -> Callable | None:
@@ -484,9 +552,13 @@ def open_recording(path: Path | str, *, size: tuple[int, int] | None = None, fra
             raise RecordingError(f"sensor.size={list(size)}: width and height must be positive")
     if suffix == ".csv" and size is None:
         raise RecordingError(f"{path}: a CSV recording does not say its sensor size; give sensor.size=[width,height]")
+    check_kind(path, "h5" if suffix in H5_SUFFIXES else FAERY_SUFFIXES[suffix])
     if suffix in H5_SUFFIXES:
         kind = "h5"
         size, chunks, frame_source = _h5_recording(path, size)
+    elif suffix == ".csv":
+        kind, frame_source = "csv", None
+        size, chunks = _csv_chunks(path, size)
     else:
         kind = FAERY_SUFFIXES[suffix]
         size, chunks = _faery_chunks(path, kind, size)

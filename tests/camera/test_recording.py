@@ -133,7 +133,7 @@ def _backwards(name: str, data: bytes) -> bytes:
 
 
 @pytest.mark.parametrize(("name", "kwargs"), FORMATS, ids=[f[0] for f in FORMATS])
-def test_faery_refuses_events_off_the_sensor_and_never_goes_back_in_time(tmp_path, name, kwargs):
+def test_faery_refuses_events_off_the_sensor_and_never_goes_back_in_time_and_csv_shows_disorder(tmp_path, name, kwargs):
     """What lets faery's chunks pass through unscanned (recording.py's docstring)."""
     import faery
 
@@ -145,7 +145,9 @@ def test_faery_refuses_events_off_the_sensor_and_never_goes_back_in_time(tmp_pat
               "rec.aedat4": (b'"int">99<', b'"int">64<')}.get(name, (b"99", b"64"))
     off = tmp_path / f"off_{name}"
     off.write_bytes(data.replace(*header))  # the same events on a sensor 64 wide: x=70 lies off it
-    with pytest.raises(RecordingError, match=rf"{off}: after 0 events, an event lies outside the 64x48 sensor its header declares \(x overflow \(x=70 .*width=64\)\)"):
+    message = (rf"{off}: event at t=1003 us lies at \(70, 1\), outside the 64x48 sensor" if name == "rec.csv" else
+               rf"{off}: after 0 events, an event lies outside the 64x48 sensor its header declares \(x overflow \(x=70 .*width=64\)\)")
+    with pytest.raises(RecordingError, match=message):
         list(open_recording(off, size=(64, 48) if name == "rec.csv" else None).events())
     if name == "rec.es":
         return  # ES stores times as unsigned steps: it cannot go back
@@ -156,7 +158,13 @@ def test_faery_refuses_events_off_the_sensor_and_never_goes_back_in_time(tmp_pat
                      size=(99, 48))
     else:
         back.write_bytes(_backwards(name, data))
-    t = concat(list(open_recording(back, size=(99, 48)).events()))["t"]
+    recording = open_recording(back, size=(99, 48))
+    t = concat(list(recording.events()))["t"]
+    if name == "rec.csv":  # read here, not by faery: the disorder is seen, sorted and counted, or refused
+        assert np.array_equal(t, packed["t"].astype(np.int64)) and recording.order.out_of_order == 3
+        with pytest.raises(RecordingError, match="3 of 10 events are out of time order; the first is event 4"):
+            list(open_recording(back, size=(99, 48), order="refuse").events())
+        return
     assert len(t) == 10 and np.all(np.diff(t) >= 0) and not np.array_equal(t, packed["t"].astype(np.int64))
 
 
@@ -259,7 +267,7 @@ def test_unknown_missing_and_mismatched_inputs_are_refused(tmp_path):
     with pytest.raises(RecordingError, match="does not say its sensor size; give sensor.size"):
         open_recording(tmp_path / "rec.csv")
     (tmp_path / "junk.aedat4").write_bytes(b"not an aedat file at all")
-    with pytest.raises(RecordingError, match="junk.aedat4: cannot open it as aedat"):
+    with pytest.raises(RecordingError, match=r"junk.aedat4: named .aedat4, but it does not begin as an AEDAT4 file"):
         open_recording(tmp_path / "junk.aedat4")
     # A frame track of another size than the events: the header's second sizeX says 65.
     write_aedat4(tmp_path / "davis.aedat4", camera_events(6, 100), (WIDTH, HEIGHT),
@@ -345,3 +353,22 @@ def test_recording_statistics_count_repeats_across_chunk_boundaries(tmp_path, mo
         monkeypatch.setattr(recording, "H5_CHUNK", chunk)
         stats = recording_stats(tmp_path / "cam.h5", tmp_path / f"stats{chunk}", size=(3, 2))
         assert stats["events_sharing_pixel_and_microsecond"] == expected, chunk
+
+
+def test_a_file_that_is_not_what_its_suffix_claims_is_called_by_what_it_is(tmp_path):
+    events = camera_events(1, 200)
+    faery_write(tmp_path / "rec.es", events)
+    faery_write(tmp_path / "rec.raw", events, version="evt3")
+    data = (tmp_path / "rec.es").read_bytes()
+    (tmp_path / "renamed.raw").write_bytes(data[:-1])  # an .es file minus a byte, named .raw
+    with pytest.raises(RecordingError, match=r"renamed\.raw: named \.raw, but it is an Event Stream file \(\.es\)"):
+        open_recording(tmp_path / "renamed.raw", size=(1280, 720))
+    raw = (tmp_path / "rec.raw").read_bytes()
+    payload = raw[raw.rindex(b"\n%") + 1:]
+    (tmp_path / "headerless.raw").write_bytes(payload[payload.index(b"\n") + 1:])
+    with pytest.raises(RecordingError, match=r"headerless\.raw: a Prophesee \.raw file begins with its % header"):
+        open_recording(tmp_path / "headerless.raw", size=(1280, 720))
+    (tmp_path / "es.aedat4").write_bytes(data)
+    with pytest.raises(RecordingError, match=r"es\.aedat4: named \.aedat4, but it is an Event Stream file"):
+        open_recording(tmp_path / "es.aedat4")
+    assert len(concat(list(open_recording(tmp_path / "rec.raw").events()))["t"]) == 200
