@@ -175,6 +175,10 @@ def check_values(cfg: DictConfig) -> None:
         raise ConfigError(f"init_from={cfg.init_from} starts a new run from other weights, and resume={cfg.resume} "
                           "continues a run from its own: give one of them")
     trainer = cfg.get("trainer")
+    unknown = sorted(set(trainer) - {*TRAINER_KEYS, "events_first"}) if trainer is not None else []
+    if unknown:
+        raise ConfigError(f"trainer.{unknown[0]} is not a training setting; the trainer reads "
+                          f"{', '.join(sorted({*TRAINER_KEYS, 'events_first'}))}")
     if trainer is not None and trainer.max_steps is None and trainer.max_epochs is None:
         raise ConfigError("set trainer.max_steps or trainer.max_epochs (both are null)")
     if trainer is not None and trainer.get("schedule_by") == "time" and trainer.max_minutes is None:
@@ -221,14 +225,20 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
                                  image_dropout=augment.image_dropout if hybrid else 0.0)
     image_size = (dataset.height, dataset.width) if dataset.height is not None else None
     picture = bool(data.get("event_picture", False))
-    return EventEgoHands(dataset_root(dataset), split, image_age=image_age,
-                         event_span="image" if with_image and not picture else "window", window_us=data.window_us,
-                         context_us=data.context_us, refractory_us=data.refractory_us, max_events=data.max_events,
-                         first_frame=first_frame,
-                         fps=dataset.fps, image_size=image_size, transform=transform,
-                         clip_boxes=data.clip_boxes, labelled_only=bool(data.get("labelled_only", False)),
-                         seed=cfg.seed, age_power=data.train_image_age_power if train else 0.0,
-                         event_picture=picture)
+    built = EventEgoHands(dataset_root(dataset), split, image_age=image_age,
+                          event_span="image" if with_image and not picture else "window", window_us=data.window_us,
+                          context_us=data.context_us, refractory_us=data.refractory_us, max_events=data.max_events,
+                          first_frame=first_frame,
+                          fps=dataset.fps, image_size=image_size, transform=transform,
+                          clip_boxes=data.clip_boxes, labelled_only=bool(data.get("labelled_only", False)),
+                          seed=cfg.seed, age_power=data.train_image_age_power if train else 0.0,
+                          event_picture=picture)
+    if not len(built) and built.videos and first_frame is None:  # (the sweep says its own)
+        lengths = [built.num_frames(v) for v in range(len(built.videos))]
+        raise ConfigError(f"{built.root} [{split}]: no sample at image age {image_age}: its videos have "
+                          f"{min(lengths)} to {max(lengths)} frames (a sample needs the image age's frames before "
+                          "its label frame)")
+    return built
 
 
 def graph_spec(model: DictConfig) -> EventGraphSpec | None:
@@ -311,15 +321,19 @@ class TrainerSettings:
         return int(self.max_steps) if self.max_steps is not None else int(self.max_epochs) * steps_per_epoch
 
 
+# The keys of conf/train.yaml's trainer section (events_first besides): a key given with + that the
+# loop does not read is refused rather than ignored.
+TRAINER_KEYS = ("max_steps", "max_epochs", "max_minutes", "schedule_by", "val_every", "log_every", "image_every",
+                "checkpoint_every", "checkpoint_minutes", "warmup_steps", "min_lr_ratio", "grad_clip", "ema_decay",
+                "ema_tau", "amp", "amp_dtype")
+
+
 def trainer_settings(cfg: DictConfig) -> TrainerSettings:
     """The training loop's settings from a checked config (:func:`check_values`)."""
     trainer = cfg.trainer
     hybrid = bool(cfg.model.use_events and cfg.model.use_image)
     first = float(trainer.get("events_first", 0.0) or 0.0) if hybrid and cfg.get("init_from") is None else 0.0
-    keys = ("max_steps", "max_epochs", "max_minutes", "schedule_by", "val_every", "log_every", "image_every",
-            "checkpoint_every", "checkpoint_minutes", "warmup_steps", "min_lr_ratio", "grad_clip", "ema_decay",
-            "ema_tau", "amp", "amp_dtype")
-    return TrainerSettings(**{key: trainer[key] for key in keys}, events_first=first,
+    return TrainerSettings(**{key: trainer[key] for key in TRAINER_KEYS}, events_first=first,
                            image_age=int(cfg.data.image_age), eval_backend=cfg.eval.backend,
                            conf_threshold=float(cfg.eval.conf_threshold), nms_threshold=float(cfg.eval.nms_threshold))
 

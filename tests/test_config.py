@@ -247,3 +247,14 @@ def test_a_detector_answers_only_with_the_thresholds_given():
     model = Detector(small_detector_config()).eval()
     with pytest.raises(TypeError, match=r"needs conf_threshold= and nms_threshold= \(eval\.\* in conf/\)"):
         model(None)
+
+
+def test_a_trainer_key_the_loop_does_not_read_is_refused():
+    with pytest.raises(ConfigError, match="trainer.nonexistent is not a training setting; the trainer reads amp, "):
+        check_values(compose_cfg("train", ["+trainer.nonexistent=3"]))
+
+
+def test_an_image_age_longer_than_every_video_is_refused_not_scored_minus_one():
+    cfg = resolve_config(compose_cfg("train", ["data.image_age=1000"]))
+    with pytest.raises(ConfigError, match=r"\[valid\]: no sample at image age 1000: its videos have 60 to 60 frames"):
+        build_dataset(cfg, "valid", train=False, with_image=True)

@@ -160,6 +160,8 @@ def run_detect(stream: StreamingDetector, source, sensor: Sensor, out: Path | st
             if seconds is not None and runner.t_first is not None and chunk["t"][0] > runner.t_first + 1e6 * seconds:
                 break
             runner.feed(chunk)
+        if runner.t_first is None and not live:
+            raise UserError(f"{source.path}: the recording holds no events")
         runner.finish()
     except KeyboardInterrupt:
         stopped = "interrupted (Ctrl-C)"

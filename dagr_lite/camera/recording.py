@@ -114,12 +114,12 @@ class TimeOrder:
     """
 
     def __init__(self, where: str, order: str, window_us: int, size: tuple[int, int] | None = None,
-                 decoder_checked: bool = False):
+                 decoder_checked: bool = False, size_from: str = "its header declares"):
         if order not in ORDERS:
             raise RecordingError(f"order={order!r}: expected one of {ORDERS}")
         if window_us < 0:
             raise RecordingError(f"order_window_us must be >= 0, got {window_us}")
-        self.where, self.order, self.window_us = where, order, int(window_us)
+        self.where, self.order, self.window_us, self.size_from = where, order, int(window_us), size_from
         self.size = size if size is not None else (np.iinfo(np.int64).max,) * 2
         self.decoder_checked = decoder_checked  # the decoder refuses events off the sensor and never goes back in time
         self.stats = OrderStats()
@@ -141,7 +141,7 @@ class TimeOrder:
         if outside:
             i = int(np.argmax((x < 0) | (x >= self.size[0]) | (y < 0) | (y >= self.size[1])))
             raise RecordingError(f"{self.where}: event at t={int(t[i])} us lies at ({int(x[i])}, {int(y[i])}), "
-                                 f"outside the {self.size[0]}x{self.size[1]} sensor its header declares")
+                                 f"outside the {self.size[0]}x{self.size[1]} sensor {self.size_from}")
         if not late:
             self.stats.events += len(t)
             self._max_t = int(top)
@@ -235,7 +235,9 @@ class Recording:
     def events(self) -> Iterator[Events]:
         """Chunks of events in time order, inside the sensor, ``p`` 0 or 1 (no chunk is empty)."""
         sorter = TimeOrder(str(self.path), self.order_mode, self.order_window_us, self.size,
-                           decoder_checked=self.kind in FAERY_KINDS - {"csv"})
+                           decoder_checked=self.kind in FAERY_KINDS - {"csv"},
+                           size_from={"csv": "sensor.size gives", "h5": "of the recording"}.get(self.kind,
+                                                                                          "its header declares"))
         self.order = sorter.stats
         read = 0
         try:
@@ -544,6 +546,10 @@ def open_recording(path: Path | str, *, size: tuple[int, int] | None = None, fra
     if suffix not in SUFFIXES:
         raise RecordingError(f"{path}: unknown recording format {suffix or '(no suffix)'!r}; expected one of "
                              f"{', '.join(SUFFIXES)}")
+    if path.is_dir():
+        raise RecordingError(f"{path}: a folder, not a recording; give the recording's file")
+    if path.exists() and not path.is_file():
+        raise RecordingError(f"{path}: not a regular file (a pipe or a device); give a recording file")
     if not path.is_file():
         raise RecordingError(f"{path}: no such file")
     if size is not None:

@@ -14,7 +14,7 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from dagr_lite.errors import UserError
-from dagr_lite.config import TrainerSettings, build_dataset
+from dagr_lite.config import ConfigError, TrainerSettings, build_dataset
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.checkpoint import describe_dataset, save_checkpoint
 from dagr_lite.engine.clock import TrainingClock
@@ -60,8 +60,15 @@ def make_data(cfg: DictConfig, train_set: EventEgoHands, model, place: Distribut
     """The training loader (this rank's slice of each global batch), and one validation loader
     per validation age (this rank's shard)."""
     with_image = cfg.model.use_image
-    valid_sets = {age: build_dataset(cfg, "valid", train=False, with_image=with_image, image_age=age)
-                  for age in validation_ages(cfg)}
+    valid_sets = {}
+    for age in validation_ages(cfg):
+        try:
+            valid_sets[age] = build_dataset(cfg, "valid", train=False, with_image=with_image, image_age=age)
+        except ConfigError as err:  # videos shorter than the largest training age: validate at the first
+            if age == cfg.data.image_age:
+                raise
+            if place.is_main:
+                print(f"validation at image age {age} left out: {err}", flush=True)
     if place.is_main:
         for dataset in (train_set, *valid_sets.values()):
             print(describe_dataset(dataset), flush=True)

@@ -286,3 +286,13 @@ def test_a_failed_run_over_an_earlier_one_leaves_the_earlier_outputs_whole(stub_
     now = written(out)
     assert {name: now[name] for name in earlier} == earlier  # summary, answers and video of the earlier run
     assert set(now) - set(earlier) == {"detections.partial.jsonl"}  # no video, no summary of the failed run
+
+
+def test_an_empty_recording_is_refused_not_answered_zero_times(trained_checkpoints, tmp_path):
+    from dagr_lite.errors import UserError
+
+    (tmp_path / "empty.csv").write_text("t,x,y,on\n")
+    stream = StreamingDetector.from_checkpoint(trained_checkpoints["events_only"])
+    with pytest.raises(UserError, match=r"empty\.csv: the recording holds no events"):
+        run_detect(stream, open_recording(tmp_path / "empty.csv", size=(320, 180)), Sensor((320, 180)),
+                   tmp_path / "out", rate_hz=100, video=video_settings(enabled=False), progress=False)

@@ -372,3 +372,14 @@ def test_a_file_that_is_not_what_its_suffix_claims_is_called_by_what_it_is(tmp_p
     with pytest.raises(RecordingError, match=r"es\.aedat4: named \.aedat4, but it is an Event Stream file"):
         open_recording(tmp_path / "es.aedat4")
     assert len(concat(list(open_recording(tmp_path / "rec.raw").events()))["t"]) == 200
+
+
+def test_a_folder_or_a_pipe_is_not_called_a_missing_file(tmp_path):
+    import os
+
+    (tmp_path / "rec.aedat4").mkdir()
+    with pytest.raises(RecordingError, match=r"rec\.aedat4: a folder, not a recording"):
+        open_recording(tmp_path / "rec.aedat4")
+    os.mkfifo(tmp_path / "pipe.raw")
+    with pytest.raises(RecordingError, match=r"pipe\.raw: not a regular file \(a pipe or a device\)"):
+        open_recording(tmp_path / "pipe.raw")
