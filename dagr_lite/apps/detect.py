@@ -17,18 +17,9 @@ from dagr_lite.stream import StreamingDetector
 MODEL_SIZES = ("model", "sensor")
 
 
-def _pair(value, key: str):
-    if value is None:
-        return None
-    value = list(value)
-    if len(value) != 2:
-        raise ConfigError(f"{key}={value}: expected [width, height]")
-    return int(value[0]), int(value[1])
-
-
 def build_source(cfg: DictConfig):
     """A recording or a live stream, from ``cfg.input`` and its settings."""
-    size = _pair(cfg.sensor.size, "sensor.size")
+    size = None if cfg.sensor.size is None else tuple(cfg.sensor.size)  # two integers (check_values)
     if str(cfg.input).startswith("udp://"):
         if size is None:
             raise ConfigError("a live stream does not say its sensor size; give sensor.size=[width,height]")
@@ -42,9 +33,10 @@ def build_source(cfg: DictConfig):
 
 
 def build_sensor(cfg: DictConfig, size: tuple[int, int]) -> Sensor:
+    """The sensor mapping of ``cfg.sensor``, whose values :func:`check_values` has typed."""
     crop = cfg.sensor.crop
-    return Sensor(size=size, crop=None if crop is None else tuple(int(v) for v in crop), scale=int(cfg.sensor.scale),
-                  rotate=int(cfg.sensor.rotate), flip_x=bool(cfg.sensor.flip_x), flip_y=bool(cfg.sensor.flip_y))
+    return Sensor(size=size, crop=None if crop is None else tuple(crop), scale=cfg.sensor.scale,
+                  rotate=cfg.sensor.rotate, flip_x=cfg.sensor.flip_x, flip_y=cfg.sensor.flip_y)
 
 
 def detect(cfg: DictConfig) -> dict:

@@ -33,7 +33,8 @@ from dagr_lite.data.dataset import EventEgoHands, Sample
 from dagr_lite.engine.loading import make_loader
 from dagr_lite.engine.runs import resolve_device
 from dagr_lite.data.writer import write_text_atomically
-from dagr_lite.engine.checkpoint import SAMPLE_KEYS, Checkpoint, load_checkpoint, load_model, override
+from dagr_lite.data.spec import SampleSpec
+from dagr_lite.engine.checkpoint import Checkpoint, load_checkpoint, load_model, override
 from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.eval.score import score_entries, score_model
 from dagr_lite.nn.detector import Detector
@@ -176,7 +177,7 @@ def score_point(cfg: DictConfig, model, dataset: EventEgoHands, frames: list[tup
 
 
 # What a sample is, besides its image age (the sweep's own): the checkpoint's unless given.
-OVERRIDABLE = tuple(key for key in SAMPLE_KEYS if key != "image_age")
+OVERRIDABLE = SampleSpec.keys()
 
 
 def sweep_checkpoint(cfg: DictConfig, checkpoint: Checkpoint, frames: list[tuple[int, int]] | None,

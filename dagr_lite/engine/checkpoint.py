@@ -139,10 +139,6 @@ class Checkpoint:
         return model
 
 
-# The data settings that define a model's input: taken from the checkpoint unless overridden.
-SAMPLE_KEYS = ("image_age", *SampleSpec.keys())
-
-
 def override(section: str, key: str, trained, given, overrides: dict):
     """``given`` when set (recorded in ``overrides`` when it differs), else ``trained``."""
     if given is None:
