@@ -46,6 +46,12 @@ def detect(cfg: DictConfig) -> dict:
         raise ConfigError(f"sensor.model_size={cfg.sensor.model_size!r}: expected one of {MODEL_SIZES}")
     print(OmegaConf.to_yaml(cfg), flush=True)
     source = build_source(cfg)
+    retimed = getattr(source, "retimed", None)
+    if retimed is not None and retimed.late:
+        print(f"{cfg.input}: {retimed.late} of {retimed.events} events are written out of time order (the first is "
+              f"event {retimed.first_at} at t={retimed.first_t} us, after t={retimed.first_after} us); they are read "
+              "at the time of the event before them, as the file's decoder does (order=refuse refuses the file)",
+              flush=True)
     sensor = build_sensor(cfg, source.size)
     model_size = sensor.output_size if cfg.sensor.model_size == "sensor" else None
     stream = StreamingDetector.from_checkpoint(cfg.ckpt, device=resolve_device(cfg.device), model_size=model_size,

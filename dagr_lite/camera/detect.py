@@ -314,6 +314,8 @@ class _Runner:
                   "clock_jumps": [{"from_us": before, "to_us": after} for before, after in self.jumps]}
         if getattr(source, "order", None) is not None:
             result["out_of_order_events_sorted"] = source.order.out_of_order
+        if getattr(source, "retimed", None) is not None:
+            result["out_of_order_events_retimed"] = source.retimed.late
         if getattr(source, "stats", None) is not None:
             result["udp"] = {**dataclasses.asdict(source.stats), "late_events_dropped": self.late_dropped}
         return result

@@ -19,10 +19,13 @@ millions of events never sits in memory whole. Real recordings are not always in
 ``order="sort"`` events are sorted within a buffer of ``order_window_us``, and an event later than
 that is an error naming where it is; with ``order="refuse"`` the first disorder is an error that
 says how many events are out of order and where the first is. faery's binary decoders (AEDAT4, EVT,
-DAT, ES) already hold the clock non-decreasing (an event earlier than the one before it comes out at
-that one's time: its disorder cannot be seen, sorted or refused) and refuse an event outside the
-sensor, so their chunks pass through unscanned; ``.h5`` and CSV chunks get one compiled pass that
-checks both (tests/camera/test_recording.py pins what faery does).
+DAT, ES) hold the clock non-decreasing (an event earlier than the one before it comes out at that
+one's time) and refuse an event outside the sensor, so their chunks pass through unscanned; for EVT
+and DAT files the words themselves are scanned first (:mod:`~dagr_lite.camera.rawtime`), so the
+events the decoder re-times are refused under ``order="refuse"`` and counted (``Recording.retimed``)
+under ``"sort"``. An Event Stream file cannot go back in time; an AEDAT4 file's disorder stays
+unseen. ``.h5`` and CSV chunks get one compiled pass that checks both (tests/camera/test_recording.py
+pins what faery does).
 
 Frames come from the recording's own frame track (AEDAT4), from a frame folder (``frames=DIR``
 with ``timestamps.txt``, one time in microseconds per image in name order) or a video file
@@ -39,6 +42,7 @@ from typing import Callable, Iterator
 import numba
 import numpy as np
 
+from dagr_lite.camera.rawtime import Retimed, evt_version, payload_start, scan_times
 from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.events import EventFile
@@ -227,6 +231,7 @@ class Recording:
     order_mode: str = ORDER
     order_window_us: int = ORDER_WINDOW_US
     order: OrderStats = field(default_factory=OrderStats)
+    retimed: Retimed | None = None  # EVT and DAT: the events written out of time order, which the decoder re-times
 
     @property
     def has_frames(self) -> bool:
@@ -277,18 +282,6 @@ class Recording:
         return self._frames()
 
 
-def _payload_start(data: bytes, dat: bool) -> int:
-    """Where the events of an EVT or DAT file begin: after the ``%`` header lines (and, in DAT, the
-    event type and size bytes)."""
-    at = 0
-    while data.startswith(b"%", at):
-        end = data.find(b"\n", at)
-        if end < 0:
-            return len(data)
-        at = end + 1
-    return at + 2 if dat else at
-
-
 # How each kind of file begins (what its suffix claims is checked against this).
 MAGIC = {"aedat": (b"#!AER-DAT4",), "es": (b"Event Stream",), "evt": (b"%",), "dat": (b"%",), "h5": (b"\x89HDF",)}
 NAMES = {"aedat": "an AEDAT4 file (.aedat4)", "es": "an Event Stream file (.es)", "h5": "an HDF5 file (.h5)",
@@ -328,8 +321,8 @@ def truncation_problem(path: Path, kind: str) -> str | None:
             return None if size == 0 or f.read(1) == b"\n" else "its last line is incomplete"
     if kind not in ("evt", "dat"):
         return None
-    word = 8 if kind == "dat" else (4 if b"evt 2" in head.lower() or b"evt2" in head.lower() else 2)
-    payload = size - _payload_start(head, kind == "dat")
+    word = 8 if kind == "dat" else (4 if evt_version(head) == 2 else 2)
+    payload = size - payload_start(head, kind == "dat")
     if payload % word:
         return f"its {payload}-byte payload is not a whole number of {word}-byte words"
     return None
@@ -338,7 +331,9 @@ def truncation_problem(path: Path, kind: str) -> str | None:
 def _faery_chunks(path: Path, kind: str, size: tuple[int, int] | None) -> tuple[tuple[int, int], Callable]:
     import faery
 
-    kwargs = {"dimensions_fallback": tuple(size)} if size is not None else {}
+    kwargs = {"file_type": kind}  # by this package's reading of the suffix (faery's own is case-sensitive: .ES)
+    if size is not None:
+        kwargs["dimensions_fallback"] = tuple(size)
     try:
         decoder = faery.events_stream_from_file(path, **kwargs)
         dimensions = tuple(int(v) for v in decoder.dimensions())
@@ -559,6 +554,7 @@ def open_recording(path: Path | str, *, size: tuple[int, int] | None = None, fra
     if suffix == ".csv" and size is None:
         raise RecordingError(f"{path}: a CSV recording does not say its sensor size; give sensor.size=[width,height]")
     check_kind(path, "h5" if suffix in H5_SUFFIXES else FAERY_SUFFIXES[suffix])
+    retimed = None
     if suffix in H5_SUFFIXES:
         kind = "h5"
         size, chunks, frame_source = _h5_recording(path, size)
@@ -568,6 +564,7 @@ def open_recording(path: Path | str, *, size: tuple[int, int] | None = None, fra
     else:
         kind = FAERY_SUFFIXES[suffix]
         size, chunks = _faery_chunks(path, kind, size)
+        retimed = _retimed(path, kind, order)
         frame_source = _aedat_frames(path, size) if kind == "aedat" else None
     if frames is not None:
         frames = Path(frames)
@@ -578,4 +575,19 @@ def open_recording(path: Path | str, *, size: tuple[int, int] | None = None, fra
             frame_source = _video_frames(frames, times, size)
         else:
             raise RecordingError(f"frames={frames}: no such folder or video file")
-    return Recording(path, kind, size, chunks, frame_source, order, int(order_window_us))
+    return Recording(path, kind, size, chunks, frame_source, order, int(order_window_us),
+                     retimed=retimed)
+
+
+def _retimed(path: Path, kind: str, order: str) -> Retimed | None:
+    """The events of an EVT or DAT file written out of time order (which faery's decoder re-times to
+    the time of the event before them); refused under ``order="refuse"``."""
+    if kind not in ("evt", "dat"):
+        return None
+    found = scan_times(path, kind)
+    if found.late and order == "refuse":
+        raise RecordingError(
+            f"{path}: {found.late} of {found.events} events are written out of time order; the first is event "
+            f"{found.first_at} at t={found.first_t} us, after an event at t={found.first_after} us (order=sort "
+            "reads them at the time of the event before them, as the decoder does, and counts them)")
+    return found

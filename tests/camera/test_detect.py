@@ -296,3 +296,19 @@ def test_an_empty_recording_is_refused_not_answered_zero_times(trained_checkpoin
     with pytest.raises(UserError, match=r"empty\.csv: the recording holds no events"):
         run_detect(stream, open_recording(tmp_path / "empty.csv", size=(320, 180)), Sensor((320, 180)),
                    tmp_path / "out", rate_hz=100, video=video_settings(enabled=False), progress=False)
+
+
+def test_events_a_decoder_retimes_are_counted_in_the_summary(trained_checkpoints, tmp_path):
+    from tests.camera.test_rawtime import encode
+
+    rng = np.random.default_rng(4)
+    t = np.sort(rng.integers(0, 100_000, 2_000))
+    t[[100, 101, 102]] = t[[102, 100, 101]]  # one event two places early: the two it skipped are late
+    late = int(np.sum(t < np.maximum.accumulate(np.concatenate([[-1], t[:-1]]))))
+    path = tmp_path / "rec.dat"
+    path.write_bytes(encode("dat", t, rng.integers(0, 64, len(t)), rng.integers(0, 48, len(t)),
+                            rng.integers(0, 2, len(t))))
+    stream = StreamingDetector.from_checkpoint(trained_checkpoints["events_only"], model_size=(64, 48))
+    summary = run_detect(stream, open_recording(path), Sensor((64, 48)), tmp_path / "out", rate_hz=100,
+                         video=video_settings(enabled=False), progress=False)
+    assert summary["out_of_order_events_retimed"] == late > 0 and summary["events_in"] == len(t)
