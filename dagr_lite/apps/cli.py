@@ -79,5 +79,6 @@ def hydra_command(config_name: str, run: Callable[[DictConfig], object]) -> Call
     def main(cfg: DictConfig) -> None:
         with user_errors():
             run(cfg)
+        remove_empty_output_folder()  # e.g. a resumed run that went on in its own folder
 
     return main

@@ -220,7 +220,8 @@ class TrainLoop:
         bar.close()
         path = self.checkpoints / "last.pt"
         if self.place.is_main:
-            print(f"SIGTERM: stopped after step {self.state.step} and saved {path}; continue with resume={path}",
+            print(f"SIGTERM: stopped after step {self.state.step} and saved {path}; continue with: python train.py "
+                  f"resume={path} (the run's settings come back from its overrides.yaml; it goes on in its folder)",
                   flush=True)
         raise Terminated(f"stopped by SIGTERM after step {self.state.step} ({path} saved)")
 

@@ -8,7 +8,7 @@ import os
 import shutil
 from pathlib import Path
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from dagr_lite.errors import UserError
 from dagr_lite.engine.checkpoint import Checkpoint, load_checkpoint
@@ -32,6 +32,12 @@ def resume(state: TrainState, path: str | Path, checkpoints: Path, place: Distri
         differ = ", ".join(f"{key}: {theirs[key]!r} in the checkpoint, {ours[key]!r} here"
                            for key in ours if theirs[key] != ours[key])
         raise ResumeError(f"resume={path}: the checkpoint's model does not fit this run's ({differ})")
+    groups = saved.training["optimizer"]["param_groups"]
+    if groups and set(groups[0]) - {"params"} != set(state.optimizer.param_groups[0]) - {"params"}:
+        name = str((saved.config.get("optim") or {}).get("_target_", "another optimizer")).rsplit(".", 1)[-1]
+        raise ResumeError(f"resume={path}: the run was trained with {name}, this run's optimizer is "
+                          f"{type(state.optimizer).__name__}; its state cannot continue here (init_from={path} "
+                          "starts a new run from its weights)")
     state.load_state_dict(saved.training)
     best = Path(path).parent / "best.pt"
     if best.is_file():
@@ -46,16 +52,52 @@ def resume(state: TrainState, path: str | Path, checkpoints: Path, place: Distri
     return saved
 
 
+def resumed_config(cfg: DictConfig) -> DictConfig:
+    """With ``resume=RUN/checkpoints/last.pt`` on a command line: the run's own overrides
+    (``RUN/overrides.yaml``) composed first and the command line's after them, so the checkpoint's
+    model, data and recipe come back without being repeated and any of them can still be changed;
+    the run goes on in its own folder unless ``run_dir=`` names another. Anything else (no
+    ``resume``, no saved overrides, a config not made by a Hydra command) is returned as it is."""
+    if cfg.get("resume") is None:
+        return cfg
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        command = list(HydraConfig.get().overrides.task)
+    except (ImportError, ValueError):
+        return cfg
+    run = Path(cfg.resume).parent.parent
+    saved = run / "overrides.yaml"
+    if not saved.is_file():
+        return cfg
+    theirs = [str(o) for o in OmegaConf.load(saved) if not str(o).startswith(("resume=", "init_from="))]
+    if not any(o.startswith("run_dir=") for o in command):
+        command.append(f"run_dir={run}")
+    from hydra import compose
+    return compose(config_name="train", overrides=theirs + command)
+
+
+def continues_own_run(cfg: DictConfig) -> bool:
+    """Whether ``resume=`` names a checkpoint of the run folder this run writes into."""
+    if cfg.get("resume") is None or not cfg.get("run_dir"):
+        return False
+    return Path(cfg.resume).resolve().parent.parent == Path(cfg.run_dir).resolve()
+
+
 def shared_run_folder(cfg: DictConfig, place: Distributed) -> tuple[Path, Path | None]:
     """The run folder, checked by rank 0 and shared with every rank (nothing is written yet:
     :func:`_train` makes it once the data, model and state are built), and the checkpoint to
-    resume from: ``resume=``, or, when torchrun restarts a failed group, the run's own ``last.pt``."""
+    resume from: ``resume=``, or, when torchrun restarts a failed group, the run's own ``last.pt``.
+    A folder that holds a run is refused, but for the run that ``resume=`` continues."""
     restarted = int(os.environ.get("TORCHELASTIC_RESTART_COUNT", "0") or 0) > 0
     outcome = None
     if place.is_main:
         try:
             own = own_last_checkpoint(cfg) if restarted else None
-            outcome = ("ok", str(own.parent.parent if own else run_folder(cfg, "train", make=False)), own and str(own))
+            if own:
+                folder = own.parent.parent
+            else:
+                folder = Path(cfg.run_dir) if continues_own_run(cfg) else run_folder(cfg, "train", make=False)
+            outcome = ("ok", str(folder), own and str(own))
         except Exception as err:  # rank 0 refuses the run: every rank must stop, not wait
             outcome = ("error", f"{type(err).__name__}: {err}", None)
             broadcast_object(outcome, place)

@@ -22,7 +22,7 @@ from dagr_lite.engine.distributed import Distributed, cleanup, global_normaliser
 from dagr_lite.engine.loop import NullWriter, TrainLoop, make_data
 from dagr_lite.engine.precision import amp_dtype
 from dagr_lite.engine.runs import resolve_device, seed_everything, write_run_files
-from dagr_lite.engine.starting import resume, shared_run_folder, start_from, start_weights
+from dagr_lite.engine.starting import resume, resumed_config, shared_run_folder, start_from, start_weights
 from dagr_lite.engine.state import TrainState
 from dagr_lite.eval.coco import METRIC_KEYS, format_metrics
 
@@ -39,7 +39,7 @@ def make_state(trainer: TrainerSettings, model, optimizer: torch.optim.Optimizer
 def train(cfg: DictConfig) -> dict:
     """Train the configured detector; returns the final validation metrics, the run folder and the
     per-step training losses. Launched by ``torchrun``, every process runs this together."""
-    cfg = resolve_config(cfg)
+    cfg = resolve_config(resumed_config(cfg))
     check_values(cfg)
     if cfg.get("init_from") is not None and not Path(cfg.init_from).is_file():  # before the run folder is made
         raise FileNotFoundError(f"init_from={cfg.init_from}: checkpoint file is missing")

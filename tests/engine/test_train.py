@@ -403,6 +403,9 @@ def test_resume_refuses_another_variant_and_keeps_the_best_checkpoint(tmp_path, 
     last = tmp_path / "a" / "checkpoints" / "last.pt"
     with pytest.raises(ResumeError, match=r"use_events: False in the checkpoint, True here"):
         train(small(tmp_path / "b", "model=hybrid", "trainer.max_steps=3", f"resume={last}"))
+    with pytest.raises(ResumeError, match=r"trained with AdamW, this run's optimizer is SGD; its state cannot continue"):
+        train(small(tmp_path / "d", "model=image_only", "optim=sgd", "trainer.max_steps=3", f"resume={last}"))
+    assert not (tmp_path / "d").exists()
     # The resumed run never beats the old best: its folder still holds the best weights.
     monkeypatch.setattr(loop_module, "validation_pass",
                         lambda *args, **kwargs: ({k: 0.0 for k in METRIC_KEYS}, {iou: [] for iou in NMS_IOUS}))
@@ -457,7 +460,7 @@ def test_sigterm_saves_last_and_the_run_resumes_from_it(tmp_path):
     args = [sys.executable, str(CONF.parent / "train.py"), f"run_dir={run}", "device=cpu", "trainer.amp=false",
             "loader.batch_size=4", "loader.num_workers=0", "trainer.max_steps=100000", "trainer.max_epochs=null",
             "trainer.max_minutes=null", "trainer.schedule_by=steps", "trainer.checkpoint_every=1",
-            "trainer.val_every=100000", "trainer.image_every=0", "data.window_us=20000"]
+            "trainer.val_every=100000", "trainer.image_every=0", "data.window_us=20000", "model=events_only"]
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         waited = 0.0
@@ -473,8 +476,14 @@ def test_sigterm_saves_last_and_the_run_resumes_from_it(tmp_path):
     assert proc.returncode == 143, out
     step = load_checkpoint(last).training["step"]
     assert step >= 1
-    assert f"SIGTERM: stopped after step {step} and saved {last}; continue with resume={last}" in out
+    assert f"SIGTERM: stopped after step {step} and saved {last}; continue with: python train.py resume={last} " in out
     assert sorted(p.name for p in last.parent.iterdir()) == ["last.pt"]  # no temporary file left
-    resumed = train(small(tmp_path / "resumed", f"resume={last}", f"trainer.max_steps={step + 2}",
-                          "trainer.val_every=1000"))
-    assert resumed["step"] == step + 2 and len(resumed["losses"]) == 2
+    # the advice as printed, with one change: the run's own settings (events_only, the window) come back
+    config_before = (run / "config.yaml").read_text()
+    again = subprocess.run([sys.executable, str(CONF.parent / "train.py"), f"resume={last}",
+                            f"trainer.max_steps={step + 2}"], capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert f"resumed from {last} at step {step}" in again.stdout
+    assert load_checkpoint(last).training["step"] == step + 2 and load_checkpoint(last).model_name == "events_only"
+    assert (run / "config.yaml").read_text() == config_before and (run / "metrics.json").is_file()
+    assert not (tmp_path / "runs").exists()  # no empty folder of Hydra's left behind
