@@ -40,6 +40,10 @@ def user_errors():
             raise
         print(f"error: {user_message(err)}", file=sys.stderr, flush=True)
         raise SystemExit(1) from None
+    except KeyboardInterrupt:  # Ctrl-C: what was finished stays; what was being written kept its partial name
+        remove_empty_output_folder()
+        print("interrupted", file=sys.stderr, flush=True)
+        raise SystemExit(130) from None
 
 
 def user_message(err: BaseException) -> str:

@@ -16,6 +16,7 @@ the table.
 from __future__ import annotations
 
 import csv
+import io
 import json
 from pathlib import Path
 
@@ -31,7 +32,7 @@ from dagr_lite.config import ConfigError, build_dataset, resolve_config
 from dagr_lite.data import format as fmt
 from dagr_lite.data.dataset import EventEgoHands, Sample
 from dagr_lite.engine.loading import make_loader
-from dagr_lite.engine.runs import resolve_device
+from dagr_lite.engine.runs import resolve_device, run_folder
 from dagr_lite.data.writer import write_text_atomically
 from dagr_lite.data.spec import SampleSpec
 from dagr_lite.engine.checkpoint import Checkpoint, load_checkpoint, load_model, override
@@ -231,7 +232,7 @@ def check_sweep(cfg: DictConfig) -> None:
     for path in cfg.ckpt:
         if not Path(path).is_file():
             raise FileNotFoundError(f"{path}: checkpoint file is missing")
-    if (Path(cfg.out) / "sweep.json").exists():
+    if cfg.out is not None and (Path(cfg.out) / "sweep.json").exists():
         raise FileExistsError(f"{cfg.out}: holds an earlier sweep (sweep.json); choose a new out")
 
 
@@ -239,7 +240,7 @@ def sweep(cfg: DictConfig) -> dict:
     """Score every checkpoint at every point; write ``sweep.json``, ``sweep.csv``, ``sweep.png``."""
     cfg = resolve_config(cfg)
     check_sweep(cfg)
-    out = Path(cfg.out)
+    out = Path(cfg.out) if cfg.out is not None else run_folder(cfg, "sweep", make=False)
     device = resolve_device(cfg.device)
     rows, frames, overrides = [], None, {}
     checkpoints = [load_checkpoint(path) for path in cfg.ckpt]  # every one, before any is scored
@@ -261,12 +262,15 @@ def write_results(out: Path, rows: list[dict], *, split: str, between: int, blan
     ``stream``: the rows score the streaming detector's answers."""
     summary = {"split": split, "between": between, "blank_image": blank_image, "stream": stream,
                "overrides": overrides or {}, "results": rows}
-    write_text_atomically(out / "sweep.json", json.dumps(summary, indent=1))
-    with open(out / "sweep.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=RESULT_KEYS)
-        writer.writeheader()
-        writer.writerows(rows)
+    # sweep.json, which marks a finished sweep (a rerun into out is refused), comes last: a sweep that
+    # fails on the plot or the table can be run again into the same folder
     plot_sweep(rows, out / "sweep.png", between=between)
+    table = io.StringIO()
+    writer = csv.DictWriter(table, fieldnames=RESULT_KEYS)
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text_atomically(out / "sweep.csv", table.getvalue())
+    write_text_atomically(out / "sweep.json", json.dumps(summary, indent=1))
 
 
 def checkpoint_name(ckpt: str) -> str:

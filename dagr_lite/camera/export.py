@@ -4,10 +4,15 @@
 Per video it writes ``DIR/<split>/<video>.<ext>``: ``aedat4`` (events and the frames as a frame
 track, as a DAVIS records them), ``evt2`` / ``evt3`` (Prophesee ``.raw``), ``dat``, ``es``, ``csv``
 (events only, through faery), and ``mp4`` (faery's render of the events, exponential decay).
-Events are read and written a chunk at a time; nothing is overwritten.
+Events are read and written a chunk at a time. Each file is written under a partial name
+(``<video>.partial<pid><ext>``) and named when whole, so an interrupted export leaves no file that
+looks finished; run again, it keeps the files already written and writes the rest (nothing is
+overwritten), after removing the partial files an earlier run left.
 """
 from __future__ import annotations
 
+import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -35,31 +40,59 @@ def _faery_packets(recording):
         yield packed
 
 
-def export_video(events_path: Path, out_stem: Path, targets: list[str]) -> list[Path]:
-    """Write one video of the layout to each target (see the module); returns the files written."""
+def partial_name(path: Path, ext: str) -> Path:
+    """Where ``path`` (ending in ``ext``) is written until it is whole; the extension stays last,
+    since faery chooses a format by it."""
+    return path.with_name(path.name[:-len(ext)] + f".partial{os.getpid()}{ext}")
+
+
+def remove_partials(path: Path, ext: str) -> None:
+    """Remove the partial files of ``path`` that earlier runs left (any process's; with faery's own
+    ``.write`` temporaries)."""
+    for stale in path.parent.glob(path.name[:-len(ext)] + ".partial*" + ext + "*"):
+        stale.unlink(missing_ok=True)
+
+
+def _write(recording, path: Path, target: str) -> None:
     import faery
 
+    if target == "aedat4":  # frames too: faery writes events only
+        write_aedat4(path, recording.events(), recording.size, recording.frames())
+    elif target == "mp4":
+        with tempfile.TemporaryDirectory() as tmp:
+            source = Path(tmp) / "events.aedat4"
+            faery.file_encoder.events_to_file(_faery_packets(recording), source, dimensions=recording.size)
+            (faery.events_stream_from_file(source).regularize(frequency_hz=RENDER_FPS)
+             .render(decay="exponential", tau=RENDER_TAU, colormap=faery.colormaps.starry_night)
+             .to_file(Path(tmp) / "render.mp4"))
+            shutil.move(Path(tmp) / "render.mp4", path)  # faery's own temporaries stay in tmp
+    else:
+        version = {"evt2": "evt2", "evt3": "evt3"}.get(target)
+        faery.file_encoder.events_to_file(_faery_packets(recording), path, dimensions=recording.size,
+                                          version=version, file_type="evt" if version else None)
+
+
+def export_video(events_path: Path, out_stem: Path, targets: list[str]) -> tuple[list[Path], list[Path]]:
+    """Write one video of the layout to each target (see the module); returns the files written
+    and the files kept (already there)."""
     recording = open_recording(events_path)
-    written = []
+    written, kept = [], []
     for target in targets:
-        path = out_stem.with_name(out_stem.name + TARGETS[target])
+        ext = TARGETS[target]
+        path = out_stem.with_name(out_stem.name + ext)
         if path.exists():
-            raise FileExistsError(f"{path} already exists (nothing is overwritten)")
-        if target == "aedat4":  # frames too: faery writes events only
-            write_aedat4(path, recording.events(), recording.size, recording.frames())
-        elif target == "mp4":
-            with tempfile.TemporaryDirectory() as tmp:
-                source = Path(tmp) / "events.aedat4"
-                faery.file_encoder.events_to_file(_faery_packets(recording), source, dimensions=recording.size)
-                (faery.events_stream_from_file(source).regularize(frequency_hz=RENDER_FPS)
-                 .render(decay="exponential", tau=RENDER_TAU, colormap=faery.colormaps.starry_night)
-                 .to_file(path))  # faery writes beside it and moves it into place
-        else:
-            version = {"evt2": "evt2", "evt3": "evt3"}.get(target)
-            faery.file_encoder.events_to_file(_faery_packets(recording), path, dimensions=recording.size,
-                                              version=version, file_type="evt" if version else None)
+            kept.append(path)
+            continue
+        remove_partials(path, ext)
+        partial = partial_name(path, ext)
+        try:
+            _write(recording, partial, target)
+            os.replace(partial, path)
+        except BaseException:
+            remove_partials(path, ext)
+            raise
         written.append(path)
-    return written
+    return written, kept
 
 
 def export_dataset(root: Path | str, out: Path | str, targets: list[str], videos: list[str] | None = None) -> list[Path]:
@@ -74,8 +107,11 @@ def export_dataset(root: Path | str, out: Path | str, targets: list[str], videos
     missing = [v for v in chosen if v not in found]
     if missing:
         raise UserError(f"{root}: videos {missing} are not in the dataset (it holds {sorted(found)})")
-    written = []
+    written, kept = [], []
     for video in tqdm(chosen, desc="export", unit="video"):
         (out / found[video]).mkdir(parents=True, exist_ok=True)
-        written += export_video(fmt.events_path(root, found[video], video), out / found[video] / video, targets)
+        new, old = export_video(fmt.events_path(root, found[video], video), out / found[video] / video, targets)
+        written, kept = written + new, kept + old
+    if kept:
+        print(f"{len(kept)} files were already in {out} and are kept as they are (first: {kept[0]})", flush=True)
     return written

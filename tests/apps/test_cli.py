@@ -26,3 +26,20 @@ def test_a_bug_keeps_its_traceback(error, capsys):
         with user_errors():
             raise error
     assert capsys.readouterr().err == ""
+
+
+def test_ctrl_c_is_one_line_and_exit_status_130(capsys):
+    with pytest.raises(SystemExit) as stopped:
+        with user_errors():
+            raise KeyboardInterrupt
+    assert stopped.value.code == 130 and capsys.readouterr().err == "interrupted\n"
+
+
+def test_the_sweep_without_out_is_a_users_mistake_not_hydras_trace(tmp_path):
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-m", "dagr_lite.apps.sweep", f"ckpt=[{tmp_path / 'none.pt'}]"],
+                         capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert run.returncode == 1 and run.stderr.strip() == f"error: {tmp_path / 'none.pt'}: checkpoint file is missing"
+    assert not (tmp_path / "runs").exists()

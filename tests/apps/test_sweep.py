@@ -84,6 +84,20 @@ def test_the_sweep_writes_its_table_plot_and_rows(tmp_path, capsys, monkeypatch)
     assert json.loads((out / "sweep.json").read_text())["overrides"] == {}
     with pytest.raises(FileExistsError, match="earlier sweep"):
         sweep(compose_config("sweep", [f"ckpt=[{ckpts[0]}]", f"out={out}"]))
+    # a sweep that fails on its plot leaves no sweep.json: the rerun into the same folder is not refused
+    import dagr_lite.apps.sweep as sweep_module
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(sweep_module, "plot_sweep", full_disk)
+    again_args = [f"ckpt=[{ckpts[0]}]", "split=valid", "ages=[1]", f"out={tmp_path / 'again'}", "loader.num_workers=0"]
+    with pytest.raises(OSError, match="No space"):
+        sweep(compose_config("sweep", again_args))
+    assert not (tmp_path / "again" / "sweep.json").exists()
+    monkeypatch.undo()
+    sweep(compose_config("sweep", again_args))
+    assert (tmp_path / "again" / "sweep.json").is_file()
     # nothing to score: refused with the frames that exist, and nothing written
     with pytest.raises(ConfigError, match=r"no label frame k >= 100 \(the largest of ages=\[1, 100\]\) in split "
                                           r"valid: its videos have \d+ to \d+ frames; give smaller ages"):
@@ -93,7 +107,6 @@ def test_the_sweep_writes_its_table_plot_and_rows(tmp_path, capsys, monkeypatch)
     # a truncated checkpoint after a good one: refused by name before anything is scored
     truncated = tmp_path / "truncated.pt"
     truncated.write_bytes(open(ckpts[1], "rb").read()[:5000])
-    import dagr_lite.apps.sweep as sweep_module
     scored = []
     monkeypatch.setattr(sweep_module, "score_point", lambda *args, **kwargs: scored.append(1))
     with pytest.raises(ValueError, match=f"{truncated}: cannot read as a dagr_lite checkpoint"):

@@ -297,8 +297,34 @@ def test_export_writes_every_format_that_reads_back_the_dataset(dataset, tmp_pat
     frames = list(open_recording(written[0]).frames())
     assert len(frames) == len(dataset.frames[video])
     assert written[3].stat().st_size > 0
-    with pytest.raises(FileExistsError, match="nothing is overwritten"):
-        export_dataset(dataset.root, tmp_path / "out", ["csv"], videos=[video])
+    before = {p: p.read_bytes() for p in written}
+    assert export_dataset(dataset.root, tmp_path / "out", ["csv", "es"], videos=[video]) == [written[2].with_suffix(".es")]
+    assert all(p.read_bytes() == data for p, data in before.items())  # kept, not written again
+
+
+def test_an_interrupted_export_leaves_no_finished_looking_file_and_a_rerun_completes_it(dataset, tmp_path, monkeypatch):
+    from dagr_lite.camera import export
+
+    video = next(iter(dataset.events))
+    real_packets = export._faery_packets
+
+    def interrupted(recording):
+        for packed in real_packets(recording):
+            yield packed[:10]  # a little of the file is written, then Ctrl-C
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(export, "_faery_packets", interrupted)
+    stale = tmp_path / "out" / dataset.splits[video] / f"{video}.partial1.csv"  # a killed run's leftover
+    stale.parent.mkdir(parents=True)
+    stale.write_text("t,x,y,on\n")
+    with pytest.raises(KeyboardInterrupt):
+        export.export_dataset(dataset.root, tmp_path / "out", ["evt3", "csv"], videos=[video])
+    assert sorted(p.name for p in stale.parent.iterdir()) == [stale.name]  # nothing named as if finished
+    monkeypatch.setattr(export, "_faery_packets", real_packets)
+    written = export.export_dataset(dataset.root, tmp_path / "out", ["evt3", "csv"], videos=[video])
+    assert sorted(p.name for p in stale.parent.iterdir()) == sorted(p.name for p in written)  # the leftover is gone
+    got = concat(list(open_recording(written[1], size=dataset.frames[video][0].shape[1::-1]).events()))
+    np.testing.assert_array_equal(got["t"], dataset.events[video]["t"])
 
 
 def test_recording_statistics_count_bursts_and_hot_pixels(tmp_path):
