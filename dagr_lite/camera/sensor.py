@@ -134,11 +134,11 @@ class Sensor:
         return out
 
 
-def fitting_settings(sensor_size: tuple[int, int], model_size: tuple[int, int]) -> str | None:
-    """The largest ``sensor.scale`` and a centred ``sensor.crop`` that turn the sensor into the
-    model's input, as settings to type; None if none does."""
+def fitting_settings(sensor_size: tuple[int, int], model_size: tuple[int, int], rotate: int = 0) -> str | None:
+    """The largest ``sensor.scale`` and a centred ``sensor.crop`` that turn the sensor, turned by
+    ``rotate`` degrees after the crop, into the model's input, as settings to type; None if none does."""
     width, height = sensor_size
-    mw, mh = model_size
+    mw, mh = model_size if rotate in (0, 180) else model_size[::-1]  # the crop is taken before the rotation
     scale = min(width // mw, height // mh)
     if scale < 1:
         return None
@@ -153,7 +153,7 @@ def fit_sensor(sensor: Sensor, model_size: tuple[int, int]) -> None:
     if tuple(sensor.output_size) == tuple(model_size):
         return
     out_w, out_h = sensor.output_size
-    hint = fitting_settings(sensor.size, model_size)
+    hint = fitting_settings(sensor.size, model_size, sensor.rotate)
     fix = f"; {hint} fits" if hint else "; the sensor is smaller than the model's input: no crop and scale fit"
     raise SensorError(f"the {sensor.size[0]}x{sensor.size[1]} sensor gives {out_w}x{out_h} after crop, rotation and "
                       f"scale, but the model reads {model_size[0]}x{model_size[1]}{fix} (or sensor.model_size=sensor "

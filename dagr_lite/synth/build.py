@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 import sys
 import warnings
@@ -86,6 +87,10 @@ class BuildSettings:
             raise UserError(f"DVS model must be one of {DVS_MODELS}, got {self.dvs_model!r}")
         if self.upsample < 1 or self.scale < 1:
             raise UserError(f"upsample and scale must be >= 1, got {self.upsample} and {self.scale}")
+        if not (self.fps > 0 and math.isfinite(self.fps)):
+            raise UserError(f"--fps must be a positive number of frames per second, got {self.fps}")
+        if not 0.0 <= self.clean_fraction <= 1.0:
+            raise UserError(f"--clean-fraction must lie in [0, 1], got {self.clean_fraction}")
         self.params("clean")  # unknown or bad overrides fail now, not after the first video
 
     def params(self, model: str) -> DVSParams:

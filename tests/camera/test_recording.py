@@ -341,6 +341,24 @@ def test_recording_statistics_count_bursts_and_hot_pixels(tmp_path):
     assert (tmp_path / "stats" / "event_rate.png").stat().st_size > 0
 
 
+def test_recording_statistics_of_a_clock_that_jumps_to_epoch_time(tmp_path):
+    from dagr_lite.apps.recording_stats import recording_stats
+
+    events = camera_events(8, 4000)
+    jump = 1_700_000_000_000_000  # to Unix-epoch microseconds
+    events["t"] = events["t"] - T0
+    events["t"][2000:] += jump
+    csv = tmp_path / "jump.csv"
+    csv.write_text("t,x,y,on\n" + "".join(f"{t},{x},{y},{p}\n" for t, x, y, p in zip(*(events[k] for k in "txyp"))))
+    stats = recording_stats(csv, tmp_path / "stats", size=(WIDTH, HEIGHT))
+    t = events["t"]
+    assert stats["clock_jumps"] == [{"from_us": int(t[1999]), "to_us": int(t[2000])}]
+    assert stats["duration_s"] == pytest.approx((t[1999] - t[0] + t[-1] - t[2000]) / 1e6)
+    keys = (t - np.where(np.arange(4000) >= 2000, jump, 0)) * WIDTH * HEIGHT + events["y"] * WIDTH + events["x"]
+    assert stats["events_sharing_pixel_and_microsecond"] == 4000 - len(np.unique(keys))
+    assert stats["peak_rate"] > 0 and (tmp_path / "stats" / "event_rate.png").stat().st_size > 0
+
+
 def test_recording_statistics_place_hot_pixels_of_a_large_sensor(tmp_path):
     """Decoders give 16-bit coordinates: pixel indices of a 1280x720 sensor must not wrap."""
     import faery

@@ -52,6 +52,12 @@ def test_a_sensor_that_does_not_fit_the_model_is_refused_with_a_setting_that_wou
     with pytest.raises(SensorError, match="the sensor is smaller than the model's input.*sensor.model_size=sensor"):
         fit_sensor(Sensor((160, 120)), (320, 180))
     fit_sensor(Sensor((640, 480), crop=(0, 60, 640, 360), scale=2), (320, 180))
+    # a camera mounted on its side: the crop is taken before the rotation, so it is tall
+    hint = fitting_settings((480, 640), (320, 180), rotate=90)
+    assert hint == "sensor.scale=2 sensor.crop=[60,0,360,640]"
+    with pytest.raises(SensorError, match=r"sensor.scale=2 sensor.crop=\[60,0,360,640\] fits"):
+        fit_sensor(Sensor((480, 640), rotate=90), (320, 180))
+    fit_sensor(Sensor((480, 640), crop=(60, 0, 360, 640), scale=2, rotate=90), (320, 180))  # the hint fits
     for bad, message in (({"crop": (600, 0, 100, 10)}, "inside the 640x480 sensor"),
                          ({"scale": 3}, "sensor.scale=3 must divide the cropped 640x480"),
                          ({"rotate": 45}, "sensor.rotate=45 must be one of")):

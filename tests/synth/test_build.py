@@ -136,6 +136,12 @@ def test_bad_arguments_are_named(tmp_path, capsys):
     assert main(["--frames", str(tmp_path / "frames"), "--out", str(tmp_path / "o"), "--version", "v1",
                  "--dvs", "sigma=1"]) == 2
     assert "unknown DVS parameters ['sigma']" in capsys.readouterr().err
+    for flag, value, message in (("--fps", "-30", "--fps must be a positive number"),
+                                 ("--clean-fraction", "1.5", "--clean-fraction must lie in [0, 1]")):
+        assert main(["--frames", str(tmp_path / "frames"), "--out", str(tmp_path / "bad"), "--version", "v1",
+                     flag, value]) == 2
+        assert message in capsys.readouterr().err
+        assert not (tmp_path / "bad").exists()  # nothing recorded before the settings are checked
 
 
 def test_videos_without_events_are_left_out_with_a_warning(tmp_path):
