@@ -157,12 +157,20 @@ def run_detect(stream: StreamingDetector, source, sensor: Sensor, out: Path | st
                    disable=not progress or live)
         for chunk in source.events():
             bar.update(len(chunk["t"]))
-            if seconds is not None and runner.t_first is not None and chunk["t"][0] > runner.t_first + 1e6 * seconds:
-                break
+            if seconds is not None:  # the events of the first ``seconds`` only, wherever a chunk ends
+                end = (runner.t_first if runner.t_first is not None else int(chunk["t"][0])) + 1e6 * seconds
+                cut = int(np.searchsorted(chunk["t"], end, side="right"))
+                if cut:
+                    runner.feed(take(chunk, slice(0, cut)) if cut < len(chunk["t"]) else chunk)
+                if cut < len(chunk["t"]):
+                    break
+                continue
             runner.feed(chunk)
         if runner.t_first is None and not live:
             raise UserError(f"{source.path}: the recording holds no events")
         runner.finish()
+        if stream.hybrid and not output.answers and runner.t_first is not None:
+            raise UserError(runner.no_frame_message(source))
     except KeyboardInterrupt:
         stopped = "interrupted (Ctrl-C)"
         print(f"stopped; what was made so far is in {out} under partial names", flush=True)
@@ -287,6 +295,15 @@ class _Runner:
             self.output.answer(stop, result, latency, self.t_first)
         if frame_due:
             self._push_frame()
+
+    def no_frame_message(self, source) -> str:
+        """Why a hybrid gave no answer: no frame came at or before any event's time."""
+        span = f"the events run from t={int(self.t_first)} to t={int(self.t_last)} us"
+        if self.next_frame is None and not self.frames_used:
+            return f"{source.path}: no frame was read; {span}"
+        first = self.next_frame[0] if not self.frames_used else self.output.frame_t
+        return (f"{source.path}: no answer: the first frame is at t={first} us and {span}; frames and events must "
+                "share one clock (timestamps in the recording's microseconds)")
 
     def finish(self) -> None:
         if self.t_first is None:

@@ -151,6 +151,32 @@ def test_a_hybrid_needs_frames_and_says_so(stub_video, trained_checkpoints, tmp_
                    Sensor(stub_video["size"]), tmp_path / "out", rate_hz=100, video=video_settings(), progress=False)
 
 
+def test_frames_on_another_clock_are_named_not_answered_zero_times(stub_video, trained_checkpoints, tmp_path):
+    epoch = 1_700_000_000_000_000  # frame times in Unix-epoch microseconds, events from the camera's 0
+    frames = [(t + epoch, image) for t, image in stub_video["frames"]]
+    path = write_aedat4(tmp_path / "clocks.aedat4", stub_video["events"], stub_video["size"], frames)
+    stream = StreamingDetector.from_checkpoint(trained_checkpoints["hybrid"], **EVAL_ANSWER)
+    t = stub_video["events"]["t"]
+    with pytest.raises(ValueError, match=rf"no answer: the first frame is at t={frames[0][0]} us and the events run "
+                                         rf"from t={t[0]} to t={t[-1]} us; frames and events must share one clock"):
+        run_detect(stream, open_recording(path), Sensor(stub_video["size"]), tmp_path / "out", rate_hz=100,
+                   video=video_settings(enabled=False), progress=False)
+
+
+def test_seconds_limits_the_events_read_inside_a_chunk(stub_video, trained_checkpoints, tmp_path):
+    events = stub_video["events"]
+    path = tmp_path / "rec.csv"
+    path.write_text("t,x,y,on\n" + "".join(f"{t},{x},{y},{p}\n" for t, x, y, p in zip(*(events[k] for k in "txyp"))))
+    assert len(list(open_recording(path, size=stub_video["size"]).events())) == 1  # one chunk holds every event
+    summary = run_detect(StreamingDetector.from_checkpoint(trained_checkpoints["events_only"]),
+                         open_recording(path, size=stub_video["size"]),
+                         Sensor(stub_video["size"]), tmp_path / "out", rate_hz=100, seconds=0.05,
+                         video=video_settings(enabled=False), progress=False)
+    t = stub_video["events"]["t"]
+    assert summary["events_in"] == int(np.sum(t <= t[0] + 50_000)) < len(t)
+    assert summary["recording_seconds"] <= 0.05
+
+
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.bind(("127.0.0.1", 0))
