@@ -19,7 +19,8 @@ The decoders' rules, as measured on faery 0.7 (tests/camera/test_rawtime.py):
   before is the 32-bit clock's wrap (2^32 us added).
 
 An AEDAT4 event packet may be compressed and an Event Stream file stores unsigned time steps (it
-cannot go back in time), so neither is scanned here.
+cannot go back in time), so neither is scanned for time. :func:`es_dvs_overrun` walks a DVS Event
+Stream file's bytes to see whether its last event is whole.
 """
 from __future__ import annotations
 
@@ -159,3 +160,26 @@ def scan_times(path: Path | str, kind: str) -> Retimed:
         t0 = header_t0(head)
         found.first_at, found.first_t, found.first_after = int(state[6]), t0 + int(state[7]), t0 + int(state[8])
     return found
+
+
+ES_DVS_HEADER = 20  # "Event Stream", version (3 bytes), type (1: DVS), width and height (2 bytes each)
+
+
+@numba.njit(cache=True, nogil=True)
+def _es_dvs_end(data, start):
+    """Where the byte walk of DVS events ends: 0xFF (a time overflow) and 0xFE (a reset) are one byte,
+    any other first byte begins a 5-byte event (time step and polarity, x, y)."""
+    at = start
+    n = data.shape[0]
+    while at < n:
+        at += 1 if data[at] >= 0xFE else 5
+    return at
+
+
+def es_dvs_overrun(path: Path | str) -> int | None:
+    """For a DVS Event Stream file: how many bytes its last event lacks (0: the file ends on a whole
+    event); None for the other ES types (ATIS, generic, colour), which are not walked."""
+    data = np.memmap(path, np.uint8, mode="r")
+    if len(data) < ES_DVS_HEADER or data[15] != 1:
+        return None
+    return int(_es_dvs_end(data, ES_DVS_HEADER)) - len(data)

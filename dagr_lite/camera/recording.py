@@ -42,7 +42,7 @@ from typing import Callable, Iterator
 import numba
 import numpy as np
 
-from dagr_lite.camera.rawtime import Retimed, evt_version, payload_start, scan_times
+from dagr_lite.camera.rawtime import Retimed, es_dvs_overrun, evt_version, payload_start, scan_times
 from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.events import EventFile
@@ -311,14 +311,17 @@ def check_kind(path: Path, kind: str) -> None:
 
 def truncation_problem(path: Path, kind: str) -> str | None:
     """Why the file must have been cut short, or None: a CSV whose last line has no end, an EVT or
-    DAT file whose payload stops inside a word (a cut at a word boundary cannot be told from a
-    shorter recording)."""
+    DAT file whose payload stops inside a word, a DVS Event Stream file that stops inside an event
+    (a cut at a word or event boundary cannot be told from a shorter recording)."""
     size = path.stat().st_size
     with open(path, "rb") as f:
         head = f.read(4096)
         if kind == "csv":
             f.seek(max(0, size - 1))
             return None if size == 0 or f.read(1) == b"\n" else "its last line is incomplete"
+    if kind == "es":
+        missing = es_dvs_overrun(path)
+        return f"its last event lacks {missing} of its 5 bytes" if missing else None
     if kind not in ("evt", "dat"):
         return None
     word = 8 if kind == "dat" else (4 if evt_version(head) == 2 else 2)

@@ -40,6 +40,7 @@ FORMATS = {
     "t32_x16_y15_on1": np.dtype([("t", "<u4"), ("x", "<u2"), ("y_on", "<u2")]),
 }
 RECEIVE_BUFFER = 1 << 24  # bytes asked of the operating system
+SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)  # Linux: datagrams dropped so far, with each datagram
 EVENTS_PER_PACKET = 100
 MAX_AHEAD_US = 10_000_000  # a datagram starting this far ahead of the stream is refused ...
 AHEAD_TO_ACCEPT = 20       # ... unless this many in a row agree on the new clock (within MAX_AHEAD_US)
@@ -97,6 +98,8 @@ class UdpStats:
     backlog_dropped_events: int = 0
     clock_jumps: int = 0  # runs of datagrams that agreed on a clock far ahead, then taken
     backlog_bytes_max: int = 0  # the most bytes queued at once (at most max_backlog_bytes + one datagram)
+    os_dropped_packets: int | None = None  # datagrams the operating system dropped, its receive buffer full
+    # (Linux's SO_RXQ_OVFL; None where the system does not report it)
 
 
 class UdpSource:
@@ -131,13 +134,25 @@ class UdpSource:
 
     def _receive(self, sock: socket.socket) -> None:
         buffer = bytearray(65536)
+        counting = self.stats.os_dropped_packets is not None
+        ancillary = socket.CMSG_SPACE(4) if counting else 0
         while self._running:
             try:
-                n = sock.recv_into(buffer)
+                n, cmsgs, _, _ = sock.recvmsg_into([buffer], ancillary)
             except socket.timeout:
                 continue
+            for level, kind, data in cmsgs:  # the system's count of datagrams dropped so far
+                if counting and level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(data) >= 4:
+                    self._os_dropped(int.from_bytes(data[:4], sys.byteorder))
             if n:
                 self._enqueue(time.monotonic(), bytes(buffer[:n]))
+
+    def _os_dropped(self, total: int) -> None:
+        if total > self.stats.os_dropped_packets:
+            before, self.stats.os_dropped_packets = self.stats.os_dropped_packets, total
+            if before // 1000 != total // 1000 or not before:
+                print(f"udp: the operating system dropped {total} datagrams so far (its receive buffer was full: "
+                      "the detector's reader fell behind)", file=sys.stderr, flush=True)
 
     def _enqueue(self, arrival: float, payload: bytes) -> None:
         """Queue a datagram; over the bound, drop the oldest, counted and said as it happens."""
@@ -208,6 +223,12 @@ class UdpSource:
     def events(self) -> Iterator[dict]:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)
+        if sys.platform.startswith("linux"):
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
+                self.stats.os_dropped_packets = 0
+            except OSError:
+                pass
         try:
             sock.bind(self.address)
         except OSError as err:

@@ -248,6 +248,7 @@ def test_refused_disorder_counts_every_late_event_of_the_file(tmp_path):
     ("evt3.raw", {"version": "evt3"}, -1, "not a whole number of 2-byte words"),
     ("rec.dat", {}, -5, "not a whole number of 8-byte words"),
     ("rec.aedat4", {}, 0.5, "cannot read it as aedat after"),
+    ("rec.es", {}, -3, "its last event lacks 3 of its 5 bytes"),
 ])
 def test_a_truncated_recording_is_refused_naming_the_file(tmp_path, name, kwargs, cut, message):
     faery_write(tmp_path / name, camera_events(4), **kwargs)
@@ -256,7 +257,15 @@ def test_a_truncated_recording_is_refused_naming_the_file(tmp_path, name, kwargs
     with pytest.raises(RecordingError, match=rf"{name}: .*{message}"):
         rec = open_recording(tmp_path / name, size=(WIDTH, HEIGHT))
         list(rec.events())
-    assert truncation_problem(tmp_path / name, "es") is None
+
+
+@pytest.mark.parametrize("n", [1, 2, 5000])
+def test_a_whole_event_stream_file_is_not_called_truncated(tmp_path, n):
+    events = {k: v[:n] for k, v in camera_events(5).items()}
+    events["t"][n // 2:] += 10_000  # time steps of more than 127 us: overflow bytes
+    faery_write(tmp_path / "rec.es", events)
+    assert truncation_problem(tmp_path / "rec.es", "es") is None
+    assert len(concat(list(open_recording(tmp_path / "rec.es").events()))["t"]) == n
 
 
 def test_unknown_missing_and_mismatched_inputs_are_refused(tmp_path):

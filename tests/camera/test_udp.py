@@ -117,3 +117,46 @@ def test_a_flood_keeps_the_queue_bounded_and_counts_what_it_drops():
     assert received == stats.events
     # every event sent is read or counted as dropped (loopback: the operating system drops none here)
     assert received + stats.backlog_dropped_events == sent[0] == 40_000
+
+
+def test_datagrams_the_operating_system_drops_are_counted(monkeypatch):
+    """A receive buffer of a few kB and a reader slowed to 2 ms a datagram: the system drops some,
+    reports them (SO_RXQ_OVFL on Linux), and every datagram sent is read, dropped from the queue or
+    counted as dropped by the system."""
+    import sys
+
+    import dagr_lite.camera.udp as udp_module
+
+    if not sys.platform.startswith("linux"):
+        return
+    monkeypatch.setattr(udp_module, "RECEIVE_BUFFER", 4096)
+    udp = source()
+    slow_enqueue = udp._enqueue
+
+    def slow(arrival, payload):
+        time.sleep(0.002)
+        slow_enqueue(arrival, payload)
+
+    udp._enqueue = slow
+    flood = packets(300, per_packet=100)
+    chunks = udp.events()
+    sent = []
+
+    def sender():  # a flood, then a trickle: the system reports its count with the datagrams it delivers
+        udp.ready.wait(30)
+        time.sleep(0.1)
+        url = f"udp://127.0.0.1:{udp.address[1]}"
+        sent.append(send([{key: np.concatenate([p[key] for p in flood[:290]]) for key in flood[0]}], url,
+                         fmt=UDP["fmt"], speed=0, events_per_packet=100))
+        for packet in flood[290:]:
+            time.sleep(0.05)
+            sent.append(send([packet], url, fmt=UDP["fmt"], speed=0, events_per_packet=100))
+
+    thread = threading.Thread(target=sender)
+    thread.start()
+    received = sum(len(chunk["t"]) for chunk in chunks)
+    thread.join()
+    stats = udp.stats
+    assert stats.os_dropped_packets > 0
+    assert stats.packets + stats.backlog_dropped_packets + stats.os_dropped_packets == len(flood) == sum(sent) // 100
+    assert received == stats.events
