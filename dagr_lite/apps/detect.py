@@ -67,7 +67,7 @@ def detect(cfg: DictConfig) -> dict:
     if not summary["finished"]:
         print(f"{summary['stopped']}: {summary['events_in']} events read; the outputs in {out} keep their partial "
               "names (summary.partial.json says what was processed)", flush=True)
-        raise SystemExit(130)
+        raise SystemExit(143 if "SIGTERM" in summary["stopped"] else 130)
     rtf = summary["real_time_factor"]
     print(f"{summary['events_in']} events, {summary['recording_seconds']:.2f} s of recording, {summary['answers']} "
           f"answers -> {out}\nlatency median {summary['latency_ms_median']:.1f} ms, p95 "

@@ -16,6 +16,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import signal
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -151,6 +153,7 @@ def run_detect(stream: StreamingDetector, source, sensor: Sensor, out: Path | st
     check_out(out, overwrite)
     output = _Output(out, sensor, video, live)
     bar, stopped = None, None
+    previous = _catch_sigterm()
     try:
         runner = _Runner(stream, sensor, output, 1e6 / rate_hz, live, source.frames())
         bar = tqdm(desc=f"detect {Path(str(source.path)).name}", unit=" ev", unit_scale=True,
@@ -171,13 +174,15 @@ def run_detect(stream: StreamingDetector, source, sensor: Sensor, out: Path | st
         runner.finish()
         if stream.hybrid and not output.answers and runner.t_first is not None:
             raise UserError(runner.no_frame_message(source))
-    except KeyboardInterrupt:
-        stopped = "interrupted (Ctrl-C)"
+    except (KeyboardInterrupt, Terminated) as err:
+        stopped = "interrupted (Ctrl-C)" if isinstance(err, KeyboardInterrupt) else "stopped by SIGTERM"
         print(f"stopped; what was made so far is in {out} under partial names", flush=True)
     except BaseException:
         output.discard_video()  # no finished-looking video of a failed run; its answers stay partial
         raise
     finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
         if bar is not None:
             bar.close()
     video_path = output.close()
@@ -187,6 +192,22 @@ def run_detect(stream: StreamingDetector, source, sensor: Sensor, out: Path | st
         return {**summary, "video": None if video_path is None else str(out / VIDEO)}
     (out / partial_name(SUMMARY)).write_text(json.dumps(summary, indent=1))
     return summary
+
+
+class Terminated(Exception):
+    """A SIGTERM arrived during :func:`run_detect` (a service stopped, a job preempted)."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
+def _catch_sigterm():
+    """Make SIGTERM end the run as Ctrl-C does (outputs under partial names, a partial summary);
+    returns the handler to put back (None off the main thread, where signals cannot be caught)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _raise_terminated)
 
 
 class _Runner:

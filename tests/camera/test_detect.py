@@ -296,6 +296,34 @@ def test_an_interrupted_run_keeps_partial_names_and_a_retry_into_the_same_folder
     assert json.loads((out / "summary.json").read_text())["finished"] is True
 
 
+class _Signalled(_Stopping):
+    """A recording during whose reading the process gets a SIGTERM."""
+
+    def events(self):
+        import os
+        import signal
+
+        for i, chunk in enumerate(self.recording.events()):
+            if i == self.chunks:
+                os.kill(os.getpid(), signal.SIGTERM)
+            yield chunk
+
+
+def test_sigterm_stops_detect_as_ctrl_c_does_leaving_no_temporary_video(stub_video, trained_checkpoints, tmp_path):
+    import signal
+
+    path = write_aedat4(tmp_path / "davis.aedat4", stub_video["events"], stub_video["size"], stub_video["frames"])
+    out = tmp_path / "out"
+    before = signal.getsignal(signal.SIGTERM)
+    summary = run_detect(StreamingDetector.from_checkpoint(trained_checkpoints["hybrid"]),
+                         _Signalled(open_recording(path), 2, None), Sensor(stub_video["size"]), out, rate_hz=100,
+                         video=video_settings(), progress=False)
+    assert summary["finished"] is False and summary["stopped"] == "stopped by SIGTERM"
+    assert sorted(written(out)) == ["detections.partial.jsonl", "detections.partial.mp4", "summary.partial.json"]
+    assert not list(out.glob(".*"))  # no hidden temporary video left
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
 def test_a_failed_run_over_an_earlier_one_leaves_the_earlier_outputs_whole(stub_video, trained_checkpoints,
                                                                            tmp_path):
     path = write_aedat4(tmp_path / "davis.aedat4", stub_video["events"], stub_video["size"], stub_video["frames"])
