@@ -47,11 +47,16 @@ AHEAD_TO_ACCEPT = 20       # ... unless this many in a row agree on the new cloc
 
 
 def parse_address(url: str) -> tuple[str, int]:
-    """``udp://HOST:PORT`` to ``(host, port)``."""
+    """``udp://HOST:PORT`` to ``(host, port)``; ``udp://:PORT`` listens on loopback only (another
+    host can reach the port only where the user names an address that it can reach, e.g. 0.0.0.0)."""
     parsed = urlparse(url)
-    if parsed.scheme != "udp" or not parsed.hostname or parsed.port is None:
-        raise UserError(f"input={url!r}: a live stream is udp://HOST:PORT")
-    return parsed.hostname, parsed.port
+    try:
+        port = parsed.port
+    except ValueError:
+        port = None
+    if parsed.scheme != "udp" or port is None:
+        raise UserError(f"input={url!r}: a live stream is udp://HOST:PORT (udp://:PORT: this machine only)")
+    return parsed.hostname or "127.0.0.1", port
 
 
 def decode(payload: bytes, fmt: str, t_high: int = 0) -> dict:

@@ -7,6 +7,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 
 from dagr_lite.camera.detect import run_detect
 from dagr_lite.camera.sensor import Sensor
@@ -160,3 +161,14 @@ def test_datagrams_the_operating_system_drops_are_counted(monkeypatch):
     assert stats.os_dropped_packets > 0
     assert stats.packets + stats.backlog_dropped_packets + stats.os_dropped_packets == len(flood) == sum(sent) // 100
     assert received == stats.events
+
+
+def test_a_stream_without_a_host_listens_on_loopback_only():
+    from dagr_lite.camera.udp import parse_address
+    from dagr_lite.errors import UserError
+
+    assert parse_address("udp://:5000") == ("127.0.0.1", 5000)
+    assert parse_address("udp://0.0.0.0:5000") == ("0.0.0.0", 5000)
+    for bad in ("udp://host", "tcp://:5000", "udp://:port"):
+        with pytest.raises(UserError, match="a live stream is udp://HOST:PORT"):
+            parse_address(bad)
