@@ -148,7 +148,14 @@ def test_order_refuse_refuses_and_sort_counts_what_the_decoder_retimes(tmp_path,
 
 
 def test_uppercase_suffix_reads_as_its_format(tmp_path):
+    import faery
+
     t, x, y, p = camera_events(3, 500)
     path = write(tmp_path, "evt3", t, x, y, p)
     upper = path.rename(tmp_path / "REC.RAW")
     assert np.array_equal(concat(list(open_recording(upper).events()))["t"], T0 + t)
+    packed = np.zeros(len(t), faery.EVENTS_DTYPE)
+    packed["t"], packed["x"], packed["y"], packed["on"] = t, x, y, p > 0
+    faery.events_stream_from_array(packed, dimensions=(WIDTH, HEIGHT)).to_file(str(tmp_path / "rec.es"))
+    upper = (tmp_path / "rec.es").rename(tmp_path / "REC.ES")
+    assert np.array_equal(concat(list(open_recording(upper).events()))["t"], t - t[0])  # ES counts from its first event
