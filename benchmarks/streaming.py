@@ -125,15 +125,13 @@ def frame_at(rec: Recording, t_us: float) -> int:
     return int(np.searchsorted(rec.frame_times, t_us, side="right")) - 1
 
 
-def stream_run(model: Detector, rec: Recording, update_us: float, t0: float, t1: float, *, context_us: int,
-               window_us: int) -> dict:
+def stream_run(model: Detector, rec: Recording, update_us: float, t0: float, t1: float, *, sample: SampleSpec) -> dict:
     """Updates of ``update_us`` over ``[t0, t1)``: latencies, the time spent per part, GCN multiply-adds."""
-    stream = StreamingDetector(model, SampleSpec(window_us=window_us, context_us=context_us, refractory_us=0,
-                                                       max_events=None, event_picture=False),
+    stream = StreamingDetector(model, dataclasses.replace(sample, refractory_us=0, max_events=None),
                                OperatingPoint(score=0.25, nms_iou=0.65))
     t, ev = rec.events["t"], rec.events
     k = frame_at(rec, t0)
-    begin = int(np.searchsorted(t, rec.frame_times[k] - context_us - window_us))
+    begin = int(np.searchsorted(t, rec.frame_times[k] - sample.context_us - sample.window_us - sample.graph_context_us))
     start = int(np.searchsorted(t, t0))
     if stream.hybrid:
         stream.push_image(rec.frames[k], rec.frame_times[k])
@@ -160,15 +158,17 @@ def stream_run(model: Detector, rec: Recording, update_us: float, t0: float, t1:
             "seconds": (t1 - t0) * 1e-6}
 
 
-def full_pass(model: Detector, rec: Recording, t_query: float, *, context_us: int, window_us: int,
+def full_pass(model: Detector, rec: Recording, t_query: float, *, sample: SampleSpec,
               repeats: int = 2) -> tuple[float, int, int]:
     """Seconds (best of ``repeats``) of one batch pass on the sample at ``t_query``, its GCN
-    multiply-adds and its event count."""
+    multiply-adds and its event count (its graph context included)."""
     k = frame_at(rec, t_query)
     t_image = rec.frame_times[k]
     t = rec.events["t"]
-    begin = sample_start_us(t_query, window_us, t_image if model.image is not None else None, context_us)
-    keep = slice(int(np.searchsorted(t, begin)), int(np.searchsorted(t, t_query, side="right")))
+    with_image = t_image if model.image is not None else None
+    begin = math.ceil(sample_start_us(t_query, sample.window_us, with_image, sample.context_us))
+    graph = sample.graph_start_us(t_query, with_image)
+    keep = slice(int(np.searchsorted(t, graph)), int(np.searchsorted(t, t_query, side="right")))
     x, y, tt, p = (rec.events[key][keep] for key in ("x", "y", "t", "p"))
     events = torch.from_numpy(np.stack([x, y, tt - t_image, p], 1).astype(np.float32)).reshape(-1, 4)
     sample = Sample(events=events, image=torch.from_numpy(np.ascontiguousarray(rec.frames[k].transpose(2, 0, 1))),
@@ -192,12 +192,15 @@ def bench_scene(state: Checkpoint, name: str, rec: Recording, args) -> tuple[flo
     """Prints the scene's table and where the time goes; returns its event rate and, per update
     size, the speed-up, the real-time factor and the events per second sustained."""
     model = model_at(state, rec.height, rec.width)
-    context_us, window_us = state.sample.context_us, state.sample.window_us
+    sample = state.sample
+    if args.graph_context_us is not None:
+        sample = dataclasses.replace(sample, graph_context_us=args.graph_context_us)
     t0, t1, rate = streamed(rec, args.seconds)
     print(f"\n{name}: {rec.width}x{rec.height}, {(t1 - t0) / 1e6:.2f} s streamed from frame {FIRST_FRAME}, "
-          f"{rate / 1e3:.0f}k events/s; {label(state)} model, images at 30 Hz")
+          f"{rate / 1e3:.0f}k events/s; {label(state)} model, images at 30 Hz, graph context "
+          f"{sample.graph_context_us} us")
     moments = np.linspace(t0 + 2_000, t1 - 1, args.full_passes)
-    passes = [full_pass(model, rec, m, context_us=context_us, window_us=window_us) for m in moments]
+    passes = [full_pass(model, rec, m, sample=sample) for m in moments]
     full_s = float(np.median([p[0] for p in passes]))
     full_macs = sum(p[1] for p in passes) / max(1, sum(p[2] for p in passes))
     print(f"full batch pass (graph, model, decoding), median of {len(passes)} moments: {1e3 * full_s:.1f} ms, "
@@ -208,7 +211,7 @@ def bench_scene(state: Checkpoint, name: str, rec: Recording, args) -> tuple[flo
     result, parts = {}, {}
     for update_ms in args.updates_ms:
         seconds = min(t1 - t0, args.seconds * 1e6 * min(1.0, update_ms / 1.0)) if update_ms < 1 else t1 - t0
-        run = stream_run(model, rec, update_ms * 1e3, t0, t0 + seconds, context_us=context_us, window_us=window_us)
+        run = stream_run(model, rec, update_ms * 1e3, t0, t0 + seconds, sample=sample)
         latency = run["latency"]
         median, p95 = float(np.median(latency)), float(np.percentile(latency, 95))
         speedup = full_s / median
@@ -249,6 +252,9 @@ def main() -> None:
     parser.add_argument("--updates-ms", nargs="+", type=float, default=[0.1, 1.0, 5.0])
     parser.add_argument("--full-passes", type=int, default=8, help="moments at which a full pass is timed")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--graph-context-us", type=int, default=None,
+                        help="time the checkpoints on a sample with this graph context (data.graph_context_us) "
+                             "instead of their own (0 or at least the graph's reach)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     states = {path: load_checkpoint(path) for path in args.ckpt}

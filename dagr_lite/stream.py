@@ -24,7 +24,8 @@ image towers) are computed once per image. Once
 events leave the horizon, the nodes near its start, whose edges or whose neighbours'
 in-degrees reached the events that left, are recomputed from the events of the horizon (a
 prefix of ``(event_blocks + 1) * radius / beta`` microseconds), and the pooled graph is
-rebuilt from the horizon's nodes.
+rebuilt from the horizon's nodes. With a sample's graph context of at least that reach
+(``graph_context_us``), no node is ever recomputed: an answer pools the cached nodes of its horizon.
 """
 from __future__ import annotations
 
@@ -201,8 +202,13 @@ class StreamingDetector:
         self.height, self.width = model.cfg.height, model.cfg.width
         self.map_sizes = [(math.ceil(self.height / s), math.ceil(self.width / s)) for s in model.strides]
         spec = model.graph_spec
-        # Nodes whose features can reach an event that left the window (events-only).
+        # How far back in time a node's features reach through the first stage's edges and degrees.
         self.reach_us = (len(model.events.first_stage) + 1) * spec.radius / spec.beta
+        self.graph_context_us = sample.graph_context_us
+        if 0 < self.graph_context_us < self.reach_us:
+            raise UserError(f"sample graph_context_us={self.graph_context_us} is shorter than the "
+                            f"{self.reach_us:g} us a node's features reach back ((event_blocks + 1) * radius / beta): "
+                            "the streaming detector answers exactly with 0 or at least that")
         self.timings: dict[str, float] | None = None  # a dict: seconds spent in each part, summed (profiling)
         self.reset()
 
@@ -269,7 +275,7 @@ class StreamingDetector:
             raise UserError(f"image at t={t_us:g} us is older than the previous image ({self._t_image:g} us)")
         if not self.hybrid:
             return
-        needed_from = sample_start_us(max(t_us, self._last_t), self.window_us, t_us, self.context_us)
+        needed_from = self.sample.graph_start_us(max(t_us, self._last_t), t_us)
         if needed_from < self._kept_from:
             raise UserError(f"image at t={t_us:g} us needs the events from {needed_from:g} us, but "
                              f"only those since {self._kept_from:g} us are kept (an image may be at most "
@@ -357,7 +363,8 @@ class StreamingDetector:
     def _head_outputs(self, t_us: float) -> tuple[torch.Tensor, list[tuple[int, int]]]:
         self._ingest()
         if self._segment is None:  # events-only, no event yet
-            self._start_segment(t_us - self.window_us, t_us - self.window_us)
+            first = t_us - self.window_us - self.graph_context_us
+            self._start_segment(first, first)
         segment = self._segment
         t_start = self._sample_start(t_us)
         if segment.cells is not None and not np.searchsorted(segment.t_abs.view, t_start, side="left"):
@@ -375,6 +382,10 @@ class StreamingDetector:
     def _sample_start(self, t_us: float) -> float:
         """The start of the events the model reads at ``t_us`` (the batch sample's, :func:`sample_start_us`)."""
         return sample_start_us(t_us, self.window_us, self._t_image if self.hybrid else None, self.context_us)
+
+    def _graph_start(self, t_us: float) -> float:
+        """The earliest event the graph's first stage reads at ``t_us`` (the sample's start, less its graph context)."""
+        return self.sample.graph_start_us(t_us, self._t_image if self.hybrid else None)
 
     def _head(self, event_maps: list[torch.Tensor], t_us: float, t_start: float, origin: float):
         image_maps = self._image[0] if self.hybrid else None
@@ -436,13 +447,13 @@ class StreamingDetector:
         if not self.hybrid:
             if not log["t"].n and self._segment is None:
                 return
-            t_start = self._last_t - self.window_us  # the earliest window start of any later answer
+            t_start = self._last_t - self.window_us - self.graph_context_us  # the earliest any later answer reads
             if self._segment is None or self._last_t - self._segment.origin_us > REORIGIN_US:
                 self._start_segment(t_start, t_start)  # ingests the window again
                 return
             self._trim_log(min(self._done, int(np.searchsorted(log["t"].view, t_start, side="left"))), t_start)
         else:
-            t_start = self._sample_start(self._last_t)  # the earliest sample start of any later answer
+            t_start = self._graph_start(self._last_t)  # the earliest event any later answer reads
             # A later image (not older than this one) may need the events since its time - context_us.
             keep_from = max(self._t_image, self._last_t - MAX_IMAGE_DELAY_US) - self.context_us
             self._trim_log(min(self._done, int(np.searchsorted(log["t"].view, keep_from, side="left"))), keep_from)
@@ -512,11 +523,18 @@ class StreamingDetector:
 
     def _window_maps(self, t_start: float) -> list[torch.Tensor]:
         """The dense maps over the events since ``t_start``: the nodes of the first ``reach_us`` of
-        the horizon recomputed from its events, the rest cached."""
+        the horizon recomputed from its events, the rest cached; with a graph context every node
+        is cached (its features never depend on the horizon's start) and only the pooling is redone."""
         segment, branch, spec = self._segment, self.model.events, self.model.graph_spec
         sampler = self._sampler()
         t = segment.t_abs.view
         first = int(np.searchsorted(t, t_start, side="left"))
+        if self.graph_context_us:
+            edges = segment.edges.view
+            edges = edges[edges[:, 0] >= segment.base + first].T - (segment.base + first)  # both ends in the horizon
+            x, pos = segment.h[-1].view[first:], segment.pos.view[first:]
+            batch = torch.zeros(len(x), dtype=torch.int64, device=self.device)
+            return branch.pooled_maps(x, pos, batch, edges, 1, sampler)
         stable = int(np.searchsorted(t, t_start + self.reach_us * (1 + 1e-9) + 1.0, side="left"))
         stable = max(stable, first)
         zone = segment.events.view[first:stable]

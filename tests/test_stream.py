@@ -23,10 +23,12 @@ H, W = 48, 64
 CONTEXT_US, WINDOW_US = 10_000, 33_333
 
 
-def streaming(model: Detector, *, refractory_us: int = 0, score: float = 0.0) -> StreamingDetector:
+def streaming(model: Detector, *, refractory_us: int = 0, score: float = 0.0,
+              graph_context_us: int = 0) -> StreamingDetector:
     """The streaming detector on this module's sample, answering every box of ``score`` or more."""
     return StreamingDetector(model, SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=refractory_us,
-                                               max_events=None, event_picture=False),
+                                               max_events=None, event_picture=False,
+                                               graph_context_us=graph_context_us),
                              OperatingPoint(score=score, nms_iou=EVAL["nms_threshold"]))
 
 
@@ -46,14 +48,15 @@ def small_model(variant: str, seed: int = 0, **changes) -> Detector:
     return model.eval()
 
 
-def sample_of(image, events, origin_us: float, t_query: float) -> Sample:
-    """The batch sample: events ``(x, y, t, p)`` with times counted from ``origin_us``."""
+def sample_of(image, events, origin_us: float, t_query: float, t_start: int = 0) -> Sample:
+    """The batch sample: events ``(x, y, t, p)`` with times counted from ``origin_us``; those before
+    ``t_start`` (a graph context) are read by the graph and not pooled."""
     x, y, t, p = events
     ev = torch.from_numpy(np.stack([x, y, t - origin_us, p], axis=1).astype(np.float64)).reshape(-1, 4)
     pixels = (torch.zeros((3, H, W), dtype=torch.uint8) if image is None
               else torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))))
     return Sample(events=ev, image=pixels, boxes=torch.tensor([[10.0, 8.0, 30.0, 26.0]]),
-                  labels=torch.zeros(1, dtype=torch.int64), video="v", frame=0, image_frame=0, t_start_us=0,
+                  labels=torch.zeros(1, dtype=torch.int64), video="v", frame=0, image_frame=0, t_start_us=int(t_start),
                   t_end_us=int(t_query), t_image_us=int(origin_us))
 
 
@@ -86,11 +89,12 @@ def check_against_batch(stream: StreamingDetector, model: Detector, events: dict
     """Compare one answer with the batch model; returns the number of events the sample held."""
     t = events["t"][:upto]
     hybrid = model.image is not None
-    keep = t >= sample_start_us(t_query, WINDOW_US, t_image if hybrid else None, CONTEXT_US)
+    start = sample_start_us(t_query, WINDOW_US, t_image if hybrid else None, CONTEXT_US)
+    keep = t >= sample_start_us(t_query, WINDOW_US + stream.graph_context_us, t_image if hybrid else None, CONTEXT_US)
     if stream.refractory_us:  # brute force: each event against every earlier one at its pixel
         keep &= brute_refractory(events, upto, stream.refractory_us)
     origin = t_image if hybrid else stream.origin_us
-    sample = sample_of(image, tuple(v[:upto][keep] for v in events.values()), origin, t_query)
+    sample = sample_of(image, tuple(v[:upto][keep] for v in events.values()), origin, t_query, math.ceil(start))
     with torch.no_grad():
         raw, shapes = stream.head_outputs(t_query)
         expected_raw, _ = model.head(*model.features(collate([sample])))
@@ -102,7 +106,7 @@ def check_against_batch(stream: StreamingDetector, model: Detector, events: dict
     assert answer["t_us"] == t_query
     np.testing.assert_allclose(answer["boxes"], expected["boxes"].numpy(), rtol=0, atol=1e-9)
     np.testing.assert_allclose(answer["scores"], expected["scores"].numpy(), rtol=0, atol=1e-9)
-    return int(keep.sum())
+    return int((keep & (t >= start)).sum())
 
 
 def brute_refractory(events: dict, upto: int, refractory_us: int) -> np.ndarray:
@@ -114,11 +118,12 @@ def brute_refractory(events: dict, upto: int, refractory_us: int) -> np.ndarray:
 
 
 def replay(model: Detector, events: dict, images: list, seed: int, *, detect_prob: float = 0.4,
-           sizes=(0, 1, 1, 2, 5, 40, 300), refractory_us: int = 0) -> tuple[int, int, StreamingDetector]:
+           sizes=(0, 1, 1, 2, 5, 40, 300), refractory_us: int = 0,
+           graph_context_us: int = 0) -> tuple[int, int, StreamingDetector]:
     """Push ``events`` in random sizes (0, 1 and more), images at their times, and check random
     detect calls (at the latest event or a little later) against the batch model."""
     rng = np.random.default_rng(seed)
-    stream = streaming(model, refractory_us=refractory_us)
+    stream = streaming(model, refractory_us=refractory_us, graph_context_us=graph_context_us)
     n, i, checks, largest = len(events["t"]), 0, 0, 0
     pending = sorted(images, key=lambda item: item[1])
     image, t_image = None, None
@@ -166,6 +171,52 @@ def test_streaming_with_neighbourhood_geometry_equals_the_batch_model(variant):
     images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 190_000)]
     checks, largest, _ = replay(model, events, images, seed=8)
     assert checks >= 20 and largest >= 300
+
+
+@pytest.mark.parametrize("variant", ["hybrid", "events_only"])
+@pytest.mark.parametrize("geometry", [False, True])
+def test_with_a_graph_context_the_horizons_nodes_are_never_recomputed_and_answers_stay_exact(variant, geometry,
+                                                                                              monkeypatch):
+    """``graph_context_us``: the sample's first stage also reads that long before the horizon, so
+    an answer after events left the horizon pools cached nodes: no node is recomputed (the event
+    branch's first stage runs on new nodes only), and the answer equals the batch model's."""
+    model = trained(small_model(variant, seed=6, geometry=geometry))
+    reach = streaming(model).reach_us
+    rng = np.random.default_rng(17)
+    events = random_stream(rng, 3000, 300_000)
+    images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 150_000)]
+    checks, largest, stream = replay(model, events, images, seed=9, graph_context_us=math.ceil(reach),
+                                     detect_prob=0.6)
+    assert checks >= 20 and largest >= 300
+    real, stream_calls = model.events.event_nodes, []
+    monkeypatch.setattr(model.events, "event_nodes",
+                        lambda *args, **kwargs: stream_calls.append(1) or real(*args, **kwargs))
+    stream.push_events(**{key: values[-1:] + (0 if key != "t" else 1) for key, values in events.items()})
+    for t_query in (events["t"][-1] + 1, events["t"][-1] + 20_000):
+        stream.head_outputs(float(t_query))
+    assert not stream_calls  # the horizon's first nodes were not recomputed
+    with pytest.raises(ValueError, match="graph_context_us=100 is shorter than the .* us a node's features reach"):
+        streaming(model, graph_context_us=100)
+
+
+@pytest.mark.parametrize("geometry", [False, True])
+def test_a_graph_context_of_the_reach_makes_the_batch_model_blind_to_earlier_events(geometry):
+    """With ``graph_context_us`` at least the reach, the events before the context change nothing
+    (the horizon's nodes see their whole causal past); without a context they do."""
+    model = trained(small_model("events_only", seed=3, geometry=geometry))
+    reach = math.ceil(streaming(model).reach_us)
+    rng = np.random.default_rng(21)
+    events = random_stream(rng, 2500, 150_000)
+    t_query, start = 150_000.0, 150_000 - WINDOW_US
+
+    def raw(context_us: int) -> torch.Tensor:
+        keep = events["t"] >= start - context_us
+        sample = sample_of(None, tuple(v[keep] for v in events.values()), 0, t_query, start)
+        with torch.no_grad():
+            return model.head(*model.features(collate([sample])))[0]
+
+    torch.testing.assert_close(raw(reach), raw(3 * reach), rtol=0, atol=1e-12)
+    assert not torch.allclose(raw(0), raw(reach), rtol=0, atol=1e-6)
 
 
 @pytest.mark.parametrize("variant", ["hybrid", "events_only"])

@@ -66,6 +66,14 @@ class Batch:
     def pin_memory(self) -> "Batch":
         return self._map(lambda t: t.pin_memory())
 
+    def pooled(self) -> torch.Tensor | None:
+        """``(N,)`` bool: the events of each sample's own window ``[t_start_us, t_end_us)``, which
+        the event branch pools; the others are its graph context (read as neighbours only). None
+        when every event is pooled."""
+        start = (self.t_start_us - self.t_image_us).to(self.events.dtype)  # in the events' own time
+        mask = self.events[:, 2] >= start[self.batch_index]
+        return None if bool(mask.all()) else mask
+
     def padded_boxes(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Boxes padded to ``(B, M_max, 4)`` with a ``(B, M_max)`` bool mask of real boxes."""
         m_max = max((len(b) for b in self.boxes), default=0)

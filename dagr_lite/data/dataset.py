@@ -151,7 +151,8 @@ class Sample:
         labels: ``(M,)`` int64 class indices (0 = hand).
         video: video name; ``frame``: label frame index k; ``image_frame``: ``k - a`` for image age a.
         t_start_us, t_end_us: the event window ``[t_start_us, t_end_us)``; ``t_end_us`` is the time
-            the boxes are for (``t(k)``, or between frames in a sweep).
+            the boxes are for (``t(k)``, or between frames in a sweep). With a graph context
+            (``graph_context_us``), ``events`` also hold earlier ones, which the graph reads and never pools.
         t_image_us: the image's time ``t(k - a)``.
     """
 
@@ -221,6 +222,10 @@ class EventEgoHands(Dataset):
         seed: seed of the image ages and of ``transform``'s generator.
         event_picture: the image is :func:`event_picture` of the sample's events instead of the
             camera frame (needs ``event_span="window"``): the dense peer of the event branch.
+        graph_context_us: > 0: a sample's events also hold those of this long before its start
+            (for ``event_span="image"`` not from before ``t(k - a) - context_us``), which the event
+            graph reads as neighbours and never pools (:class:`~dagr_lite.data.spec.SampleSpec`);
+            ``Sample.t_start_us`` stays the pooled start.
     """
 
     def __init__(self, root: Path | str, split: str, *, image_age: int | Sequence[int], window_us: int,
@@ -230,7 +235,7 @@ class EventEgoHands(Dataset):
                  image_size: Sequence[int] | None = None, videos: Sequence[str] | None = None,
                  transform: Callable[[Sample, np.random.Generator], Sample] | None = None,
                  clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0, age_power: float = 0.0,
-                 event_picture: bool = False):
+                 event_picture: bool = False, graph_context_us: int = 0):
         if split not in fmt.SPLITS:
             raise UserError(f"split must be one of {fmt.SPLITS}, got {split!r}")
         self.age_range = age_range(image_age)
@@ -251,6 +256,9 @@ class EventEgoHands(Dataset):
             raise UserError(f"refractory_us must be >= 0, got {refractory_us}")
         if max_events is not None and max_events <= 0:
             raise UserError(f"max_events must be positive or None, got {max_events}")
+        if graph_context_us < 0:
+            raise UserError(f"graph_context_us must be >= 0, got {graph_context_us}")
+        self.graph_context_us = int(graph_context_us)
         self.root, self.split = Path(root), split
         self.event_span, self.window_us, self.context_us = event_span, int(window_us), int(context_us)
         self.max_events, self.refractory_us = max_events, int(refractory_us)
@@ -287,7 +295,8 @@ class EventEgoHands(Dataset):
     def sample(self) -> SampleSpec:
         """What each sample's events are (the streaming detector reads the same)."""
         return SampleSpec(window_us=self.window_us, context_us=self.context_us, refractory_us=self.refractory_us,
-                          max_events=self.max_events, event_picture=self.event_picture)
+                          max_events=self.max_events, event_picture=self.event_picture,
+                          graph_context_us=self.graph_context_us)
     def _open_video(self, video: str, labels: dict[int, np.ndarray], clip_boxes: bool):
         frames_dir = fmt.frames_dir(self.root, self.split, video)
         frames = list_frames(frames_dir)
@@ -385,16 +394,17 @@ class EventEgoHands(Dataset):
         ``t_end`` (us) and ``boxes`` (xyxy) as the truth at ``t_end``; ``k`` names the label frame."""
         video, events_file = self.videos[v], self._events[v]
         t_image = events_file.frame_time_us(image_frame)
-        t_start = int(sample_start_us(t_end, self.window_us, t_image if self.event_span == "image" else None,
-                                      self.context_us))
-        raw = self.events_of(v, t_start - self.refractory_us, t_end)
+        with_image = t_image if self.event_span == "image" else None
+        t_start = int(sample_start_us(t_end, self.window_us, with_image, self.context_us))
+        t_graph = int(sample_start_us(t_end, self.window_us + self.graph_context_us, with_image, self.context_us))
+        raw = self.events_of(v, t_graph - self.refractory_us, t_end)
         height, width = self.image_size
         x, y = raw["x"], raw["y"]
         if len(x) and (x.max() >= width or y.max() >= height):
-            raise DatasetFormatError.at(events_file.path, f"events of [{t_start - self.refractory_us}, {t_end}) us lie "
+            raise DatasetFormatError.at(events_file.path, f"events of [{t_graph - self.refractory_us}, {t_end}) us lie "
                                                           f"outside the {width}x{height} frame (x max {x.max()}, "
                                                           f"y max {y.max()})", key="events/x, events/y")
-        first = int(np.searchsorted(raw["t"], t_start, side="left"))
+        first = int(np.searchsorted(raw["t"], t_graph, side="left"))
         if self.refractory_us:  # decided from the events of one refractory period before each
             keep = refractory_keep(x, y, raw["t"], self.refractory_us, width)
             keep[:first] = False
@@ -403,14 +413,16 @@ class EventEgoHands(Dataset):
         raw = {key: values[keep] for key, values in raw.items()}
         if self.max_events is not None and len(raw["t"]) > self.max_events:
             raise SampleTooLarge(f"{events_file.path}: the sample of frame {k} (image frame {image_frame}) holds "
-                                 f"{len(raw['t'])} events in [{t_start}, {t_end}) us, more than max_events="
+                                 f"{len(raw['t'])} events in [{t_graph}, {t_end}) us, more than max_events="
                                  f"{self.max_events}; shorten the horizon (data.window_us), thin it on arrival "
                                  f"(data.refractory_us) or raise the guard (data.max_events, null: none)")
         events = np.stack([raw["x"].astype(np.float32), raw["y"].astype(np.float32),
                            (raw["t"] - t_image).astype(np.float32),
                            raw["p"].astype(np.float32)], axis=1).reshape(-1, 4)  # (N, 4)
         if self.event_picture:
-            image = event_picture(raw["x"], raw["y"], raw["t"], raw["p"], t_end, self.window_us, height, width)
+            pooled = int(np.searchsorted(raw["t"], t_start, side="left"))
+            image = event_picture(*(raw[key][pooled:] for key in ("x", "y", "t", "p")), t_end, self.window_us,
+                                  height, width)
         else:
             image = self.image_of(v, image_frame)  # (H, W, 3)
         sample = Sample(events=torch.from_numpy(events),

@@ -3,7 +3,8 @@
 A :class:`SampleSpec` says which events a model reads at a query time ``t`` (docs/design.md, "One
 sample"): those of the horizon ``[t - window_us, t)``, for a model with an image none from before
 ``image time - context_us``, less the events a refractory period drops, with a guard on their
-count. A training run records it in its checkpoints; evaluation, the sweep, the streaming
+count; with ``graph_context_us``, the graph's first stage also reads the events that long before
+the horizon, as neighbours only. A training run records it in its checkpoints; evaluation, the sweep, the streaming
 detector, detect and labelling read it from there (:class:`~dagr_lite.engine.checkpoint.Checkpoint`),
 so a model is always run on the sample it was trained on unless an override says otherwise.
 """
@@ -29,6 +30,10 @@ class SampleSpec:
             this long before it, decided as it arrives; 0: every event is read.
         max_events: a sample holding more events is refused (never thinned); None: no guard.
         event_picture: the image is a picture of the events (the dense peer), not a camera frame.
+        graph_context_us: > 0: the event graph's first stage also reads the events of this long
+            before the sample's start (for a model with an image, not from before ``image time -
+            context_us``): they are neighbours of the sample's nodes, never pooled, so a node's
+            features do not depend on where the horizon starts; 0: none.
     """
 
     window_us: int
@@ -36,6 +41,7 @@ class SampleSpec:
     refractory_us: int
     max_events: int | None
     event_picture: bool
+    graph_context_us: int
 
     def __post_init__(self):
         checks = {"window_us": (_integer(self.window_us) and self.window_us > 0, "a positive integer"),
@@ -43,10 +49,18 @@ class SampleSpec:
                   "refractory_us": (_integer(self.refractory_us) and self.refractory_us >= 0, "an integer >= 0"),
                   "max_events": (self.max_events is None or (_integer(self.max_events) and self.max_events > 0),
                                  "a positive integer or None"),
-                  "event_picture": (isinstance(self.event_picture, bool), "true or false")}
+                  "event_picture": (isinstance(self.event_picture, bool), "true or false"),
+                  "graph_context_us": (_integer(self.graph_context_us) and self.graph_context_us >= 0,
+                                       "an integer >= 0")}
         for name, (ok, expected) in checks.items():
             if not ok:
                 raise UserError(f"sample {name} must be {expected}, got {getattr(self, name)!r}")
+
+    def graph_start_us(self, t_query_us: float, t_image_us: float | None) -> float:
+        """The earliest event the graph's first stage reads at ``t_query_us``: the sample's start
+        moved back by ``graph_context_us``, for a model with an image not before ``image time - context_us``."""
+        start = t_query_us - self.window_us - self.graph_context_us
+        return start if t_image_us is None else max(start, t_image_us - self.context_us)
 
     def as_dict(self) -> dict:
         return asdict(self)

@@ -70,6 +70,7 @@ def render_sample(batch: Batch, index: int, detections: dict | None = None, *, s
     height, width = image.shape[:2]
     canvas = np.full((height, width, 3), 255, np.uint8)
     events = batch.events[batch.ptr[index]:batch.ptr[index + 1]].cpu().numpy()
+    events = events[events[:, 2] >= int(batch.t_start_us[index] - batch.t_image_us[index])]  # its own window
     if len(events):
         xs = np.clip(events[:, 0].astype(int), 0, width - 1)
         ys = np.clip(events[:, 1].astype(int), 0, height - 1)

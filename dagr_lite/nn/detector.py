@@ -285,9 +285,12 @@ class Detector(nn.Module):
             sampler = self.node_sampler(self.node_maps(image_maps))
         else:
             sampler = self.blank_sampler
+        pooled = batch.pooled()
         event_maps = self.events(batch.events, batch.batch_index, len(batch), image_sampler=sampler,
-                                 edge_index=batch.edge_index)
-        recency = [recency_maps(batch.events, batch.batch_index, batch.age_us, batch_size=len(batch), stride=stride,
+                                 edge_index=batch.edge_index, pooled=pooled)
+        events, event_batch = (batch.events, batch.batch_index) if pooled is None else \
+            (batch.events[pooled], batch.batch_index[pooled])  # the recency of the sample's own events
+        recency = [recency_maps(events, event_batch, batch.age_us, batch_size=len(batch), stride=stride,
                                 height=m.shape[-2], width=m.shape[-1], taus_us=self.cfg.recency_us)
                    for m, stride in zip(event_maps, self.strides)]
         maps, query, image_inputs = self.combine(image_maps, event_maps, recency, batch.age_us)

@@ -51,6 +51,14 @@ def neighbourhood_geometry(pos: torch.Tensor, edge_index: torch.Tensor, radius: 
     return torch.cat([sums / degree.clamp(min=1).unsqueeze(1), (degree / max_neighbors).unsqueeze(1)], dim=1)
 
 
+def keep_nodes(keep: torch.Tensor, x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor,
+               edge_index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The nodes where ``keep (N,)`` is true, and the edges between two of them, renumbered."""
+    new_id = torch.cumsum(keep, 0) - 1
+    edges = edge_index[:, keep[edge_index[0]] & keep[edge_index[1]]]
+    return x[keep], pos[keep], batch[keep], new_id[edges]
+
+
 class GCNBlock(nn.Module):
     """GCN, per-node LayerNorm (no statistics shared across nodes or time), ReLU, residual.
 
@@ -151,10 +159,14 @@ class EventBranch(nn.Module):
         return torch.stack(columns, dim=1)
 
     def forward(self, events: torch.Tensor, batch: torch.Tensor, batch_size: int,
-                image_sampler: ImageSampler | None = None, edge_index: torch.Tensor | None = None
-                ) -> list[torch.Tensor]:
-        """``edge_index``: the event graph if already built (e.g. by the data loader's workers)."""
+                image_sampler: ImageSampler | None = None, edge_index: torch.Tensor | None = None,
+                pooled: torch.Tensor | None = None) -> list[torch.Tensor]:
+        """``edge_index``: the event graph if already built (e.g. by the data loader's workers);
+        ``pooled``: ``(N,)`` bool, the nodes that are pooled into the maps (the others are a graph
+        context the first stage reads, :meth:`~dagr_lite.data.collate.Batch.pooled`); None: all."""
         x, pos, edge_index = self.event_nodes(events, batch, image_sampler, edge_index)
+        if pooled is not None:
+            x, pos, batch, edge_index = keep_nodes(pooled, x, pos, batch, edge_index)
         return self.pooled_maps(x, pos, batch, edge_index, batch_size, image_sampler)
 
     def pooled_maps(self, x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge_index: torch.Tensor,

@@ -38,6 +38,27 @@ def test_sample_matches_brute_force(dataset):
         assert sample.boxes.dtype == torch.float32 and sample.labels.tolist() == [0] * len(boxes)
 
 
+@pytest.mark.parametrize("event_span", ["window", "image"])
+def test_a_graph_context_adds_the_earlier_events_which_the_batch_marks_not_pooled(dataset, event_span):
+    ds = sample_set(dataset.root, "train", image_age=3, event_span=event_span, window_us=20_000, context_us=30_000,
+                    graph_context_us=25_000)
+    assert ds.sample.graph_context_us == 25_000
+    for index in (0, 5, 9):
+        sample = ds[index]
+        video, k = ds.sample_name(index)
+        raw, t_end, t_image = dataset.events[video], fmt.frame_time_us(k), fmt.frame_time_us(k - 3)
+        image_floor = t_image - 30_000 if event_span == "image" else -np.inf  # by hand: none from before it
+        start = max(t_end - 20_000, image_floor)
+        graph = max(t_end - 45_000, image_floor)
+        mask = (raw["t"] >= graph) & (raw["t"] < t_end)
+        np.testing.assert_array_equal(sample.events[:, 2].numpy(), (raw["t"][mask] - t_image).astype(np.float32))
+        assert sample.t_start_us == start
+        pooled = collate([sample]).pooled()
+        own = raw["t"][mask] >= start
+        assert own.all() if pooled is None else np.array_equal(pooled.numpy(), own)
+        assert not own.all() or event_span == "image"  # the window-span samples hold a context
+
+
 def test_frames_without_boxes_are_samples_with_zero_boxes(dataset):
     ds = sample_set(dataset.root, "valid", image_age=0)
     by_frame = {ds.sample_name(i)[1]: ds[i] for i in range(len(ds))}
