@@ -212,7 +212,7 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
     ``data.augment.enabled``; images are dropped for grey only in a hybrid); otherwise the age
     is ``image_age`` (default ``data.image_age``).
     Every model reads the events of the last ``data.window_us``; one with an image none from
-    before ``image time - data.context_us`` (:func:`~dagr_lite.data.dataset.sample_start_us`).
+    before ``image time - data.context_us`` (:func:`~dagr_lite.data.spec.sample_start_us`).
     """
     data, dataset = cfg.data, cfg.dataset
     hybrid = with_image and bool(OmegaConf.select(cfg, "model.use_events", default=False))
@@ -229,7 +229,7 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
     built = EventEgoHands(dataset_root(dataset), split, image_age=image_age,
                           event_span="image" if with_image and not picture else "window", window_us=data.window_us,
                           context_us=data.context_us, refractory_us=data.refractory_us, max_events=data.max_events,
-                          graph_context_us=data.get("graph_context_us", 0),
+                          graph_context_us=data.graph_context_us,
                           first_frame=first_frame,
                           fps=dataset.fps, image_size=image_size, transform=transform,
                           clip_boxes=data.clip_boxes, labelled_only=bool(data.get("labelled_only", False)),

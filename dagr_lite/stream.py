@@ -3,7 +3,7 @@
 Images arrive at the camera's rate, events continuously; :meth:`StreamingDetector.detect`
 answers at any time. The answer equals the batch model (:class:`~dagr_lite.nn.detector.Detector`)
 run on the sample of that moment, the sample training and evaluation read
-(:func:`~dagr_lite.data.dataset.sample_start_us`, docs/design.md, "One sample"):
+(:func:`~dagr_lite.data.spec.sample_start_us`, docs/design.md, "One sample"):
 
 - every model reads the events of ``[t - window_us, t]`` (a horizon);
 - a hybrid reads the latest image, and no event from before ``image time - context_us``;

@@ -1,7 +1,7 @@
 """The EventEgoHands dataset: one sample per label frame (docs/design.md, "One sample").
 
 For label frame ``k`` and image age ``a`` (in frames) a sample holds the image of frame
-``k - a``, the events of :func:`sample_start_us` up to ``t(k)`` and the boxes of frame ``k``.
+``k - a``, the events of :func:`~dagr_lite.data.spec.sample_start_us` up to ``t(k)`` and the boxes of frame ``k``.
 The events bring the stale image up to date. Training draws ``a`` per sample from a range;
 evaluation fixes it. Which events a sample holds depends on the query time, the image's time
 and fixed spans only, so the streaming detector reads exactly the same events
@@ -22,12 +22,12 @@ from dagr_lite.data import format as fmt
 from dagr_lite.data.errors import DatasetFormatError, Problem
 from dagr_lite.data.events import EventFile
 from dagr_lite.data.frames import frame_header_problems, list_frames, read_frame
-from dagr_lite.data.spec import SampleSpec
+from dagr_lite.data.spec import SampleSpec, sample_start_us
 from dagr_lite.data.labels import box_problems, list_videos, read_labels
 
 # At most this many frame problems are listed when the dataset refuses to open.
 MAX_LISTED_PROBLEMS = 10
-# Which events a sample holds (see :func:`sample_start_us`): bounded by the image and the window
+# Which events a sample holds (see :func:`~dagr_lite.data.spec.sample_start_us`): bounded by the image and the window
 # (models with an image), or by the window alone.
 EVENT_SPANS = ("image", "window")
 # The event picture (:func:`event_picture`): a pixel's count of each polarity saturates at this many events.
@@ -56,20 +56,6 @@ def event_picture(x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray, t_
         recency[seen] = np.clip(1 - (t_end_us - last[seen]) / window_us, 0, 1) * 255.0
         picture[..., 2] = recency.reshape(height, width)
     return np.round(picture).astype(np.uint8)
-
-
-def sample_start_us(t_query_us: float, window_us: int, t_image_us: float | None = None, context_us: int = 0) -> float:
-    """The start of the events a model reads when asked at ``t_query_us``: it reads ``[start, t_query_us)``.
-
-    Every model reads at most the last ``window_us`` (a horizon: older events have left); a model
-    with an image (``t_image_us`` given) reads none from before ``t_image_us - context_us`` either.
-    This is the one definition of a sample's events: the dataset (training, validation,
-    evaluation, the sweep) and the streaming detector both call it.
-    """
-    start = t_query_us - window_us
-    if t_image_us is not None:
-        start = max(start, t_image_us - context_us)
-    return start
 
 
 def refractory_keep(x: np.ndarray, y: np.ndarray, t: np.ndarray, refractory_us: float, width: int,
@@ -202,7 +188,7 @@ class EventEgoHands(Dataset):
             ``(a - low + 1) ** age_power`` (0: uniform; 1: ten frames ten times as often as one).
         event_span: ``"image"``: the events of ``[max(t(k - a) - context_us, t(k) - window_us), t(k))``
             (a model with an image); ``"window"``: ``[t(k) - window_us, t(k))`` (a model without one).
-            See :func:`sample_start_us`.
+            See :func:`~dagr_lite.data.spec.sample_start_us`.
         window_us: the horizon: no sample reads events older than this before its query time.
         context_us: with ``event_span="image"``, events from before the image may join (within the horizon).
         refractory_us: > 0: a pixel's event is dropped when the pixel had an event less than this
@@ -235,7 +221,7 @@ class EventEgoHands(Dataset):
                  image_size: Sequence[int] | None = None, videos: Sequence[str] | None = None,
                  transform: Callable[[Sample, np.random.Generator], Sample] | None = None,
                  clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0, age_power: float = 0.0,
-                 event_picture: bool = False, graph_context_us: int = 0):
+                 graph_context_us: int, event_picture: bool = False):
         if split not in fmt.SPLITS:
             raise UserError(f"split must be one of {fmt.SPLITS}, got {split!r}")
         self.age_range = age_range(image_age)

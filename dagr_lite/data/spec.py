@@ -19,6 +19,21 @@ def _integer(value) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
+def sample_start_us(t_query_us: float, window_us: int, t_image_us: float | None = None, context_us: int = 0) -> float:
+    """The start of the events a model reads when asked at ``t_query_us``: it reads ``[start, t_query_us)``.
+
+    Every model reads at most the last ``window_us`` (a horizon: older events have left); a model
+    with an image (``t_image_us`` given) reads none from before ``t_image_us - context_us`` either.
+    This is the one definition of a sample's events: the dataset (training, validation,
+    evaluation, the sweep), the streaming detector and :meth:`SampleSpec.graph_start_us` call it.
+    """
+    start = t_query_us - window_us
+    if t_image_us is not None:
+        start = max(start, t_image_us - context_us)
+    return start
+
+
+
 @dataclass(frozen=True)
 class SampleSpec:
     """The events of one sample (every time in microseconds).
@@ -59,8 +74,7 @@ class SampleSpec:
     def graph_start_us(self, t_query_us: float, t_image_us: float | None) -> float:
         """The earliest event the graph's first stage reads at ``t_query_us``: the sample's start
         moved back by ``graph_context_us``, for a model with an image not before ``image time - context_us``."""
-        start = t_query_us - self.window_us - self.graph_context_us
-        return start if t_image_us is None else max(start, t_image_us - self.context_us)
+        return sample_start_us(t_query_us, self.window_us + self.graph_context_us, t_image_us, self.context_us)
 
     def as_dict(self) -> dict:
         return asdict(self)
