@@ -267,7 +267,7 @@ def detector_config(cfg: DictConfig, *, height: int, width: int) -> DetectorConf
                           strides=tuple(model.strides), graph=graph_spec(model), time_scale_us=model.time_scale_us,
                           recency_us=tuple(model.recency_us), event_head_weight=float(model.event_head_weight),
                           image_stem=model.image_stem, late_query=bool(model.late_query),
-                          geometry=bool(model.geometry))
+                          geometry=bool(model.geometry), directional=bool(model.directional))
 
 
 def build_model(cfg: DictConfig, *, height: int, width: int) -> Detector:

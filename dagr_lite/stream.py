@@ -489,7 +489,8 @@ class StreamingDetector:
         with self._part("first stage (new nodes)"):
             features = branch.node_features(events, segment.pos.view, local, first=old)
             segment.h[0].extend(branch.level_input(0, features, pos, batch, self._sampler()))
-            op = GraphOperator(local, old + m, in_degree=segment.in_degree.view, rows=rows)
+            op = GraphOperator(local, old + m, in_degree=segment.in_degree.view, rows=rows,
+                               **branch.first_stage_offsets(segment.pos.view))
             for b, block in enumerate(branch.first_stage):
                 segment.h[b + 1].extend(block(segment.h[b].view, op))
         with self._part("cells + recency times"):

@@ -174,6 +174,18 @@ def test_streaming_with_neighbourhood_geometry_equals_the_batch_model(variant):
 
 
 @pytest.mark.parametrize("variant", ["hybrid", "events_only"])
+def test_streaming_with_directional_messages_equals_the_batch_model(variant):
+    """A first stage whose messages are weighted by the neighbour's offset (``directional``):
+    computed for new nodes only, from their edges and the cached positions, as the batch model does."""
+    model = trained(small_model(variant, seed=5, geometry=True, directional=True, event_blocks=2))
+    rng = np.random.default_rng(19)
+    events = random_stream(rng, 2500, 250_000)
+    images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 190_000)]
+    checks, largest, _ = replay(model, events, images, seed=10)
+    assert checks >= 20 and largest >= 300
+
+
+@pytest.mark.parametrize("variant", ["hybrid", "events_only"])
 @pytest.mark.parametrize("geometry", [False, True])
 def test_with_a_graph_context_the_horizons_nodes_are_never_recomputed_and_answers_stay_exact(variant, geometry,
                                                                                               monkeypatch):

@@ -151,6 +151,9 @@ class DetectorConfig:
         geometry: event nodes also carry the shape of their causal neighbourhood
             (:func:`~dagr_lite.nn.event_branch.neighbourhood_geometry`); false in checkpoints saved
             before the key.
+        directional: the event branch's first stage weights each message by the neighbour's
+            offset (:class:`~dagr_lite.nn.event_branch.EventBranch`); false in checkpoints saved
+            before the key.
     """
 
     height: int
@@ -171,6 +174,7 @@ class DetectorConfig:
     event_head_weight: float = 0.0
     image_stem: str = "patch"
     geometry: bool = False
+    directional: bool = False
 
     def __post_init__(self):
         if not (self.use_events or self.use_image):
@@ -218,7 +222,8 @@ class Detector(nn.Module):
             self.events = EventBranch(height=cfg.height, width=cfg.width, channels=cfg.event_channels,
                                       strides=cfg.strides, graph=cfg.graph,
                                       time_scale_us=cfg.time_scale_us if cfg.use_image else None,
-                                      blocks=cfg.event_blocks, image_channels=fuse, geometry=cfg.geometry)
+                                      blocks=cfg.event_blocks, image_channels=fuse, geometry=cfg.geometry,
+                                      directional=cfg.directional)
         else:
             self.events = None
         # The query maps (recency, and with an image its age) join before the towers (early: at the

@@ -66,9 +66,9 @@ class GCNBlock(nn.Module):
         x ``(N, F_in)`` and a :class:`GraphOperator` over the N nodes -> ``(N, F_out)``.
     """
 
-    def __init__(self, in_channels: int, out_channels: int):
+    def __init__(self, in_channels: int, out_channels: int, offsets: bool = False):
         super().__init__()
-        self.conv = GCNConv(in_channels, out_channels)
+        self.conv = GCNConv(in_channels, out_channels, offsets=offsets)
         self.norm = nn.LayerNorm(out_channels)
         self.skip = nn.Identity() if in_channels == out_channels else nn.Linear(in_channels, out_channels, bias=False)
 
@@ -90,6 +90,9 @@ class EventBranch(nn.Module):
         blocks: GCN blocks per stage.
         image_channels: image feature channels joined at each level (input, then each stride).
         geometry: nodes also carry :func:`neighbourhood_geometry` (10 features).
+        directional: the first stage's messages are also weighted by the neighbour's offset from
+            the node in units of the graph's radius (``GCNConv(offsets=True)``), so its blocks sense
+            the direction of motion.
 
     Shapes:
         events ``(N, 4)`` x, y, t (us since the image), p; batch ``(N,)`` sorted ->
@@ -98,7 +101,7 @@ class EventBranch(nn.Module):
 
     def __init__(self, *, height: int, width: int, channels: Sequence[int], strides: Sequence[int],
                  graph: EventGraphSpec, time_scale_us: float | None, blocks: int, image_channels: Sequence[int] | None = None,
-                 geometry: bool = False):
+                 geometry: bool = False, directional: bool = False):
         super().__init__()
         if len(channels) != len(strides) + 1:
             raise ValueError(f"channels needs one entry for the input stage and one per stride: "
@@ -111,12 +114,14 @@ class EventBranch(nn.Module):
         if len(self.image_channels) != len(channels):
             raise ValueError(f"image_channels needs {len(channels)} entries, got {len(self.image_channels)}")
         self.out_channels = tuple(channels[1:])
-        self.geometry = bool(geometry)
+        self.geometry, self.directional = bool(geometry), bool(directional)
         in_features = (3 if time_scale_us is None else 4) + (GEOMETRY_FEATURES if self.geometry else 0)
         self.stages = nn.ModuleList()
         for level, out in enumerate(channels):
             width_in = (in_features if level == 0 else channels[level - 1]) + self.image_channels[level]
-            self.stages.append(nn.ModuleList(GCNBlock(width_in if b == 0 else out, out) for b in range(blocks)))
+            self.stages.append(nn.ModuleList(GCNBlock(width_in if b == 0 else out, out,
+                                                      offsets=self.directional and level == 0)
+                                             for b in range(blocks)))
 
     @property
     def first_stage(self) -> nn.ModuleList:
@@ -127,6 +132,11 @@ class EventBranch(nn.Module):
     def first_stage_widths(self) -> list[int]:
         """The width of the first stage's input, then of each of its blocks' outputs."""
         return [self.first_stage[0].conv.in_channels, *(block.conv.out_channels for block in self.first_stage)]
+
+    def first_stage_offsets(self, pos: torch.Tensor) -> dict:
+        """The :class:`GraphOperator` arguments that give the first stage its offsets, from every
+        node's position ``pos (N, 3)`` (none unless ``directional``)."""
+        return {"offset_pos": pos, "offset_unit": self.spec.radius} if self.directional else {}
 
     def maps_from_first_pool(self, first: PooledGraph, image_sampler: ImageSampler | None = None
                              ) -> list[torch.Tensor]:
@@ -218,7 +228,8 @@ class EventBranch(nn.Module):
     def _stage(self, level: int, x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge_index: torch.Tensor,
                image_sampler: ImageSampler | None) -> torch.Tensor:
         x = self.level_input(level, x, pos, batch, image_sampler)
-        op = GraphOperator(edge_index, len(x))
+        op = GraphOperator(edge_index, len(x), **self.first_stage_offsets(pos)) if level == 0 else \
+            GraphOperator(edge_index, len(x))
         for block in self.stages[level]:
             x = block(x, op)
         return x

@@ -98,36 +98,56 @@ class GraphOperator:
     Holds ``adj`` = ``D^-1/2 (A + I) D^-1/2`` restricted to the output rows, as CSR, and its
     transpose (also CSR) for the backward pass, so both directions are one sparse product.
 
+    With ``offset_pos`` ``(N, 3)`` (node positions), it also holds the offset of each entry's
+    source from its destination, ``(offset_pos[j] - offset_pos[i]) / offset_unit``, for
+    :meth:`propagate_offsets`.
+
     Shapes:
         adj ``(N_out, N)``, adj_t ``(N, N_out)``; ``N_out = N`` unless ``rows`` was given.
     """
 
     def __init__(self, edge_index: torch.Tensor, num_nodes: int, *, in_degree: torch.Tensor | None = None,
-                 rows: torch.Tensor | None = None):
+                 rows: torch.Tensor | None = None, offset_pos: torch.Tensor | None = None, offset_unit: float = 1.0):
         row, col, value = gcn_norm(edge_index, num_nodes, in_degree=in_degree, rows=rows)
         n_out = num_nodes if rows is None else len(rows)
         self.num_nodes, self.num_out, self.rows = num_nodes, n_out, rows
         self._triplets = (row, col, value)
-        self._order: torch.Tensor | None = None  # (col, row) order of the triplets, for the transpose
-        self._adj: dict[torch.dtype, torch.Tensor] = {}
-        self._adj_t: dict[torch.dtype, torch.Tensor] = {}
+        self._offsets = None
+        if offset_pos is not None:  # each entry's source minus its destination (a self-loop's is 0)
+            dst = row if rows is None else rows[row]
+            self._offsets = (offset_pos[col] - offset_pos[dst]).to(torch.float64) / offset_unit  # (E', 3)
+        self._order: dict[bool, torch.Tensor] = {}  # (col, row) order of the triplets, for the transpose
+        self._adj: dict[tuple[torch.dtype, bool], torch.Tensor] = {}
+        self._adj_t: dict[tuple[torch.dtype, bool], torch.Tensor] = {}
 
-    def matrix(self, dtype: torch.dtype) -> torch.Tensor:
-        """``adj`` as CSR of ``dtype``, made once per dtype."""
-        if dtype not in self._adj:
-            row, col, value = self._triplets
-            self._adj[dtype] = _csr(row, col, value.to(dtype), (self.num_out, self.num_nodes))
-        return self._adj[dtype]
+    def _stacked(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The triplets of ``[adj; adj * dx; adj * dy; adj * dt]``, ``(4 N_out, N)``, sorted by (row, col)."""
+        if self._offsets is None:
+            raise ValueError("this graph operator was made without offset_pos, so it has no offset-weighted matrices")
+        row, col, value = self._triplets
+        scales = torch.cat([torch.ones_like(value)[:, None], self._offsets], dim=1)  # (E', 4)
+        rows = torch.cat([row + k * self.num_out for k in range(4)])
+        return rows, col.repeat(4), (value[:, None] * scales).T.reshape(-1)
 
-    def transposed(self, dtype: torch.dtype) -> torch.Tensor:
-        """``adj_t`` as CSR of ``dtype``, made on first use (only the backward pass needs it)."""
-        if dtype not in self._adj_t:
-            row, col, value = self._triplets
-            if self._order is None:
-                self._order = torch.argsort(col, stable=True)  # rows ascend within each column
-            order = self._order
-            self._adj_t[dtype] = _csr(col[order], row[order], value[order].to(dtype), (self.num_nodes, self.num_out))
-        return self._adj_t[dtype]
+    def matrix(self, dtype: torch.dtype, offsets: bool = False) -> torch.Tensor:
+        """``adj`` as CSR of ``dtype`` (with ``offsets``, the stacked ``(4 N_out, N)`` matrix of
+        :meth:`propagate_offsets`), made once per dtype."""
+        if (dtype, offsets) not in self._adj:
+            row, col, value = self._stacked() if offsets else self._triplets
+            self._adj[dtype, offsets] = _csr(row, col, value.to(dtype), ((4 if offsets else 1) * self.num_out,
+                                                                           self.num_nodes))
+        return self._adj[dtype, offsets]
+
+    def transposed(self, dtype: torch.dtype, offsets: bool = False) -> torch.Tensor:
+        """The transpose of :meth:`matrix` as CSR, made on first use (only the backward pass needs it)."""
+        if (dtype, offsets) not in self._adj_t:
+            row, col, value = self._stacked() if offsets else self._triplets
+            if offsets not in self._order:
+                self._order[offsets] = torch.argsort(col, stable=True)  # rows ascend within each column
+            order = self._order[offsets]
+            self._adj_t[dtype, offsets] = _csr(col[order], row[order], value[order].to(dtype),
+                                               (self.num_nodes, (4 if offsets else 1) * self.num_out))
+        return self._adj_t[dtype, offsets]
 
     def propagate(self, x: torch.Tensor) -> torch.Tensor:
         """``adj @ x`` with a sparse backward (``adj_t @ grad``).  ``(N, F) -> (N_out, F)``.
@@ -135,7 +155,12 @@ class GraphOperator:
         float64 inputs propagate in float64; all others (float16, bfloat16 under autocast) in
         float32, and the result comes back in the input's dtype.
         """
-        return _Propagate.apply(x, self)
+        return _Propagate.apply(x, self, False)
+
+    def propagate_offsets(self, x: torch.Tensor) -> torch.Tensor:
+        """``adj @ x`` and the same sums with each neighbour's term weighted by its offset from the
+        destination along x, y and t (``offset_pos[j] - offset_pos[i]``): ``(N, F) -> (4, N_out, F)``."""
+        return _Propagate.apply(x, self, True).view(4, self.num_out, x.shape[1])
 
 
 def _compute_dtype(dtype: torch.dtype) -> torch.dtype:
@@ -144,17 +169,17 @@ def _compute_dtype(dtype: torch.dtype) -> torch.dtype:
 
 class _Propagate(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x: torch.Tensor, op: GraphOperator) -> torch.Tensor:
-        ctx.op = op
-        adj = op.matrix(_compute_dtype(x.dtype))
+    def forward(ctx, x: torch.Tensor, op: GraphOperator, offsets: bool) -> torch.Tensor:
+        ctx.op, ctx.offsets = op, offsets
+        adj = op.matrix(_compute_dtype(x.dtype), offsets)
         with torch.autocast(x.device.type, enabled=False):  # sparse products stay in float32/64
-            return (adj @ x.to(adj.dtype)).to(x.dtype)  # (N_out, F)
+            return (adj @ x.to(adj.dtype)).to(x.dtype)  # (N_out, F) or (4 N_out, F)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
-        adj_t = ctx.op.transposed(_compute_dtype(grad.dtype))
+        adj_t = ctx.op.transposed(_compute_dtype(grad.dtype), ctx.offsets)
         with torch.autocast(grad.device.type, enabled=False):
-            return (adj_t @ grad.to(adj_t.dtype).contiguous()).to(grad.dtype), None  # (N, F)
+            return (adj_t @ grad.to(adj_t.dtype).contiguous()).to(grad.dtype), None, None  # (N, F)
 
 
 class GCNConv(nn.Module):
@@ -163,29 +188,46 @@ class GCNConv(nn.Module):
     Propagation runs on the narrower side of ``W`` (before the weight when ``in <= out``, after
     it otherwise): the same result with fewer sparse multiply-adds.
 
+    With ``offsets``, a neighbour's message also depends on where it lies: ``h_i' = sum_j a_ij h_j
+    (W + dx_ij W_x + dy_ij W_y + dt_ij W_t) + b``, with ``(dx, dy, dt)_ij`` the offset of ``j`` from
+    ``i`` that the :class:`GraphOperator` was given (``offset_pos``), a Cartesian kernel of degree
+    one as SplineConv's: the layer can tell from which side and how long before an input arrived,
+    so it senses the direction of motion that the isotropic sum cannot. ``a_ij`` and the offsets
+    are fixed when node ``i`` arrives, so its output still never changes afterwards.
+
     Args:
         in_channels, out_channels: feature sizes.
         bias: add a learned bias.
         residual: add the input (projected by a bias-free linear map if the sizes differ).
+        offsets: the messages also weighted by the offsets (``weight_offsets``, ``(3, F_in, F_out)``).
 
     Shapes:
         x ``(|V|, F_in)``, edge_index ``(2, |E|)`` or a :class:`GraphOperator` -> ``(|V_out|, F_out)``.
     """
 
-    def __init__(self, in_channels: int, out_channels: int, bias: bool = True, residual: bool = False):
+    def __init__(self, in_channels: int, out_channels: int, bias: bool = True, residual: bool = False,
+                 offsets: bool = False):
         super().__init__()
         self.in_channels, self.out_channels = in_channels, out_channels
         self.weight = nn.Parameter(torch.empty(in_channels, out_channels))
+        self.weight_offsets = nn.Parameter(torch.empty(3, in_channels, out_channels)) if offsets else None
         self.bias = nn.Parameter(torch.zeros(out_channels)) if bias else None
         self.residual = None
         if residual:
             self.residual = nn.Identity() if in_channels == out_channels else nn.Linear(in_channels, out_channels,
                                                                                          bias=False)
         nn.init.kaiming_uniform_(self.weight.T, a=math.sqrt(5))
+        if self.weight_offsets is not None:
+            with torch.no_grad():
+                for k in range(3):
+                    nn.init.kaiming_uniform_(self.weight_offsets[k].T, a=math.sqrt(5))
 
     def forward(self, x: torch.Tensor, graph: torch.Tensor | GraphOperator) -> torch.Tensor:
         op = graph if isinstance(graph, GraphOperator) else GraphOperator(graph, x.shape[0])
-        if self.in_channels <= self.out_channels:
+        if self.weight_offsets is not None:
+            sums = op.propagate_offsets(x)  # (4, N_out, F_in)
+            out = sums[0] @ self.weight + torch.bmm(sums[1:], self.weight_offsets).sum(dim=0)  # (N_out, F_out)
+        elif self.in_channels <= self.out_channels:
             out = op.propagate(x) @ self.weight  # (N_out, F_out)
         else:
             out = op.propagate(x @ self.weight)  # (N_out, F_out)
@@ -197,4 +239,4 @@ class GCNConv(nn.Module):
 
     def extra_repr(self) -> str:
         return (f"{self.in_channels}, {self.out_channels}, bias={self.bias is not None}, "
-                f"residual={self.residual is not None}")
+                f"residual={self.residual is not None}, offsets={self.weight_offsets is not None}")

@@ -15,8 +15,9 @@ import torch
 from torch import nn
 
 WIDENED_PREFIX = "events."  # only here is the input layout known to put the source's inputs first
-# The input dimension of the event branch's layers: a GCN weight is (in, out), a skip projection (out, in).
-INPUT_DIM = {"conv.weight": 0, "skip.weight": 1}
+# The input dimension of the event branch's layers: a GCN weight is (in, out), its offset weights (3, in, out),
+# a skip projection (out, in).
+INPUT_DIM = {"conv.weight": 0, "conv.weight_offsets": 1, "skip.weight": 1}
 
 
 def widen(source: torch.Tensor, shape: torch.Size, dim: int | None = None) -> torch.Tensor | None:

@@ -1,3 +1,4 @@
+import pytest
 import torch
 
 from dagr_lite.graph import radius_graph
@@ -95,3 +96,65 @@ def test_any_float_dtype_propagates():
     for dtype in (torch.float32, torch.bfloat16):
         out = op.propagate(x.to(dtype))
         assert out.dtype == dtype and torch.allclose(out.double(), reference, atol=0.05)
+
+
+def loop_offset_gcn(x, edge_index, pos, unit, conv):
+    """Reference for ``GCNConv(offsets=True)``: a loop over each node's set of neighbours (and
+    itself), each message ``h_j (W + dx W_x + dy W_y + dt W_t)`` with the offset of ``j`` from ``i``."""
+    n = x.shape[0]
+    neighbours = [{i} for i in range(n)]
+    for j, i in edge_index.T.tolist():
+        neighbours[i].add(j)
+    degree = [len(s) for s in neighbours]  # 1 + in-degree (a repeated edge or a self-loop counts once)
+    rows = []
+    for i in range(n):
+        total = conv.bias.clone()
+        for j in neighbours[i]:
+            d = (pos[j] - pos[i]) / unit
+            weight = conv.weight + d[0] * conv.weight_offsets[0] + d[1] * conv.weight_offsets[1] + d[2] * conv.weight_offsets[2]
+            total = total + x[j] @ weight / (degree[i] * degree[j]) ** 0.5
+        rows.append(total)
+    return torch.stack(rows)
+
+
+def test_offset_weighted_messages_equal_a_loop_over_neighbours_with_gradients():
+    g = torch.Generator().manual_seed(3)
+    n = 30
+    pos = torch.rand(n, 3, generator=g, dtype=torch.float64) * 6
+    edge_index = torch.randint(0, n, (2, 120), generator=g)  # repeated edges and self-loops included
+    conv = GCNConv(5, 4, offsets=True).double()
+    with torch.no_grad():
+        conv.bias.normal_(generator=g)
+    x = torch.randn(n, 5, generator=g, dtype=torch.float64, requires_grad=True)
+    out = conv(x, GraphOperator(edge_index, n, offset_pos=pos, offset_unit=2.5))
+    ref = loop_offset_gcn(x, edge_index, pos, 2.5, conv)
+    torch.testing.assert_close(out, ref, rtol=0, atol=1e-12)
+    upstream = torch.randn(n, 4, generator=g, dtype=torch.float64)
+    grads = torch.autograd.grad((out * upstream).sum(), [x, conv.weight, conv.weight_offsets, conv.bias])
+    grads_ref = torch.autograd.grad((ref * upstream).sum(), [x, conv.weight, conv.weight_offsets, conv.bias])
+    for got, want in zip(grads, grads_ref):
+        torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    assert conv.weight_offsets.abs().sum() > 0 and grads[2].abs().sum() > 0  # the offsets take part
+    zero = GCNConv(5, 4, offsets=True).double()  # with no offset weights it is the plain layer
+    plain = GCNConv(5, 4).double()
+    with torch.no_grad():
+        zero.weight.copy_(plain.weight)
+        zero.weight_offsets.zero_()
+    torch.testing.assert_close(zero(x, GraphOperator(edge_index, n, offset_pos=pos)), plain(x, edge_index))
+
+
+def test_offset_weighted_messages_of_new_nodes_equal_the_whole_window():
+    g = torch.Generator().manual_seed(4)
+    n, new = 200, 30
+    pos = torch.rand(n, 3, generator=g, dtype=torch.float64) * 8
+    pos = pos[torch.argsort(pos[:, 2])]
+    edge_index = radius_graph(pos, 2.0, 6)
+    conv = GCNConv(4, 8, offsets=True).double()
+    x = torch.randn(n, 4, generator=g, dtype=torch.float64)
+    whole = conv(x, GraphOperator(edge_index, n, offset_pos=pos, offset_unit=2.0))
+    rows = torch.arange(n - new, n)
+    op_new = GraphOperator(edge_index[:, edge_index[1] >= n - new], n, in_degree=torch.bincount(edge_index[1], minlength=n),
+                           rows=rows, offset_pos=pos, offset_unit=2.0)
+    torch.testing.assert_close(conv(x, op_new), whole[n - new:], rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="made without offset_pos"):
+        conv(x, GraphOperator(edge_index, n))

@@ -30,15 +30,18 @@ def test_widen_puts_the_source_first_and_zeros_after_it():
     assert torch.equal(widen(source, torch.Size([4, 3]), dim=0), widen(source, torch.Size([4, 3])))
 
 
-def test_an_events_only_branch_started_in_a_hybrid_computes_the_same_maps_whatever_the_image():
+@pytest.mark.parametrize("directional", [False, True])
+def test_an_events_only_branch_started_in_a_hybrid_computes_the_same_maps_whatever_the_image(directional):
     torch.manual_seed(0)
-    events_only = Detector(small_detector_config(variant="events_only", **SIZES)).eval()
-    hybrid = Detector(small_detector_config(**SIZES)).eval()
+    events_only = Detector(small_detector_config(variant="events_only", directional=directional, **SIZES)).eval()
+    hybrid = Detector(small_detector_config(directional=directional, **SIZES)).eval()
     report = warm_start(hybrid, events_only.state_dict())
     # every first block of a stage reads the node's time (stage 0) and image channels besides the source's inputs
-    # (there, with as many channels in as out, the source's skip is the identity: widened from it)
-    assert sorted(report["widened"]) == sorted(f"events.stages.{s}.0.{layer}.weight" for s in range(4)
-                                               for layer in ("conv", "skip"))
+    # (there, with as many channels in as out, the source's skip is the identity: widened from it); a
+    # directional first stage's offset weights are widened along their input dimension too
+    assert sorted(report["widened"]) == sorted([f"events.stages.{s}.0.{layer}.weight" for s in range(4)
+                                                for layer in ("conv", "skip")]
+                                               + ["events.stages.0.0.conv.weight_offsets"] * directional)
     # layers reading more inputs outside the event branch, or only the hybrid's, keep their own weights
     # (the head's late layers read the image's age and image towers besides the recency maps; the image
     # towers and their age gates are the hybrid's)
