@@ -2,7 +2,10 @@
 
 Writes ``DIR/stats.json``: per video and per split the events, duration, mean and peak event
 rate (over 10 ms bins), ON fraction, frames, labelled frames, boxes and boxes per labelled
-frame, and a histogram of box sizes (square root of the area, in pixels). Event arrays are
+frame, a histogram of box sizes (square root of the area, in pixels) and, per split, how fast the
+labels go stale: the AP50 and mAP of frame ``k - a``'s boxes taken as the answer for frame ``k``
+(every box score 1, on the frames the sweep scores, ``k >= max(ages)``), what a detector that
+reads an image ``a`` frames old and nothing since could reach at best. Event arrays are
 read a second at a time, so files of any size take bounded memory. Per video (at the middle
 labelled frame ``k`` unless ``--frame`` says) it draws:
 
@@ -35,10 +38,12 @@ from dagr_lite.data import format as fmt  # noqa: E402
 from dagr_lite.data.events import EventFile
 from dagr_lite.data.frames import list_frames, read_frame
 from dagr_lite.data.labels import list_videos, read_labels
+from dagr_lite.eval.fast_coco import coco_stats
 
 READ_US = 1_000_000  # events are read this much at a time
 WINDOW_US = fmt.DEFAULT_WINDOW_US  # the events drawn before a frame
 SIZE_EDGES = [0, 8, 16, 24, 32, 48, 64, 96, 128, 192, 256, 1e9]  # box-size histogram, sqrt(area) in px
+STALE_AGES = (1, 2, 3, 5, 7, 10)  # the sweep's image ages, in frames
 
 
 def video_stats(root: Path, split: str, video: str, labels: dict[int, np.ndarray], fps: float) -> tuple[dict, dict]:
@@ -76,6 +81,27 @@ def size_histogram(labels: dict[str, dict[int, np.ndarray]], videos: list[str]) 
     counts, _ = np.histogram(sizes, bins=SIZE_EDGES)
     return {"edges_px": SIZE_EDGES, "counts": counts.tolist(),
             "median_px": float(np.median(sizes)) if len(sizes) else None}
+
+
+def stale_labels(labels: dict[str, dict[int, np.ndarray]], videos: list[str],
+                 ages: tuple[int, ...] = STALE_AGES) -> dict[int, dict[str, float]]:
+    """Per age ``a``: ``{"frames", "AP50", "mAP"}`` of the boxes of frame ``k - a`` taken as the
+    detections (score 1) for frame ``k``, over every labelled ``k >= max(ages)`` whose frame
+    ``k - a`` is labelled too (a labelled frame without boxes counts: it says no hand)."""
+    out = {}
+    for age in ages:
+        truth, answers = [], []
+        for video in videos:
+            frames = labels.get(video, {})
+            for k in sorted(frames):
+                if k >= max(ages) and k - age in frames:
+                    truth.append(np.asarray(frames[k], dtype=np.float64).reshape(-1, 4))
+                    answers.append(np.asarray(frames[k - age], dtype=np.float64).reshape(-1, 4))
+        if not truth:
+            continue
+        stats = coco_stats(truth, answers, [np.ones(len(a)) for a in answers])
+        out[age] = {"frames": len(truth), "AP50": float(stats[1]), "mAP": float(stats[0])}
+    return out
 
 
 def split_totals(per_video: dict[str, dict]) -> dict[str, dict]:
@@ -217,7 +243,9 @@ def dataset_stats(root: Path | str, out: Path | str, *, videos: list[str] | None
             boxes = labels.get(video, {}).get(k, np.zeros((0, 4)))
             names += [f"event_rate_{video}.png", *frame_pictures(root, found[video], video, k, boxes, out, fps)]
     stats = {"root": str(root), "videos": per_video, "splits": split_totals(per_video),
-             "box_size_histogram": size_histogram(labels, chosen)}
+             "box_size_histogram": size_histogram(labels, chosen),
+             "stale_labels": {split: stale_labels(labels, [v for v in chosen if found[v] == split])
+                              for split in fmt.SPLITS if split in set(found[v] for v in chosen)}}
     (out / "stats.json").write_text(json.dumps(stats, indent=1))
     if pictures:
         write_index(out, names, stats)
@@ -251,6 +279,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{split}: {row['videos']} videos, {row['events']:,} events over {row['duration_s']:.1f} s "
               f"(mean {row['mean_rate'] / 1e3:.0f}k/s, peak {row['peak_rate'] / 1e3:.0f}k/s), "
               f"ON {row['on_fraction']:.2f}, {row['boxes']:,} boxes on {row['labelled_frames']:,} labelled frames")
+        stale = stats["stale_labels"].get(split)
+        if stale:
+            print(f"  boxes a frames old as the answer, AP50: "
+                  + ", ".join(f"a={age} {row['AP50']:.3f}" for age, row in stale.items()))
     print(f"written to {args.out} (open index.html)")
     return 0
 

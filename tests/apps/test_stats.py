@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dagr_lite.data import format as fmt
-from dagr_lite.apps.stats import BIN_US, SIZE_EDGES, dataset_stats, main
+from dagr_lite.apps.stats import BIN_US, SIZE_EDGES, dataset_stats, main, stale_labels
 from tests.conftest import make_dataset
 
 
@@ -34,6 +34,27 @@ def test_statistics_equal_a_brute_force_count(tmp_path):
                             if len(b)])
     assert stats["box_size_histogram"]["counts"] == np.histogram(sizes, bins=SIZE_EDGES)[0].tolist()
     assert json.loads((tmp_path / "out" / "stats.json").read_text()) == json.loads(json.dumps(stats))
+
+
+def test_stale_labels_by_hand():
+    """A 20x20 box moving 4 px a frame: a frame old, it overlaps by 16x20 (IoU 320 / 480 = 2/3, a
+    hit at 0.5, 0.55, 0.6 and 0.65 of the ten COCO thresholds); two frames old by 12x20 (IoU
+    240 / 560 = 0.43, a miss)."""
+    moving = {k: np.array([[4.0 * k, 10.0, 20.0, 20.0]]) for k in range(12)}
+    still = {k: np.array([[100.0, 50.0, 30.0, 30.0]]) for k in range(12)}
+    stale = stale_labels({"a": moving}, ["a"], ages=(1, 2))
+    assert stale[1] == {"frames": 10, "AP50": 1.0, "mAP": pytest.approx(0.4)}
+    assert stale[2]["AP50"] == 0.0 and stale[2]["mAP"] == 0.0
+    both = stale_labels({"a": moving, "b": still}, ["a", "b"], ages=(2,))
+    # every answer scores 1: recall reaches 0.5 only with all 20 answers, at precision 0.5, so of
+    # COCO's 101 recall points the 51 up to 0.5 read 0.5 and the rest 0
+    assert both[2]["frames"] == 20 and both[2]["AP50"] == pytest.approx(0.5 * 51 / 101)
+    # the hand is hidden at frame 5 (labelled, no box): frame 4's box is a false answer there and
+    # frame 6 gets none; in image order 4 hits, the false answer, 5 hits, so precision is 1 up to
+    # recall 0.4 (41 of COCO's 101 points) and 0.9 up to 0.9 (50 points)
+    hidden = {k: np.zeros((0, 4)) if k == 5 else moving[k] for k in range(12)}
+    once = stale_labels({"a": hidden}, ["a"], ages=(1,))[1]
+    assert once["frames"] == 11 and once["AP50"] == pytest.approx((41 + 0.9 * 50) / 101)
 
 
 def test_pictures_and_index_for_chosen_videos(tmp_path):
