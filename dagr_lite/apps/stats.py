@@ -281,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
               f"ON {row['on_fraction']:.2f}, {row['boxes']:,} boxes on {row['labelled_frames']:,} labelled frames")
         stale = stats["stale_labels"].get(split)
         if stale:
-            print(f"  boxes a frames old as the answer, AP50: "
+            print("  boxes a frames old as the answer, AP50: "
                   + ", ".join(f"a={age} {row['AP50']:.3f}" for age, row in stale.items()))
     print(f"written to {args.out} (open index.html)")
     return 0
