@@ -130,6 +130,7 @@ _RULES = {
     "trainer.max_minutes": ("a positive number or null", lambda v: v is None or (_number(v) and v > 0)),
     "trainer.schedule_by": ("steps or time", lambda v: v in ("steps", "time")),
     "trainer.events_first": ("a number in [0, 1) (a fraction of the schedule)", lambda v: _number(v) and 0 <= v < 1),
+    "trainer.image_first": ("a number in [0, 1) (a fraction of the schedule)", lambda v: _number(v) and 0 <= v < 1),
     "trainer.val_every": ("an integer >= 0 (0: every epoch)", lambda v: _integer(v) and v >= 0),
     "trainer.log_every": ("a positive integer", lambda v: _integer(v) and v > 0),
     "trainer.image_every": ("an integer >= 0 (0: never)", lambda v: _integer(v) and v >= 0),
@@ -176,10 +177,10 @@ def check_values(cfg: DictConfig) -> None:
         raise ConfigError(f"init_from={cfg.init_from} starts a new run from other weights, and resume={cfg.resume} "
                           "continues a run from its own: give one of them")
     trainer = cfg.get("trainer")
-    unknown = sorted(set(trainer) - {*TRAINER_KEYS, "events_first"}) if trainer is not None else []
+    unknown = sorted(set(trainer) - {*TRAINER_KEYS, *FIRST_PHASES}) if trainer is not None else []
     if unknown:
         raise ConfigError(f"trainer.{unknown[0]} is not a training setting; the trainer reads "
-                          f"{', '.join(sorted({*TRAINER_KEYS, 'events_first'}))}")
+                          f"{', '.join(sorted({*TRAINER_KEYS, *FIRST_PHASES}))}")
     if trainer is not None and trainer.max_steps is None and trainer.max_epochs is None:
         raise ConfigError("set trainer.max_steps or trainer.max_epochs (both are null)")
     if trainer is not None and trainer.get("schedule_by") == "time" and trainer.max_minutes is None:
@@ -297,6 +298,7 @@ class TrainerSettings:
     max_minutes: float | None
     schedule_by: str
     events_first: float  # 0 for a model with one branch and for a run started from init_from
+    image_first: float  # likewise
     val_every: int
     log_every: int
     image_every: int
@@ -323,8 +325,9 @@ class TrainerSettings:
         return int(self.max_steps) if self.max_steps is not None else int(self.max_epochs) * steps_per_epoch
 
 
-# The keys of conf/train.yaml's trainer section (events_first besides): a key given with + that the
+# The keys of conf/train.yaml's trainer section (the first phases besides): a key given with + that the
 # loop does not read is refused rather than ignored.
+FIRST_PHASES = ("events_first", "image_first")
 TRAINER_KEYS = ("max_steps", "max_epochs", "max_minutes", "schedule_by", "val_every", "log_every", "image_every",
                 "checkpoint_every", "checkpoint_minutes", "warmup_steps", "min_lr_ratio", "grad_clip", "ema_decay",
                 "ema_tau", "amp", "amp_dtype")
@@ -334,8 +337,16 @@ def trainer_settings(cfg: DictConfig) -> TrainerSettings:
     """The training loop's settings from a checked config (:func:`check_values`)."""
     trainer = cfg.trainer
     hybrid = bool(cfg.model.use_events and cfg.model.use_image)
-    first = float(trainer.get("events_first", 0.0) or 0.0) if hybrid and cfg.get("init_from") is None else 0.0
-    return TrainerSettings(**{key: trainer[key] for key in TRAINER_KEYS}, events_first=first,
+    first = {key: float(trainer.get(key, 0.0) or 0.0) if hybrid and cfg.get("init_from") is None else 0.0
+             for key in FIRST_PHASES}
+    if first["events_first"] and first["image_first"]:
+        raise ConfigError(f"trainer.events_first={first['events_first']} and trainer.image_first="
+                          f"{first['image_first']}: one branch learns alone first, not both; set the other to 0")
+    if first["image_first"] and (cfg.model.late_query or float(cfg.model.event_head_weight) > 0):
+        raise ConfigError(f"trainer.image_first={first['image_first']} needs model.late_query=false and "
+                          f"model.event_head_weight=0 (got {cfg.model.late_query} and {cfg.model.event_head_weight}): "
+                          "the events must reach the output through the fusion alone")
+    return TrainerSettings(**{key: trainer[key] for key in TRAINER_KEYS}, **first,
                            image_age=int(cfg.data.image_age), eval_backend=cfg.eval.backend,
                            conf_threshold=float(cfg.eval.conf_threshold), nms_threshold=float(cfg.eval.nms_threshold))
 

@@ -122,7 +122,10 @@ class TrainLoop:
     image branch idle (``train_step(image=False)``), so those weights stay zero and the hybrid
     is an events-only model inside the hybrid's layers, validated and saved as the hybrid it is.
     Then the image joins: the image branch and those weights learn from zero, as after
-    ``init_from`` an events-only checkpoint, in one run.
+    ``init_from`` an events-only checkpoint, in one run. ``trainer.image_first`` = f is the
+    same the other way round: the image learns alone (``Detector.zero_event_weights``,
+    ``train_step(events=False)``: event and recency maps zero, the event branch idle), then the
+    events join.
     """
 
     def __init__(self, trainer: TrainerSettings, config: dict, state: TrainState, data: TrainData, run_dir: Path,
@@ -148,18 +151,21 @@ class TrainLoop:
             self.epoch, self.offset = self.epoch + 1, 0
         self.saved_at = time.monotonic()
         self.terminated = False  # set by SIGTERM (see run)
-        self.events_first = trainer.events_first
-        self.in_phase = False  # whether the next step is in the events-first phase (set as the loop runs)
+        # One branch learns alone first (at most one of the two is > 0, checked with the config).
+        self.first_fraction = trainer.events_first or trainer.image_first
+        self.first_key = "events_first" if trainer.events_first else "image_first"
+        self.in_phase = False  # whether the next step is in that phase (set as the loop runs)
 
-    def events_phase(self) -> bool:
-        """Whether the next step is in the ``trainer.events_first`` phase: how far along the schedule
-        is, by steps (and by the time budget with ``schedule_by=time``, whichever is further)."""
-        if not self.events_first:
+    def first_phase(self) -> bool:
+        """Whether the next step is in the ``trainer.events_first`` or ``image_first`` phase: how far
+        along the schedule is, by steps (and by the time budget with ``schedule_by=time``,
+        whichever is further)."""
+        if not self.first_fraction:
             return False
         done = self.state.step / max(1, self.total)
         if self.clock.by_time:
             done = max(done, self.clock.progress())
-        return done < self.events_first
+        return done < self.first_fraction
 
     def run(self) -> dict:
         """Train to the end of the schedule (or ``trainer.max_minutes``); a SIGTERM (a cluster's
@@ -180,7 +186,7 @@ class TrainLoop:
     def _run(self) -> dict:
         state = self.state
         self.clock.start(self.resumed_position, state.step)
-        self.in_phase = self.events_phase()  # the first step's
+        self.in_phase = self.first_phase()  # the first step's
         by_time = self.clock.by_time  # then the bar counts steps and shows the time left
         bar = tqdm(total=None if by_time else self.total, initial=state.step, desc="training", unit="step",
                    disable=not self.place.is_main)
@@ -191,7 +197,8 @@ class TrainLoop:
         for batch in self.data.train_loader:  # every epoch from here on, one iterator
             batch = batch.to(state.device, non_blocking=True)
             in_phase = self.in_phase  # this step's phase, read once
-            out = mean_over_ranks(train_step(state, batch, image=not in_phase), self.place)
+            alone = {"image": False} if self.first_key == "events_first" else {"events": False}
+            out = mean_over_ranks(train_step(state, batch, **(alone if in_phase else {})), self.place)
             self.offset += self.data.global_batch_size
             if self.offset >= self.epoch_samples:
                 self.epoch, self.offset = self.epoch + 1, 0
@@ -203,9 +210,10 @@ class TrainLoop:
             if broadcast_object(self.terminated, self.place):
                 self.stop_on_signal(bar)
             out_of_time = self.read_clock()
-            self.in_phase = self.events_phase()  # the next step's, from this reading
+            self.in_phase = self.first_phase()  # the next step's, from this reading
             if in_phase and not self.in_phase and self.place.is_main:
-                print(f"step {state.step}: the image joins (trainer.events_first={self.events_first})", flush=True)
+                joins = "the image joins" if self.first_key == "events_first" else "the events join"
+                print(f"step {state.step}: {joins} (trainer.{self.first_key}={self.first_fraction})", flush=True)
             if state.step % self.val_every == 0 or state.step == self.total or out_of_time:
                 self.save_and_validate()
             elif self.checkpoint_due():

@@ -103,9 +103,10 @@ class TrainState:
         self.step, self.best_metric = int(state["step"]), float(state["best_metric"])
 
 
-def train_step(state: TrainState, batch: Batch, *, image: bool = True) -> dict[str, torch.Tensor]:
+def train_step(state: TrainState, batch: Batch, *, image: bool = True, events: bool = True) -> dict[str, torch.Tensor]:
     """One optimiser step on ``batch`` (already on the model's device); returns the detached losses.
-    ``image=False``: a hybrid's image features are zero and its image branch is not run
+    ``image=False``: a hybrid's image features are zero and its image branch is not run;
+    ``events=False``: its event and recency maps are zero and its event branch is not run
     (:meth:`Detector.forward`).
 
     A non-finite loss raises :class:`FloatingPointError` naming the step and every loss term,
@@ -114,7 +115,8 @@ def train_step(state: TrainState, batch: Batch, *, image: bool = True) -> dict[s
     model = state.model
     model.train()
     with torch.autocast(state.device.type, dtype=state.amp_dtype, enabled=state.amp):
-        out = (state.forward or model)(batch, **({} if image else {"image": False}))
+        out = (state.forward or model)(batch, **({} if image else {"image": False}),
+                                       **({} if events else {"events": False}))
     loss = out["loss"]
     if not torch.isfinite(loss):
         parts = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in out.items())

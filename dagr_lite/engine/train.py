@@ -64,6 +64,8 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
     trainer = trainer_settings(cfg)
     if trainer.events_first and resume_from is None:  # the image's weights start at zero (see TrainLoop)
         model.zero_image_weights()
+    if trainer.image_first and resume_from is None:  # the events' weights start at zero (see TrainLoop)
+        model.zero_event_weights()
     if place.enabled:
         model = synchronise_batch_norm(model, device)
         model.loss_normaliser = global_normaliser(place)
@@ -78,7 +80,7 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
         write_run_files(run_dir, cfg)
     if place.enabled:
         state.forward = DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None,
-                                                find_unused_parameters=bool(trainer.events_first))  # the image branch
+                                                find_unused_parameters=bool(trainer.events_first or trainer.image_first))  # the image branch
     writer = SummaryWriter(str(run_dir / "tensorboard")) if place.is_main else NullWriter()
     try:
         loop = TrainLoop(trainer, OmegaConf.to_container(cfg, resolve=True), state, data, run_dir, writer, clock,

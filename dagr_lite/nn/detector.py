@@ -272,9 +272,11 @@ class Detector(nn.Module):
         maps, query, image, _ = self._features(batch)
         return maps, query, image
 
-    def _features(self, batch: Batch, image: bool = True):
+    def _features(self, batch: Batch, image: bool = True, events: bool = True):
         """:meth:`features`, and in training the event head's input (its maps and query maps; else
-        None). ``image=False``: see :meth:`forward`."""
+        None). ``image=False``, ``events=False``: see :meth:`forward`."""
+        if not events and self.events is not None:
+            return self._image_features(batch)
         if self.image is None:
             image_maps = None
         elif image or self.events is None:
@@ -304,6 +306,18 @@ class Detector(nn.Module):
             event_inputs = ((event_maps, recency) if self.cfg.late_query else
                             ([torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)], None))
         return maps, query, image_inputs, event_inputs
+
+    def _image_features(self, batch: Batch):
+        """:meth:`_features` of a hybrid whose event maps and recency maps are all zero, the event
+        branch not run (``forward(events=False)``)."""
+        if self.image is None:
+            raise ValueError("forward(events=False) needs a hybrid: this detector has no image branch")
+        image_maps = self.image(batch.images)
+        zeros = [m.new_zeros(len(batch), c, *m.shape[-2:])
+                 for m, c in zip(image_maps[1:], self.events.out_channels)]
+        recency = [m.new_zeros(len(batch), self.num_recency, *m.shape[-2:]) for m in image_maps[1:]]
+        maps, query, image_inputs = self.combine(image_maps, zeros, recency, batch.age_us)
+        return maps, query, image_inputs, None
 
     def combine(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor],
                 recency: list[torch.Tensor], age_us: torch.Tensor):
@@ -401,6 +415,22 @@ class Detector(nn.Module):
                 for stem in self.head.image_stems:
                     stem[0].weight.zero_()
 
+    def zero_event_weights(self) -> None:
+        """Zero the fusion's weights that read the event maps and the recency maps, the only way
+        from the events to the output of a hybrid whose query maps join at the fusion
+        (``late_query`` false) and that has no event head. It then answers exactly what
+        ``forward(events=False)`` answers, whatever its events, until training moves them: the
+        start of ``trainer.image_first``, in which they stay zero because every event feature is
+        zero (no gradient reaches them, and weight decay keeps a zero at zero)."""
+        if self.image is None or self.events is None:
+            raise ValueError("only a hybrid (use_events and use_image) has weights that read the events")
+        if self.cfg.late_query or self.event_head is not None:
+            raise ValueError("trainer.image_first needs model.late_query=false and model.event_head_weight=0: "
+                             "there the fusion is the only way from the events to the output")
+        with torch.no_grad():
+            for fuse, c, e in zip(self.fuse, self.image.channels[1:], self.events.out_channels):
+                fuse[0].weight[:, c:c + e + self.num_recency].zero_()  # [image map, event map, recency, age]
+
     def node_maps(self, image_maps: list[torch.Tensor]) -> list[torch.Tensor]:
         """The image maps projected to the channels joined at the event nodes, one per level."""
         return [proj(m) for proj, m in zip(self.to_nodes, image_maps)]
@@ -415,18 +445,20 @@ class Detector(nn.Module):
         return sampler
 
     def forward(self, batch: Batch, *, conf_threshold: float | None = None, nms_threshold: float | None = None,
-                image: bool = True):
+                image: bool = True, events: bool = True):
         """Losses in training, detections in evaluation. ``image=False`` (a hybrid): the image
         branch is not run and every image feature the model reads is zero, at the nodes and in
         the fusion (the ``trainer.events_first`` phase; with :meth:`zero_image_weights` this is
-        what the hybrid computes with any image). Detections need ``conf_threshold`` and
+        what the hybrid computes with any image). ``events=False`` (a hybrid): the event branch is
+        not run and its maps and the recency maps are zero (the ``trainer.image_first`` phase; with
+        :meth:`zero_event_weights`, what the hybrid computes with any events). Detections need ``conf_threshold`` and
         ``nms_threshold`` (``eval.*`` in ``conf/``)."""
         if not self.training and (conf_threshold is None or nms_threshold is None):
             raise TypeError("Detector in evaluation mode needs conf_threshold= and nms_threshold= (eval.* in conf/)")
-        raw, shapes, event_inputs = self.outputs(batch, image=image)
+        raw, shapes, event_inputs = self.outputs(batch, image=image, events=events)
         if self.training:
             out = yolox_losses(raw, shapes, self.strides, batch.boxes, batch.labels, normaliser=self.loss_normaliser)
-            if self.event_head is not None:
+            if self.event_head is not None and event_inputs is not None:
                 event_raw, event_shapes = self.event_head(*event_inputs)
                 events = yolox_losses(event_raw, event_shapes, self.strides, batch.boxes, batch.labels,
                                       normaliser=self.loss_normaliser)
@@ -435,9 +467,10 @@ class Detector(nn.Module):
             return out
         return self.detections(raw, shapes, conf_threshold=conf_threshold, nms_threshold=nms_threshold)
 
-    def outputs(self, batch: Batch, *, image: bool = True) -> tuple[torch.Tensor, list[tuple[int, int]], tuple]:
+    def outputs(self, batch: Batch, *, image: bool = True, events: bool = True
+                ) -> tuple[torch.Tensor, list[tuple[int, int]], tuple]:
         """The head's raw output ``(B, A, 5 + classes)``, its map shapes, and the event head's inputs."""
-        maps, query, image_inputs, event_inputs = self._features(batch, image=image)
+        maps, query, image_inputs, event_inputs = self._features(batch, image=image, events=events)
         raw, shapes = self.head(maps, query, image_inputs)
         return raw, shapes, event_inputs
 

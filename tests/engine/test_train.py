@@ -20,6 +20,9 @@ from dagr_lite.engine.starting import ResumeError
 from dagr_lite.engine.train import train
 from dagr_lite.eval.operating import NMS_IOUS
 from dagr_lite.synth.stub import stub_root
+from dagr_lite.data.collate import collate
+from dagr_lite.nn.detector import Detector
+from tests.models import small_detector_config
 from tests.settings import sample_set
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
@@ -247,6 +250,54 @@ def test_events_first_learns_from_the_events_alone_then_the_image_joins(tmp_path
     assert [image for image, _, _ in seen] == [True, True] and seen[0][1] > 0
     with pytest.raises(ConfigError, match=r"trainer\.events_first must be a number in \[0, 1\)"):
         train(small(tmp_path / "bad", "trainer.events_first=1.0"))
+
+
+def test_image_first_learns_from_the_image_alone_then_the_events_join(tmp_path, monkeypatch):
+    """trainer.image_first=0.5 over 6 steps: steps 1-3 run no event branch, the fusion's weights
+    for the event and recency maps stay exactly zero and the event branch does not move; from
+    step 4 they learn. Both phases at once, or with late_query, are refused."""
+    seen, original = [], loop_module.train_step
+
+    @torch.no_grad()
+    def sums(model):
+        c, e = model.image.channels[1], model.events.out_channels[0]
+        reading = float(model.fuse[0][0].weight[:, c:c + e + model.num_recency].abs().sum())
+        return reading, float(sum(p.abs().sum() for p in model.events.parameters()))
+
+    def recording_step(state, batch, *, image=True, events=True):
+        seen.append((image, events, *sums(state.model)))
+        return original(state, batch, image=image, events=events)
+
+    monkeypatch.setattr(loop_module, "train_step", recording_step)
+    calls = []
+    real = Detector._image_features
+    monkeypatch.setattr(Detector, "_image_features", lambda self, batch: calls.append(1) or real(self, batch))
+    train(small(tmp_path / "hybrid", "trainer.max_steps=6", "trainer.image_first=0.5", "trainer.val_every=1000",
+                "data.augment.image_dropout=0"))
+    assert [(image, events) for image, events, _, _ in seen] == [(True, False)] * 3 + [(True, True)] * 3
+    assert len(calls) == 3  # the event branch was not run in the phase
+    assert [reading for _, _, reading, _ in seen[:4]] == [0.0] * 4 and seen[5][2] > 0
+    assert len({branch for *_, branch in seen[:4]}) == 1 and seen[5][3] != seen[0][3]
+    with pytest.raises(ConfigError, match=r"one branch learns alone first, not both"):
+        train(small(tmp_path / "both", "trainer.image_first=0.5", "trainer.events_first=0.5"))
+    with pytest.raises(ConfigError, match=r"trainer\.image_first=0\.5 needs model\.late_query=false"):
+        train(small(tmp_path / "late", "trainer.image_first=0.5", "model.late_query=true"))
+
+
+def test_a_hybrid_with_its_event_weights_zeroed_answers_what_it_answers_without_events():
+    """``zero_event_weights``: the fused head then reads nothing of the events, so the hybrid's raw
+    output with its events equals ``forward(events=False)``'s, and differs before the zeroing."""
+    torch.manual_seed(0)
+    model = Detector(small_detector_config(180, 320)).eval()
+    dataset = sample_set(stub_root(), "valid", image_age=2)
+    batch = collate([dataset[i] for i in (3, 30)])
+    with torch.no_grad():
+        before, _, _ = model.outputs(batch)
+        blind, _, _ = model.outputs(batch, events=False)
+        assert not torch.allclose(before, blind)
+        model.zero_event_weights()
+        after, _, _ = model.outputs(batch)
+    torch.testing.assert_close(after, blind, rtol=0, atol=0)
 
 
 def test_events_first_follows_a_time_budget(tmp_path, monkeypatch):
