@@ -73,6 +73,9 @@ class TrainAugment:
         image_dropout: probability of replacing the image by mid-grey, so that a hybrid model
             learns to detect from its events alone too (drawn last: the geometry draws are
             the same with or without it).
+        event_drop: each sample drops a fraction of its events drawn uniformly from
+            ``[0, event_drop]`` (each event independently; drawn after the rest), so the event
+            branch meets sparser and denser scenes than the data holds; 0: none.
     """
 
     flip_prob: float
@@ -80,6 +83,7 @@ class TrainAugment:
     translate: float
     min_box_size: float
     image_dropout: float
+    event_drop: float = 0.0
 
     def __post_init__(self):
         low, high = self.zoom
@@ -91,11 +95,17 @@ class TrainAugment:
             raise ValueError(f"translate must be >= 0, got {self.translate}")
         if not 0 <= self.image_dropout <= 1:
             raise ValueError(f"image_dropout must be in [0, 1], got {self.image_dropout}")
+        if not 0 <= self.event_drop < 1:
+            raise ValueError(f"event_drop must be in [0, 1), got {self.event_drop}")
 
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
         sample = self._geometry(sample, rng)
         if self.image_dropout and rng.random() < self.image_dropout:
             sample = sample.replace(image=torch.full_like(sample.image, 128))
+        if self.event_drop:
+            fraction = rng.uniform(0.0, self.event_drop)
+            keep = torch.from_numpy(rng.random(len(sample.events)) >= fraction)
+            sample = sample.replace(events=sample.events[keep])
         return sample
 
     def _geometry(self, sample: Sample, rng: np.random.Generator) -> Sample:

@@ -119,3 +119,22 @@ def test_image_dropout_greys_the_image_and_leaves_the_geometry_alone():
     assert 60 < kept < 140  # about a quarter
     with pytest.raises(ValueError, match="image_dropout"):
         TrainAugment(**{**AUGMENT, "image_dropout": 1.5})
+
+
+def test_event_drop_removes_a_drawn_fraction_of_the_events_and_nothing_else():
+    sample = make_sample()
+    sample = sample.replace(events=sample.events.repeat(50, 1))  # enough events to count fractions
+    base = TrainAugment(**{**AUGMENT, "event_drop": 0.0})
+    dropping = TrainAugment(**{**AUGMENT, "event_drop": 0.6})
+    fractions = []
+    for seed in range(40):
+        kept_all = base(sample, np.random.default_rng([seed]))
+        out = dropping(sample, np.random.default_rng([seed]))
+        assert torch.equal(out.image, kept_all.image) and torch.equal(out.boxes, kept_all.boxes)  # drawn last
+        rows = {tuple(e) for e in kept_all.events.tolist()}
+        assert all(tuple(e) in rows for e in out.events.tolist())  # every kept event is one of them, unmoved
+        fractions.append(1 - len(out.events) / len(kept_all.events))
+    assert 0 <= min(fractions) < 0.15 and 0.45 < max(fractions) <= 0.65  # drawn from [0, 0.6]
+    assert 0.2 < np.mean(fractions) < 0.4
+    with pytest.raises(ValueError, match="event_drop"):
+        TrainAugment(**{**AUGMENT, "event_drop": 1.0})
