@@ -116,38 +116,45 @@ class GraphOperator:
         if offset_pos is not None:  # each entry's source minus its destination (a self-loop's is 0)
             dst = row if rows is None else rows[row]
             self._offsets = (offset_pos[col] - offset_pos[dst]).to(torch.float64) / offset_unit  # (E', 3)
-        self._order: dict[bool, torch.Tensor] = {}  # (col, row) order of the triplets, for the transpose
-        self._adj: dict[tuple[torch.dtype, bool], torch.Tensor] = {}
-        self._adj_t: dict[tuple[torch.dtype, bool], torch.Tensor] = {}
+        self._order: torch.Tensor | None = None  # (col, row) order of the triplets, for the transpose
+        self._adj: dict[tuple[torch.dtype, int], torch.Tensor] = {}
+        self._adj_t: dict[tuple[torch.dtype, int], torch.Tensor] = {}
 
-    def _stacked(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The triplets of ``[adj; adj * dx; adj * dy; adj * dt]``, ``(4 N_out, N)``, sorted by (row, col)."""
+    def _values(self, k: int) -> torch.Tensor:
+        """The entries of ``adj`` (``k = 0``) or of ``adj`` weighted by the offset along x, y or t
+        (``k = 1, 2, 3``), in the order of the triplets."""
+        value = self._triplets[2]
+        if k == 0:
+            return value
         if self._offsets is None:
             raise ValueError("this graph operator was made without offset_pos, so it has no offset-weighted matrices")
-        row, col, value = self._triplets
-        scales = torch.cat([torch.ones_like(value)[:, None], self._offsets], dim=1)  # (E', 4)
-        rows = torch.cat([row + k * self.num_out for k in range(4)])
-        return rows, col.repeat(4), (value[:, None] * scales).T.reshape(-1)
+        return value * self._offsets[:, k - 1]
 
-    def matrix(self, dtype: torch.dtype, offsets: bool = False) -> torch.Tensor:
-        """``adj`` as CSR of ``dtype`` (with ``offsets``, the stacked ``(4 N_out, N)`` matrix of
-        :meth:`propagate_offsets`), made once per dtype."""
-        if (dtype, offsets) not in self._adj:
-            row, col, value = self._stacked() if offsets else self._triplets
-            self._adj[dtype, offsets] = _csr(row, col, value.to(dtype), ((4 if offsets else 1) * self.num_out,
-                                                                           self.num_nodes))
-        return self._adj[dtype, offsets]
+    def matrix(self, dtype: torch.dtype, k: int = 0) -> torch.Tensor:
+        """``adj`` (or its offset-weighted ``k``-th form, see :meth:`_values`) as CSR of ``dtype``,
+        made once per dtype; all four share one index structure."""
+        if (dtype, k) not in self._adj:
+            row, col, _ = self._triplets
+            if k and (dtype, 0) in self._adj:
+                base = self._adj[dtype, 0]
+                self._adj[dtype, k] = _with_values(base, self._values(k).to(dtype))
+            else:
+                self._adj[dtype, k] = _csr(row, col, self._values(k).to(dtype), (self.num_out, self.num_nodes))
+        return self._adj[dtype, k]
 
-    def transposed(self, dtype: torch.dtype, offsets: bool = False) -> torch.Tensor:
+    def transposed(self, dtype: torch.dtype, k: int = 0) -> torch.Tensor:
         """The transpose of :meth:`matrix` as CSR, made on first use (only the backward pass needs it)."""
-        if (dtype, offsets) not in self._adj_t:
-            row, col, value = self._stacked() if offsets else self._triplets
-            if offsets not in self._order:
-                self._order[offsets] = torch.argsort(col, stable=True)  # rows ascend within each column
-            order = self._order[offsets]
-            self._adj_t[dtype, offsets] = _csr(col[order], row[order], value[order].to(dtype),
-                                               (self.num_nodes, (4 if offsets else 1) * self.num_out))
-        return self._adj_t[dtype, offsets]
+        if (dtype, k) not in self._adj_t:
+            row, col, _ = self._triplets
+            if self._order is None:
+                self._order = torch.argsort(col, stable=True)  # rows ascend within each column
+            order = self._order
+            if k and (dtype, 0) in self._adj_t:
+                self._adj_t[dtype, k] = _with_values(self._adj_t[dtype, 0], self._values(k)[order].to(dtype))
+            else:
+                self._adj_t[dtype, k] = _csr(col[order], row[order], self._values(k)[order].to(dtype),
+                                             (self.num_nodes, self.num_out))
+        return self._adj_t[dtype, k]
 
     def propagate(self, x: torch.Tensor) -> torch.Tensor:
         """``adj @ x`` with a sparse backward (``adj_t @ grad``).  ``(N, F) -> (N_out, F)``.
@@ -155,12 +162,20 @@ class GraphOperator:
         float64 inputs propagate in float64; all others (float16, bfloat16 under autocast) in
         float32, and the result comes back in the input's dtype.
         """
-        return _Propagate.apply(x, self, False)
+        return _Propagate.apply(x, self, (0,))
 
     def propagate_offsets(self, x: torch.Tensor) -> torch.Tensor:
         """``adj @ x`` and the same sums with each neighbour's term weighted by its offset from the
         destination along x, y and t (``offset_pos[j] - offset_pos[i]``): ``(N, F) -> (4, N_out, F)``."""
-        return _Propagate.apply(x, self, True).view(4, self.num_out, x.shape[1])
+        return _Propagate.apply(x, self, (0, 1, 2, 3))
+
+
+def _with_values(base: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """A CSR matrix with ``base``'s index structure and other ``values``."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+        return torch.sparse_csr_tensor(base.crow_indices(), base.col_indices(), values, base.shape,
+                                       check_invariants=False)
 
 
 def _compute_dtype(dtype: torch.dtype) -> torch.dtype:
@@ -168,18 +183,28 @@ def _compute_dtype(dtype: torch.dtype) -> torch.dtype:
 
 
 class _Propagate(torch.autograd.Function):
+    """``adj_k @ x`` for each ``k`` of ``forms`` (:meth:`GraphOperator.matrix`): ``(N_out, F)`` for
+    one form, ``(len(forms), N_out, F)`` for several; the backward sums ``adj_k^T @ grad_k``."""
+
     @staticmethod
-    def forward(ctx, x: torch.Tensor, op: GraphOperator, offsets: bool) -> torch.Tensor:
-        ctx.op, ctx.offsets = op, offsets
-        adj = op.matrix(_compute_dtype(x.dtype), offsets)
+    def forward(ctx, x: torch.Tensor, op: GraphOperator, forms: tuple[int, ...]) -> torch.Tensor:
+        ctx.op, ctx.forms = op, forms
+        dtype, given = _compute_dtype(x.dtype), x.dtype
         with torch.autocast(x.device.type, enabled=False):  # sparse products stay in float32/64
-            return (adj @ x.to(adj.dtype)).to(x.dtype)  # (N_out, F) or (4 N_out, F)
+            x = x.to(dtype)
+            out = [op.matrix(dtype, k) @ x for k in forms]
+            return (out[0] if len(forms) == 1 else torch.stack(out)).to(given)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
-        adj_t = ctx.op.transposed(_compute_dtype(grad.dtype), ctx.offsets)
+        dtype = _compute_dtype(grad.dtype)
         with torch.autocast(grad.device.type, enabled=False):
-            return (adj_t @ grad.to(adj_t.dtype).contiguous()).to(grad.dtype), None, None  # (N, F)
+            parts = grad.to(dtype).unsqueeze(0) if len(ctx.forms) == 1 else grad.to(dtype)
+            total = None
+            for k, part in zip(ctx.forms, parts):
+                term = ctx.op.transposed(dtype, k) @ part.contiguous()  # (N, F)
+                total = term if total is None else total + term
+            return total.to(grad.dtype), None, None
 
 
 class GCNConv(nn.Module):
