@@ -225,7 +225,7 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
         transform = TrainAugment(flip_prob=augment.flip_prob, zoom=tuple(augment.zoom),
                                  translate=augment.translate, min_box_size=augment.min_box_size,
                                  image_dropout=augment.image_dropout if hybrid else 0.0,
-                                 event_drop=augment.get("event_drop", 0.0))
+                                 event_drop=augment.event_drop)
     image_size = (dataset.height, dataset.width) if dataset.height is not None else None
     picture = bool(data.get("event_picture", False))
     built = EventEgoHands(dataset_root(dataset), split, image_age=image_age,

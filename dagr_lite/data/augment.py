@@ -83,7 +83,7 @@ class TrainAugment:
     translate: float
     min_box_size: float
     image_dropout: float
-    event_drop: float = 0.0
+    event_drop: float
 
     def __post_init__(self):
         low, high = self.zoom
