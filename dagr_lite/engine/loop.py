@@ -154,6 +154,7 @@ class TrainLoop:
         # One branch learns alone first (at most one of the two is > 0, checked with the config).
         self.first_fraction = trainer.events_first or trainer.image_first
         self.first_key = "events_first" if trainer.events_first else "image_first"
+        self.alone = {"image": False} if trainer.events_first else {"events": False}  # train_step's, in the phase
         self.in_phase = False  # whether the next step is in that phase (set as the loop runs)
 
     def first_phase(self) -> bool:
@@ -197,8 +198,7 @@ class TrainLoop:
         for batch in self.data.train_loader:  # every epoch from here on, one iterator
             batch = batch.to(state.device, non_blocking=True)
             in_phase = self.in_phase  # this step's phase, read once
-            alone = {"image": False} if self.first_key == "events_first" else {"events": False}
-            out = mean_over_ranks(train_step(state, batch, **(alone if in_phase else {})), self.place)
+            out = mean_over_ranks(train_step(state, batch, **(self.alone if in_phase else {})), self.place)
             self.offset += self.data.global_batch_size
             if self.offset >= self.epoch_samples:
                 self.epoch, self.offset = self.epoch + 1, 0

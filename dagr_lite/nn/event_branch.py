@@ -228,8 +228,7 @@ class EventBranch(nn.Module):
     def _stage(self, level: int, x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge_index: torch.Tensor,
                image_sampler: ImageSampler | None) -> torch.Tensor:
         x = self.level_input(level, x, pos, batch, image_sampler)
-        op = GraphOperator(edge_index, len(x), **self.first_stage_offsets(pos)) if level == 0 else \
-            GraphOperator(edge_index, len(x))
+        op = GraphOperator(edge_index, len(x), **(self.first_stage_offsets(pos) if level == 0 else {}))
         for block in self.stages[level]:
             x = block(x, op)
         return x

@@ -134,25 +134,25 @@ class GraphOperator:
         """``adj`` (or its offset-weighted ``k``-th form, see :meth:`_values`) as CSR of ``dtype``,
         made once per dtype; all four share one index structure."""
         if (dtype, k) not in self._adj:
-            row, col, _ = self._triplets
-            if k and (dtype, 0) in self._adj:
-                base = self._adj[dtype, 0]
-                self._adj[dtype, k] = _with_values(base, self._values(k).to(dtype))
+            if k:
+                self._adj[dtype, k] = _with_values(self.matrix(dtype), self._values(k).to(dtype))
             else:
-                self._adj[dtype, k] = _csr(row, col, self._values(k).to(dtype), (self.num_out, self.num_nodes))
+                row, col, value = self._triplets
+                self._adj[dtype, 0] = _csr(row, col, value.to(dtype), (self.num_out, self.num_nodes))
         return self._adj[dtype, k]
 
     def transposed(self, dtype: torch.dtype, k: int = 0) -> torch.Tensor:
         """The transpose of :meth:`matrix` as CSR, made on first use (only the backward pass needs it)."""
         if (dtype, k) not in self._adj_t:
-            row, col, _ = self._triplets
-            if self._order is None:
-                self._order = torch.argsort(col, stable=True)  # rows ascend within each column
-            order = self._order
-            if k and (dtype, 0) in self._adj_t:
-                self._adj_t[dtype, k] = _with_values(self._adj_t[dtype, 0], self._values(k)[order].to(dtype))
+            if k:
+                base = self.transposed(dtype)  # sets the order
+                self._adj_t[dtype, k] = _with_values(base, self._values(k)[self._order].to(dtype))
             else:
-                self._adj_t[dtype, k] = _csr(col[order], row[order], self._values(k)[order].to(dtype),
+                row, col, value = self._triplets
+                if self._order is None:
+                    self._order = torch.argsort(col, stable=True)  # rows ascend within each column
+                order = self._order
+                self._adj_t[dtype, 0] = _csr(col[order], row[order], value[order].to(dtype),
                                              (self.num_nodes, self.num_out))
         return self._adj_t[dtype, k]
 
