@@ -20,7 +20,7 @@ from omegaconf.errors import OmegaConfBaseException
 from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.augment import TrainAugment
-from dagr_lite.data.dataset import EventEgoHands
+from dagr_lite.data.dataset import PICTURE_CHANNELS, RGB_CHANNELS, EventEgoHands
 from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.detector import IMAGE_STEMS, Detector, DetectorConfig
 
@@ -120,6 +120,7 @@ _RULES = {
     "data.refractory_us": ("an integer >= 0 (microseconds; 0: every event)", lambda v: _integer(v) and v >= 0),
     "data.graph_context_us": ("an integer >= 0 (microseconds; 0: none)", lambda v: _integer(v) and v >= 0),
     "data.event_picture": ("true or false", lambda v: isinstance(v, bool)),
+    "data.carry_picture": ("true or false", lambda v: isinstance(v, bool)),
     "data.max_events": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
     "loader.batch_size": ("a positive integer", lambda v: _integer(v) and v > 0),
     "loader.num_workers": ("an integer >= 0", lambda v: _integer(v) and v >= 0),
@@ -236,7 +237,7 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
                           fps=dataset.fps, image_size=image_size, transform=transform,
                           clip_boxes=data.clip_boxes, labelled_only=bool(data.get("labelled_only", False)),
                           seed=cfg.seed, age_power=data.train_image_age_power if train else 0.0,
-                          event_picture=picture)
+                          event_picture=picture, carry_picture=bool(data.get("carry_picture", False)))
     if not len(built) and built.videos and first_frame is None:  # (the sweep says its own)
         lengths = [built.num_frames(v) for v in range(len(built.videos))]
         raise ConfigError(f"{built.root} [{split}]: no sample at image age {image_age}: its videos have "
@@ -269,7 +270,8 @@ def detector_config(cfg: DictConfig, *, height: int, width: int) -> DetectorConf
                           strides=tuple(model.strides), graph=graph_spec(model), time_scale_us=model.time_scale_us,
                           recency_us=tuple(model.recency_us), event_head_weight=float(model.event_head_weight),
                           image_stem=model.image_stem, late_query=bool(model.late_query),
-                          geometry=bool(model.geometry), directional=bool(model.directional))
+                          geometry=bool(model.geometry), directional=bool(model.directional),
+                          image_channels=RGB_CHANNELS + (PICTURE_CHANNELS if cfg.data.get("carry_picture") else 0))
 
 
 def build_model(cfg: DictConfig, *, height: int, width: int) -> Detector:

@@ -168,6 +168,10 @@ def check_streamable(use_events: bool, sample: SampleSpec, where: str = "") -> N
     """Refuse (:class:`~dagr_lite.errors.UserError`, prefixed by ``where``) a model the streaming detector cannot run."""
     if not use_events:
         raise UserError(f"{where}the streaming detector needs a model with an event branch (use_events true)")
+    if sample.carry_picture:
+        raise UserError(f"{where}this model reads a picture of the events since the image beside the camera frame "
+                         "(data.carry_picture, a dense peer); the streaming detector runs models that read camera "
+                         "frames and events")
     if sample.event_picture:
         raise UserError(f"{where}this model reads a picture of events in place of the camera frame "
                          "(data.event_picture, the dense peer of benchmarks/dense_peer.py); the streaming "

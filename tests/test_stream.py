@@ -28,7 +28,7 @@ def streaming(model: Detector, *, refractory_us: int = 0, score: float = 0.0,
     """The streaming detector on this module's sample, answering every box of ``score`` or more."""
     return StreamingDetector(model, SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=refractory_us,
                                                max_events=None, event_picture=False,
-                                               graph_context_us=graph_context_us),
+                                               graph_context_us=graph_context_us, carry_picture=False),
                              OperatingPoint(score=score, nms_iou=EVAL["nms_threshold"]))
 
 

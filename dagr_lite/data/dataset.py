@@ -32,6 +32,8 @@ MAX_LISTED_PROBLEMS = 10
 EVENT_SPANS = ("image", "window")
 # The event picture (:func:`event_picture`): a pixel's count of each polarity saturates at this many events.
 PICTURE_COUNT_FULL = 8
+RGB_CHANNELS = 3        # a camera frame's
+PICTURE_CHANNELS = 3    # an event picture's: ON count, OFF count, recency
 
 
 def event_picture(x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray, t_end_us: float, window_us: float,
@@ -208,6 +210,10 @@ class EventEgoHands(Dataset):
         seed: seed of the image ages and of ``transform``'s generator.
         event_picture: the image is :func:`event_picture` of the sample's events instead of the
             camera frame (needs ``event_span="window"``): the dense peer of the event branch.
+        carry_picture: the camera frame gains the channels of :func:`event_picture` of the events
+            of ``[t(k - a), t(k))``, since the image's time (recency over that span; with
+            ``refractory_us`` those it keeps): ``(6, H, W)`` images, the dense peer of a hybrid
+            that carries the image forward with every event since it.
         graph_context_us: > 0: a sample's events also hold those of this long before its start
             (for ``event_span="image"`` not from before ``t(k - a) - context_us``), which the event
             graph reads as neighbours and never pools (:class:`~dagr_lite.data.spec.SampleSpec`);
@@ -221,7 +227,7 @@ class EventEgoHands(Dataset):
                  image_size: Sequence[int] | None = None, videos: Sequence[str] | None = None,
                  transform: Callable[[Sample, np.random.Generator], Sample] | None = None,
                  clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0, age_power: float = 0.0,
-                 graph_context_us: int, event_picture: bool = False):
+                 graph_context_us: int, event_picture: bool = False, carry_picture: bool = False):
         if split not in fmt.SPLITS:
             raise UserError(f"split must be one of {fmt.SPLITS}, got {split!r}")
         self.age_range = age_range(image_age)
@@ -236,6 +242,9 @@ class EventEgoHands(Dataset):
             raise UserError("event_picture reads the events of the window alone: it needs event_span='window', "
                              f"got {event_span!r}")
         self.event_picture = bool(event_picture)
+        if carry_picture and event_picture:
+            raise UserError("event_picture and carry_picture are two kinds of image: choose one")
+        self.carry_picture = bool(carry_picture)
         if context_us < 0:
             raise UserError(f"context_us must be >= 0, got {context_us}")
         if refractory_us < 0:
@@ -282,7 +291,7 @@ class EventEgoHands(Dataset):
         """What each sample's events are (the streaming detector reads the same)."""
         return SampleSpec(window_us=self.window_us, context_us=self.context_us, refractory_us=self.refractory_us,
                           max_events=self.max_events, event_picture=self.event_picture,
-                          graph_context_us=self.graph_context_us)
+                          graph_context_us=self.graph_context_us, carry_picture=self.carry_picture)
     def _open_video(self, video: str, labels: dict[int, np.ndarray], clip_boxes: bool):
         frames_dir = fmt.frames_dir(self.root, self.split, video)
         frames = list_frames(frames_dir)
@@ -411,6 +420,8 @@ class EventEgoHands(Dataset):
                                   height, width)
         else:
             image = self.image_of(v, image_frame)  # (H, W, 3)
+        if self.carry_picture:
+            image = np.concatenate([image, self.carry_picture_of(v, t_image, t_end)], axis=2)  # (H, W, 6)
         sample = Sample(events=torch.from_numpy(events),
                         image=torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))),  # (3, H, W)
                         boxes=torch.from_numpy(np.array(boxes, dtype=np.float32).reshape(-1, 4)),
@@ -419,6 +430,20 @@ class EventEgoHands(Dataset):
         if self.transform is not None:
             sample = self.transform(sample, rng)
         return sample
+
+    def carry_picture_of(self, v: int, t_image: int, t_end: int) -> np.ndarray:
+        """:func:`event_picture` of video ``v``'s events of ``[t_image, t_end)`` (those the
+        refractory period keeps), recency over that span: ``(H, W, 3)`` uint8."""
+        height, width = self.image_size
+        raw = self.events_of(v, t_image - self.refractory_us, t_end)
+        first = int(np.searchsorted(raw["t"], t_image, side="left"))
+        if self.refractory_us:
+            keep = refractory_keep(raw["x"], raw["y"], raw["t"], self.refractory_us, width)
+            keep[:first] = False
+        else:
+            keep = slice(first, None)
+        return event_picture(*(raw[key][keep] for key in ("x", "y", "t", "p")), t_end, max(t_end - t_image, 1),
+                             height, width)
 
     def close(self) -> None:
         for events in self._events:

@@ -45,6 +45,8 @@ class SampleSpec:
             this long before it, decided as it arrives; 0: every event is read.
         max_events: a sample holding more events is refused (never thinned); None: no guard.
         event_picture: the image is a picture of the events (the dense peer), not a camera frame.
+        carry_picture: the image gains three channels, a picture of the events since the image's
+            time (the dense peer of a hybrid that carries the image forward).
         graph_context_us: > 0: the event graph's first stage also reads the events of this long
             before the sample's start (for a model with an image, not from before ``image time -
             context_us``): they are neighbours of the sample's nodes, never pooled, so a node's
@@ -57,6 +59,7 @@ class SampleSpec:
     max_events: int | None
     event_picture: bool
     graph_context_us: int
+    carry_picture: bool
 
     def __post_init__(self):
         checks = {"window_us": (_integer(self.window_us) and self.window_us > 0, "a positive integer"),
@@ -65,6 +68,7 @@ class SampleSpec:
                   "max_events": (self.max_events is None or (_integer(self.max_events) and self.max_events > 0),
                                  "a positive integer or None"),
                   "event_picture": (isinstance(self.event_picture, bool), "true or false"),
+                  "carry_picture": (isinstance(self.carry_picture, bool), "true or false"),
                   "graph_context_us": (_integer(self.graph_context_us) and self.graph_context_us >= 0,
                                        "an integer >= 0")}
         for name, (ok, expected) in checks.items():

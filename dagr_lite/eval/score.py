@@ -66,7 +66,7 @@ def render_sample(batch: Batch, index: int, detections: dict | None = None, *, s
                   ) -> np.ndarray:
     """``(H, 2W, 3)`` uint8: the frame with true (green) and predicted (red) boxes, beside the events
     (ON red, OFF blue on white) with the same boxes."""
-    image = batch.images[index].permute(1, 2, 0).cpu().numpy()
+    image = batch.images[index, :3].permute(1, 2, 0).cpu().numpy()  # the frame (or picture) alone
     height, width = image.shape[:2]
     canvas = np.full((height, width, 3), 255, np.uint8)
     events = batch.events[batch.ptr[index]:batch.ptr[index + 1]].cpu().numpy()

@@ -55,13 +55,14 @@ class ImageBranch(nn.Module):
             then ``2w`` channels), then the residual block. Both give the same stride-4 map
             size; the patch stem never computes a map at half resolution, which makes training
             steps on a CPU faster (``benchmarks/cpu_step.py``).
+        in_channels: the image's channels (3: RGB; more with a picture of events beside it).
 
     Shapes:
-        images ``(B, 3, H, W)`` uint8 -> maps at strides ``(4, *strides)`` (the stride-4 map is
+        images ``(B, in_channels, H, W)`` uint8 -> maps at strides ``(4, *strides)`` (the stride-4 map is
         what event nodes sample at the input level), with ``channels = (2w, ...)``.
     """
 
-    def __init__(self, width: int, strides: Sequence[int], stem: str = "patch"):
+    def __init__(self, width: int, strides: Sequence[int], stem: str = "patch", in_channels: int = 3):
         super().__init__()
         if stem not in IMAGE_STEMS:
             raise ValueError(f"image_stem must be one of {list(IMAGE_STEMS)}, got {stem!r}")
@@ -77,9 +78,9 @@ class ImageBranch(nn.Module):
         self.read = [0] + [1 + stage_strides.index(s) for s in strides]  # which maps are given out
         self.channels = tuple(stage_channels[i] for i in self.read)
         if stem == "patch":
-            self.stem = nn.Sequential(conv_bn_act(3, 2 * width, stride=4, k=4), _Residual(2 * width))
+            self.stem = nn.Sequential(conv_bn_act(in_channels, 2 * width, stride=4, k=4), _Residual(2 * width))
         else:
-            self.stem = nn.Sequential(conv_bn_act(3, width, stride=2), conv_bn_act(width, 2 * width, stride=2),
+            self.stem = nn.Sequential(conv_bn_act(in_channels, width, stride=2), conv_bn_act(width, 2 * width, stride=2),
                                       _Residual(2 * width))
         self.stages = nn.ModuleList(nn.Sequential(conv_bn_act(c_in, c_out, stride=2), _Residual(c_out))
                                     for c_in, c_out in zip(stage_channels[:-1], stage_channels[1:]))
@@ -154,6 +155,8 @@ class DetectorConfig:
         directional: the event branch's first stage weights each message by the neighbour's
             offset (:class:`~dagr_lite.nn.event_branch.EventBranch`); false in checkpoints saved
             before the key.
+        image_channels: the image's channels: 3 (RGB), or 6 with a picture of the events since
+            the image (``data.carry_picture``).
     """
 
     height: int
@@ -175,6 +178,7 @@ class DetectorConfig:
     image_stem: str = "patch"
     geometry: bool = False
     directional: bool = False
+    image_channels: int = 3
 
     def __post_init__(self):
         if not (self.use_events or self.use_image):
@@ -183,6 +187,8 @@ class DetectorConfig:
             raise ValueError(f"event_head_weight must be a number >= 0, got {self.event_head_weight!r}")
         if self.use_events and self.graph is None:
             raise ValueError("a detector with an event branch needs an event-graph spec (graph)")
+        if not (isinstance(self.image_channels, int) and self.image_channels >= 1):
+            raise ValueError(f"image_channels must be a positive integer, got {self.image_channels!r}")
         if self.image_stem not in IMAGE_STEMS:
             raise ValueError(f"image_stem must be one of {list(IMAGE_STEMS)}, got {self.image_stem!r}")
 
@@ -216,7 +222,7 @@ class Detector(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.strides = list(cfg.strides)
-        self.image = ImageBranch(cfg.image_width, cfg.strides, cfg.image_stem) if cfg.use_image else None
+        self.image = ImageBranch(cfg.image_width, cfg.strides, cfg.image_stem, cfg.image_channels) if cfg.use_image else None
         if cfg.use_events:
             fuse = (cfg.fuse_channels,) * (len(cfg.strides) + 1) if cfg.use_image else None
             self.events = EventBranch(height=cfg.height, width=cfg.width, channels=cfg.event_channels,

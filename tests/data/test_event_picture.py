@@ -42,3 +42,22 @@ def test_a_dataset_with_the_event_picture_reads_the_window_not_the_frame():
                                     b.t_end_us, 33_333, 180, 320)
         np.testing.assert_array_equal(b.image.numpy().transpose(1, 2, 0), expected)
         assert not np.array_equal(a.image.numpy(), b.image.numpy())
+
+
+def test_the_carry_picture_is_the_frame_beside_a_picture_of_every_event_since_the_image():
+    plain = sample_set(stub_root(), "valid", image_age=(1, 10))
+    carried = sample_set(stub_root(), "valid", image_age=(1, 10), carry_picture=True)
+    old = next(i for i in range(len(plain)) if plain[i].age_us > 4 * 33_333)  # an image older than the horizon
+    for index in (3, old):
+        a, b = plain[index], carried[index]
+        assert b.image.shape == (6, 180, 320)
+        np.testing.assert_array_equal(b.image[:3].numpy(), a.image.numpy())  # the camera frame
+        np.testing.assert_array_equal(b.events.numpy(), a.events.numpy())  # the sample's own events stay
+        v = carried.videos.index(b.video)
+        raw = carried.events_of(v, b.t_image_us, b.t_end_us)  # every event since the image, not the horizon's
+        expected = _picture_by_loop(raw["x"], raw["y"], raw["t"].astype(np.float64), raw["p"], b.t_end_us,
+                                    b.t_end_us - b.t_image_us, 180, 320)
+        np.testing.assert_array_equal(b.image[3:].numpy().transpose(1, 2, 0), expected)
+    assert len(raw["t"]) > 2 * len(b.events)  # the picture reads events the horizon does not hold
+    with pytest.raises(ValueError, match="choose one"):
+        sample_set(stub_root(), "valid", event_span="window", event_picture=True, carry_picture=True)

@@ -4,7 +4,7 @@ from dagr_lite.data.spec import SampleSpec
 from dagr_lite.errors import UserError
 
 SAMPLE = {"window_us": 33_333, "context_us": 10_000, "refractory_us": 0, "max_events": 100_000,
-          "event_picture": False, "graph_context_us": 0}
+          "event_picture": False, "graph_context_us": 0, "carry_picture": False}
 
 
 def test_a_sample_spec_round_trips_and_ignores_other_data_keys():
