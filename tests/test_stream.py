@@ -11,6 +11,7 @@ import torch
 from dagr_lite.data.collate import collate
 from dagr_lite.data.dataset import Sample, sample_start_us
 from dagr_lite.data.spec import SampleSpec
+from dagr_lite.errors import UserError
 from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.nn.detector import Detector
 from dagr_lite.nn.head import postprocess
@@ -467,3 +468,12 @@ def test_demo_writes_a_playable_animation_and_a_strip(hybrid_checkpoint, tmp_pat
         with pytest.raises(ConfigError, match=rf"seconds must be a positive number of seconds .*got {seconds}"):
             demo(config("demo", f"ckpt={hybrid_checkpoint}", f"out={tmp_path / 'c.gif'}", f"seconds={seconds}"))
     assert not (tmp_path / "c.gif").exists()
+
+
+def test_a_model_reading_a_picture_of_events_is_refused_by_its_key():
+    model = small_model("hybrid")
+    for key in ("event_picture", "carry_picture"):
+        spec = SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=0, max_events=None,
+                          graph_context_us=0, **{"event_picture": False, "carry_picture": False, key: True})
+        with pytest.raises(UserError, match=f"data.{key}"):
+            StreamingDetector(model, spec, OperatingPoint(score=0.0, nms_iou=EVAL["nms_threshold"]))

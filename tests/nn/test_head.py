@@ -277,3 +277,24 @@ def test_a_late_head_refuses_missing_or_unexpected_query_maps_and_image():
         YOLOXHead([8], [8], hidden=4, num_classes=1)(maps, query)
     with pytest.raises(ValueError, match="image_channels needs late_channels > 0"):
         YOLOXHead([8], [8], hidden=4, num_classes=1, image_channels=[6])
+
+
+@pytest.mark.parametrize("stem", ["patch", "conv"])
+def test_an_image_of_six_channels_is_the_frame_and_its_picture_each_read(stem):
+    """With ``in_channels=6`` the stem reads all six: the first three as a 3-channel branch with
+    the same weights does, the last three through weights of their own."""
+    torch.manual_seed(0)
+    rgb, six = ImageBranch(8, (8, 16), stem, 3).eval(), ImageBranch(8, (8, 16), stem, 6).eval()
+    state = six.state_dict()
+    first = "stem.0.0.weight"
+    assert state[first].shape[1] == 6
+    with torch.no_grad():
+        six.stem[0][0].weight[:, 3:] = 0  # the picture's weights off: the frame's branch alone
+    rgb.load_state_dict({**six.state_dict(), first: six.state_dict()[first][:, :3]})
+    images = torch.randint(0, 255, (2, 6, 35, 61), dtype=torch.uint8)
+    mid_grey = images.clone()
+    assert all(torch.allclose(a, b, atol=1e-6) for a, b in zip(six(images), rgb(images[:, :3])))
+    with torch.no_grad():
+        six.stem[0][0].weight[:, 3:] = 0.1
+    mid_grey[:, 3:] = 0
+    assert not torch.allclose(six(images)[0], six(mid_grey)[0])  # the picture now counts
