@@ -148,7 +148,7 @@ class SweepSamples(Dataset):
         rng = np.random.default_rng([self.seed, index])
         sample = ds.sample_at(v, k, k - self.age, t_end, boxes, rng)
         if self.blank_image:  # an ablation: what the model makes of the events alone
-            sample = sample.replace(image=torch.full_like(sample.image, 128))
+            sample = sample.blank_frame()
         return sample
 
 

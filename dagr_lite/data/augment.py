@@ -101,7 +101,7 @@ class TrainAugment:
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
         sample = self._geometry(sample, rng)
         if self.image_dropout and rng.random() < self.image_dropout:
-            sample = sample.replace(image=torch.full_like(sample.image, 128))
+            sample = sample.blank_frame()
         if self.event_drop:
             fraction = rng.uniform(0.0, self.event_drop)
             keep = torch.from_numpy(rng.random(len(sample.events)) >= fraction)

@@ -171,6 +171,12 @@ class Sample:
     def replace(self, **changes) -> "Sample":
         return replace(self, **changes)
 
+    def blank_frame(self) -> "Sample":
+        """This sample with its camera frame mid-grey (a picture of events beside it, ``carry_picture``, kept)."""
+        image = self.image.clone()
+        image[:RGB_CHANNELS] = 128
+        return replace(self, image=image)
+
 
 class EventEgoHands(Dataset):
     """Samples of one split of a dataset in the EventEgoHands layout.

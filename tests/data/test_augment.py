@@ -119,6 +119,11 @@ def test_image_dropout_greys_the_image_and_leaves_the_geometry_alone():
     assert 60 < kept < 140  # about a quarter
     with pytest.raises(ValueError, match="image_dropout"):
         TrainAugment(**{**AUGMENT, "image_dropout": 1.5})
+    # A picture of events beside the frame (carry_picture) is events: dropout greys the frame alone.
+    pictured = sample.replace(image=torch.cat([sample.image, torch.full_like(sample.image, 7)]))
+    greyed = TrainAugment(**{**AUGMENT, "image_dropout": 1.0, "flip_prob": 0.0, "zoom": (1.0, 1.0),
+                             "translate": 0.0})(pictured, np.random.default_rng([3]))
+    assert torch.all(greyed.image[:3] == 128) and torch.all(greyed.image[3:] == 7)
 
 
 def test_event_drop_removes_a_drawn_fraction_of_the_events_and_nothing_else():
