@@ -114,6 +114,7 @@ _RULES = {
     "data.context_us": ("an integer >= 0 (microseconds)", lambda v: _integer(v) and v >= 0),
     "model.event_head_weight": ("a number >= 0 (0: no event head)", lambda v: _number(v) and v >= 0),
     "model.late_query": ("true or false", lambda v: isinstance(v, bool)),
+    "model.carry_width": ("an integer >= 0 (0: no carry branch)", lambda v: _integer(v) and v >= 0),
     "model.image_stem": (f"one of {', '.join(IMAGE_STEMS)}", lambda v: v in IMAGE_STEMS),
     "model.time_scale_us": ("a positive number (microseconds)", lambda v: _number(v) and v > 0),
     "data.window_us": ("a positive integer (microseconds)", lambda v: _integer(v) and v > 0),
@@ -263,6 +264,10 @@ def detector_config(cfg: DictConfig, *, height: int, width: int) -> DetectorConf
     if model.size not in model.sizes:
         raise ConfigError(f"model.size must be one of {sorted(model.sizes)}, got {model.size!r}")
     size = model.sizes[model.size]
+    picture, carry = bool(cfg.data.get("carry_picture", False)), int(model.carry_width)
+    if carry and not picture:
+        raise ConfigError(f"model.carry_width={carry} reads the picture of the events since the image: it needs "
+                          "data.carry_picture=true")
     return DetectorConfig(height=height, width=width, use_events=model.use_events, use_image=model.use_image,
                           image_width=size.image_width, event_channels=tuple(size.event_channels),
                           event_blocks=model.event_blocks, fuse_channels=model.fuse_channels,
@@ -271,7 +276,8 @@ def detector_config(cfg: DictConfig, *, height: int, width: int) -> DetectorConf
                           recency_us=tuple(model.recency_us), event_head_weight=float(model.event_head_weight),
                           image_stem=model.image_stem, late_query=bool(model.late_query),
                           geometry=bool(model.geometry), directional=bool(model.directional),
-                          image_channels=RGB_CHANNELS + (PICTURE_CHANNELS if cfg.data.get("carry_picture") else 0))
+                          image_channels=RGB_CHANNELS + (PICTURE_CHANNELS if picture and not carry else 0),
+                          carry_width=carry)
 
 
 def build_model(cfg: DictConfig, *, height: int, width: int) -> Detector:

@@ -24,6 +24,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from dagr_lite.data.collate import Batch
+from dagr_lite.data.dataset import PICTURE_CHANNELS, RGB_CHANNELS
 from dagr_lite.graph.pool import recency_maps
 from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.blocks import conv_bn_act
@@ -155,8 +156,13 @@ class DetectorConfig:
         directional: the event branch's first stage weights each message by the neighbour's
             offset (:class:`~dagr_lite.nn.event_branch.EventBranch`); false in checkpoints saved
             before the key.
-        image_channels: the image's channels: 3 (RGB), or 6 with a picture of the events since
-            the image (``data.carry_picture``).
+        image_channels: the channels the image branch reads: 3 (RGB), or 6 with a picture of the
+            events since the image (``data.carry_picture``) read by its stem.
+        carry_width: > 0 (a hybrid): the images hold the camera frame and, in channels 3 to 5, the
+            picture of every event since the image (``data.carry_picture``); a carry branch of this
+            width (an :class:`ImageBranch` of its own) reads the picture, and its maps join the
+            fusion beside the event maps, while the image branch and the event nodes read the frame
+            alone. 0: none.
     """
 
     height: int
@@ -179,6 +185,7 @@ class DetectorConfig:
     geometry: bool = False
     directional: bool = False
     image_channels: int = 3
+    carry_width: int = 0
 
     def __post_init__(self):
         if not (self.use_events or self.use_image):
@@ -189,6 +196,11 @@ class DetectorConfig:
             raise ValueError("a detector with an event branch needs an event-graph spec (graph)")
         if not (isinstance(self.image_channels, int) and self.image_channels >= 1):
             raise ValueError(f"image_channels must be a positive integer, got {self.image_channels!r}")
+        if not (isinstance(self.carry_width, int) and self.carry_width >= 0):
+            raise ValueError(f"carry_width must be an integer >= 0, got {self.carry_width!r}")
+        if self.carry_width and not (self.use_image and self.use_events and not self.late_query):
+            raise ValueError("carry_width > 0 needs a hybrid whose query maps join at the fusion (late_query false): "
+                             "its maps join the fusion beside the event maps")
         if self.image_stem not in IMAGE_STEMS:
             raise ValueError(f"image_stem must be one of {list(IMAGE_STEMS)}, got {self.image_stem!r}")
 
@@ -232,6 +244,10 @@ class Detector(nn.Module):
                                       directional=cfg.directional)
         else:
             self.events = None
+        # The carry branch reads the picture of the events since the image (channels 3 to 5 of the images).
+        self.carry = (ImageBranch(cfg.carry_width, cfg.strides, "patch", PICTURE_CHANNELS) if cfg.carry_width
+                      else None)
+        carry = [0] * len(cfg.strides) if self.carry is None else list(self.carry.channels[1:])
         # The query maps (recency, and with an image its age) join before the towers (early: at the
         # fusion, or an events-only head's input) or after them (late_query).
         late = self.num_query if cfg.late_query else 0
@@ -241,8 +257,8 @@ class Detector(nn.Module):
             self.to_nodes = nn.ModuleList(nn.Conv2d(c, cfg.fuse_channels, 1) for c in self.image.channels)
             # The fusion mixes the image and event maps (and, early, the recency maps and the age plane).
             age = 0 if cfg.late_query else 1
-            self.fuse = nn.ModuleList(conv_bn_act(ci + ce + early + age, ci, k=1) for ci, ce in
-                                      zip(self.image.channels[1:], self.events.out_channels))
+            self.fuse = nn.ModuleList(conv_bn_act(ci + ce + early + cc + age, ci, k=1) for ci, ce, cc in
+                                      zip(self.image.channels[1:], self.events.out_channels, carry))
         head_in = (list(self.image.channels[1:]) if cfg.use_image
                    else [c + early for c in self.events.out_channels])
         self.head = YOLOXHead(head_in, self.strides, hidden=cfg.head_hidden, num_classes=cfg.num_classes,
@@ -286,7 +302,7 @@ class Detector(nn.Module):
         if self.image is None:
             image_maps = None
         elif image or self.events is None:
-            image_maps = self.image(batch.images)
+            image_maps = self.frame_maps(batch.images)
         else:  # every image feature zero, the image branch not run
             image_maps = [torch.zeros(len(batch), c, math.ceil(self.cfg.height / s), math.ceil(self.cfg.width / s),
                                       device=batch.events.device) for c, s in zip(self.image.channels, self.image.strides)]
@@ -306,7 +322,8 @@ class Detector(nn.Module):
         recency = [recency_maps(events, event_batch, batch.age_us, batch_size=len(batch), stride=stride,
                                 height=m.shape[-2], width=m.shape[-1], taus_us=self.cfg.recency_us)
                    for m, stride in zip(event_maps, self.strides)]
-        maps, query, image_inputs = self.combine(image_maps, event_maps, recency, batch.age_us)
+        maps, query, image_inputs = self.combine(image_maps, event_maps, recency, batch.age_us,
+                                                 self.carry_maps(batch.images))
         event_inputs = None
         if self.event_head is not None and self.training:
             event_inputs = ((event_maps, recency) if self.cfg.late_query else
@@ -318,25 +335,45 @@ class Detector(nn.Module):
         branch not run (``forward(events=False)``)."""
         if self.image is None:
             raise ValueError("forward(events=False) needs a hybrid: this detector has no image branch")
-        image_maps = self.image(batch.images)
+        image_maps = self.frame_maps(batch.images)
         zeros = [m.new_zeros(len(batch), c, *m.shape[-2:])
                  for m, c in zip(image_maps[1:], self.events.out_channels)]
         recency = [m.new_zeros(len(batch), self.num_recency, *m.shape[-2:]) for m in image_maps[1:]]
-        maps, query, image_inputs = self.combine(image_maps, zeros, recency, batch.age_us)
+        carry = None if self.carry is None else [m.new_zeros(len(batch), c, *m.shape[-2:]) for m, c in
+                                                 zip(image_maps[1:], self.carry.channels[1:])]
+        maps, query, image_inputs = self.combine(image_maps, zeros, recency, batch.age_us, carry)
         return maps, query, image_inputs, None
 
+    def frame_maps(self, images: torch.Tensor) -> list[torch.Tensor]:
+        """The image branch's maps of ``(B, C, H, W)`` images (the channels it reads: the frame, or
+        with ``image_channels`` 6 the frame and the picture beside it)."""
+        return self.image(images[:, :self.cfg.image_channels])
+
+    def carry_maps(self, images: torch.Tensor) -> list[torch.Tensor] | None:
+        """The carry branch's maps at the head's strides, of the picture beside the frame (None without one)."""
+        if self.carry is None:
+            return None
+        if images.shape[1] != RGB_CHANNELS + PICTURE_CHANNELS:
+            raise ValueError(f"a detector with a carry branch reads images of {RGB_CHANNELS + PICTURE_CHANNELS} "
+                             f"channels (the frame, then a picture of the events since it: data.carry_picture), "
+                             f"got {images.shape[1]}")
+        return self.carry(images[:, RGB_CHANNELS:])[1:]
+
     def combine(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor],
-                recency: list[torch.Tensor], age_us: torch.Tensor):
+                recency: list[torch.Tensor], age_us: torch.Tensor, carry_maps: list[torch.Tensor] | None = None):
         """The head's inputs from the event maps, the recency maps (``(B, num_recency, h, w)`` per
         stride, how recently each cell saw events at the query time) and, in a hybrid, the image
         maps (all strides of :class:`ImageBranch`) and the image's age ``(B,)`` in microseconds:
         the maps its towers read (:meth:`fuse_maps`), the query maps it reads after them
         (:meth:`query_maps`; None without ``late_query``) and the image maps its own image towers
-        read (a hybrid with ``late_query``; else None)."""
+        read (a hybrid with ``late_query``; else None). ``carry_maps`` (a carry branch's) join the
+        fusion after the recency maps."""
         if self.cfg.late_query:
             return (self.fuse_maps(image_maps, event_maps), self.query_maps(recency, age_us),
                     None if image_maps is None else image_maps[1:])
         joined = [torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)]
+        if carry_maps is not None:
+            joined = [torch.cat([j, c], dim=1) for j, c in zip(joined, carry_maps)]
         if image_maps is None:
             return joined, None, None
         return self._fuse(image_maps, joined, self._age_planes(age_us, image_maps[1:])), None, None
@@ -386,7 +423,7 @@ class Detector(nn.Module):
         """``(N, C)`` features of the batch's event nodes after the event branch's first stage."""
         if self.events is None:
             raise ValueError("this detector has no event branch (use_events false)")
-        sampler = self.node_sampler(self.node_maps(self.image(batch.images))) if self.image is not None else None
+        sampler = self.node_sampler(self.node_maps(self.frame_maps(batch.images))) if self.image is not None else None
         x, _, _ = self.events.event_nodes(batch.events, batch.batch_index, sampler, batch.edge_index)
         return x
 
@@ -434,8 +471,9 @@ class Detector(nn.Module):
             raise ValueError("trainer.image_first needs model.late_query=false and model.event_head_weight=0: "
                              "there the fusion is the only way from the events to the output")
         with torch.no_grad():
-            for fuse, c, e in zip(self.fuse, self.image.channels[1:], self.events.out_channels):
-                fuse[0].weight[:, c:c + e + self.num_recency].zero_()  # [image map, event map, recency, age]
+            carry = [0] * len(self.fuse) if self.carry is None else self.carry.channels[1:]
+            for fuse, c, e, k in zip(self.fuse, self.image.channels[1:], self.events.out_channels, carry):
+                fuse[0].weight[:, c:c + e + self.num_recency + k].zero_()  # [image, event, recency, carry, age]
 
     def node_maps(self, image_maps: list[torch.Tensor]) -> list[torch.Tensor]:
         """The image maps projected to the channels joined at the event nodes, one per level."""

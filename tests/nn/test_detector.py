@@ -182,3 +182,30 @@ def test_node_features_ignore_later_events_and_the_query_time():
         now = model(in_float64(sample), conf_threshold=0.0, nms_threshold=EVAL["nms_threshold"])[0]["scores"]
         later_scores = model(in_float64(later), conf_threshold=0.0, nms_threshold=EVAL["nms_threshold"])[0]["scores"]
     assert not torch.equal(now, later_scores)
+
+
+def test_a_carry_branch_reads_the_picture_into_the_fusion_and_nothing_else_does():
+    """``carry_width``: the picture beside the frame reaches the output only through the carry
+    branch's maps at the fusion. The event nodes and the image branch read the frame alone (a
+    different picture leaves them as they were); the picture changes the answer; with the event
+    weights zeroed (which include the carry's) the answer is ``forward(events=False)``'s."""
+    torch.manual_seed(0)
+    model = Detector(small_detector_config(180, 320, carry_width=4)).eval()
+    assert model.carry is not None and model.image.stem[0][0].weight.shape[1] == 3
+    dataset = sample_set(stub_root(), "valid", image_age=(1, 10), carry_picture=True)
+    batch = collate([dataset[i] for i in (3, 30)])
+    assert batch.images.shape[1] == 6
+    other = collate([dataset[i] for i in (3, 30)])
+    other.images[:, 3:] = torch.flip(other.images[:, 3:], dims=[-1])  # another picture, the same frame
+    with torch.no_grad():
+        torch.testing.assert_close(model.event_node_features(batch), model.event_node_features(other), rtol=0, atol=0)
+        assert all(torch.equal(a, b) for a, b in zip(model.frame_maps(batch.images), model.frame_maps(other.images)))
+        answer, _, _ = model.outputs(batch)
+        assert not torch.allclose(answer, model.outputs(other)[0])
+        blind, _, _ = model.outputs(batch, events=False)
+        model.zero_event_weights()
+        torch.testing.assert_close(model.outputs(other)[0], blind, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="reads images of 6 channels"):
+        model.carry_maps(batch.images[:, :3])
+    with pytest.raises(ValueError, match="carry_width > 0 needs a hybrid"):
+        small_detector_config(180, 320, carry_width=4, late_query=True)
