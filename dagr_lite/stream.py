@@ -38,12 +38,12 @@ import numpy as np
 import torch
 
 from dagr_lite.errors import UserError
-from dagr_lite.data.dataset import refractory_keep, sample_start_us
+from dagr_lite.data.dataset import add_to_picture, picture_of, refractory_keep, sample_start_us
 from dagr_lite.data.spec import SampleSpec
 from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.graph.pool import PooledGraph, recency_cells, recency_from_latest
 from dagr_lite.graph.streaming import StreamingGraph
-from dagr_lite.nn.detector import Detector
+from dagr_lite.nn.detector import Detector, DetectorConfig
 from dagr_lite.nn.gcn import GraphOperator
 from dagr_lite.nn.head import postprocess
 
@@ -164,14 +164,14 @@ class _Segment:
         self.towers = model.tower_cache() if model.cfg.late_query else None
 
 
-def check_streamable(use_events: bool, sample: SampleSpec, where: str = "") -> None:
+def check_streamable(detector: DetectorConfig, sample: SampleSpec, where: str = "") -> None:
     """Refuse (:class:`~dagr_lite.errors.UserError`, prefixed by ``where``) a model the streaming detector cannot run."""
-    if not use_events:
+    if not detector.use_events:
         raise UserError(f"{where}the streaming detector needs a model with an event branch (use_events true)")
-    if sample.carry_picture:
-        raise UserError(f"{where}this model reads a picture of the events since the image beside the camera frame "
-                         "(data.carry_picture, a dense peer); the streaming detector runs models that read camera "
-                         "frames and events")
+    if sample.carry_picture and not detector.carry_width:
+        raise UserError(f"{where}this model's image branch reads a picture of the events since the image beside the "
+                         "camera frame (data.carry_picture without model.carry_width); the streaming detector runs "
+                         "such a picture through a carry branch only, whose maps join at the fusion")
     if sample.event_picture:
         raise UserError(f"{where}this model reads a picture of events in place of the camera frame "
                          "(data.event_picture, the dense peer of benchmarks/dense_peer.py); the streaming "
@@ -196,7 +196,7 @@ class StreamingDetector:
     """
 
     def __init__(self, model: Detector, sample: SampleSpec, operating: OperatingPoint):
-        check_streamable(model.events is not None, sample)
+        check_streamable(model.cfg, sample)
         self.model = model.eval()
         parameter = next(model.parameters())
         self.dtype, self.device = parameter.dtype, parameter.device
@@ -233,7 +233,7 @@ class StreamingDetector:
         detector = checkpoint.detector
         if model_size is not None:  # as evaluate.py model_size=data runs it
             detector = at_model_size("data", detector, (int(model_size[1]), int(model_size[0])), {})
-        check_streamable(detector.use_events, checkpoint.sample, f"{path}: ")
+        check_streamable(detector, checkpoint.sample, f"{path}: ")
         operating = checkpoint.operating.with_overrides(score=score, nms_iou=nms_iou)
         return cls(checkpoint.model(detector).to(device), checkpoint.sample, operating)
 
@@ -256,6 +256,8 @@ class StreamingDetector:
         self._kept_from = -math.inf  # the log holds every event since this time
         self._image = None  # (image maps, node maps) of the latest image
         self._t_image: float | None = None
+        # A carry branch's picture of the events since the image: per-pixel (ON, OFF) counts and latest time.
+        self._carry: tuple[np.ndarray, np.ndarray] | None = None
         self._segment: _Segment | None = None
 
     @property
@@ -284,11 +286,19 @@ class StreamingDetector:
             raise UserError(f"image at t={t_us:g} us needs the events from {needed_from:g} us, but "
                              f"only those since {self._kept_from:g} us are kept (an image may be at most "
                              f"{MAX_IMAGE_DELAY_US} us older than the latest event)")
+        if self.model.carry is not None and t_us < self._kept_from:
+            raise UserError(f"image at t={t_us:g} us needs every event since its time for its carry picture, but "
+                             f"only those since {self._kept_from:g} us are kept (an image may be at most "
+                             f"{MAX_IMAGE_DELAY_US} us older than the latest event)")
         with torch.no_grad(), self._part("image features"):
             pixels = torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1)))[None].to(self.device)
-            image_maps = self.model.image(pixels)
+            image_maps = self.model.frame_maps(pixels)
             self._image = (image_maps, self.model.node_maps(image_maps))
         self._t_image = t_us
+        if self.model.carry is not None:  # the picture restarts from the logged events since the image
+            self._carry = (np.zeros((2, self.height * self.width), np.int64),
+                           np.full(self.height * self.width, -math.inf))
+            self._add_to_carry(*(self._log[key].view for key in ("x", "y", "t", "p")))
         # Events older than the horizon of the earliest answer left to give are not read.
         self._start_segment(t_us, needed_from)
 
@@ -329,6 +339,7 @@ class StreamingDetector:
         for name, values in (("x", x), ("y", y), ("t", t), ("p", p)):
             self._log[name].extend(values)
         self._last_t = last_t
+        self._add_to_carry(x, y, t, p)
 
     # ---------------------------------------------------------------- output
     def detect(self, t_us: float | None = None) -> dict:
@@ -408,7 +419,14 @@ class StreamingDetector:
                                device=self.device)
             if model.cfg.late_query:
                 return self._segment.towers.answer(model.query_maps(recency, age))
-            return model.head(*model.combine(image_maps, event_maps, recency, age))
+        carry_maps = None
+        if self._carry is not None:
+            with self._part("carry picture + branch"):
+                picture = picture_of(*self._carry, t_us, max(t_us - self._t_image, 1.0), self.height, self.width)
+                pixels = torch.from_numpy(np.ascontiguousarray(picture.transpose(2, 0, 1)))[None].to(self.device)
+                carry_maps = model.picture_maps(pixels)
+        with self._part("recency + fusion + head"):
+            return model.head(*model.combine(image_maps, event_maps, recency, age, carry_maps))
 
     # ---------------------------------------------------------------- internals
     @contextmanager
@@ -423,6 +441,13 @@ class StreamingDetector:
 
     def _sampler(self):
         return self.model.node_sampler(self._image[1]) if self.hybrid else None
+
+    def _add_to_carry(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> None:
+        """Adds the events since the image (kept by the refractory period) to the carry picture's state."""
+        if self._carry is None or not len(t):
+            return
+        since = int(np.searchsorted(t, self._t_image, side="left"))
+        add_to_picture(*self._carry, x[since:], y[since:], t[since:], p[since:], self.width)
 
     def _start_segment(self, origin_us: float, first_us: float) -> None:
         """A new segment from ``origin_us``, fed with the logged events since ``first_us``."""

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from dagr_lite.data.collate import collate
-from dagr_lite.data.dataset import Sample, sample_start_us
+from dagr_lite.data.dataset import Sample, event_picture, sample_start_us
 from dagr_lite.data.spec import SampleSpec
 from dagr_lite.errors import UserError
 from dagr_lite.eval.operating import OperatingPoint
@@ -29,7 +29,8 @@ def streaming(model: Detector, *, refractory_us: int = 0, score: float = 0.0,
     """The streaming detector on this module's sample, answering every box of ``score`` or more."""
     return StreamingDetector(model, SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=refractory_us,
                                                max_events=None, event_picture=False,
-                                               graph_context_us=graph_context_us, carry_picture=False),
+                                               graph_context_us=graph_context_us,
+                                               carry_picture=model.carry is not None),
                              OperatingPoint(score=score, nms_iou=EVAL["nms_threshold"]))
 
 
@@ -92,8 +93,14 @@ def check_against_batch(stream: StreamingDetector, model: Detector, events: dict
     hybrid = model.image is not None
     start = sample_start_us(t_query, WINDOW_US, t_image if hybrid else None, CONTEXT_US)
     keep = t >= sample_start_us(t_query, WINDOW_US + stream.graph_context_us, t_image if hybrid else None, CONTEXT_US)
+    kept = np.ones(upto, dtype=bool)
     if stream.refractory_us:  # brute force: each event against every earlier one at its pixel
-        keep &= brute_refractory(events, upto, stream.refractory_us)
+        kept = brute_refractory(events, upto, stream.refractory_us)
+        keep &= kept
+    if model.carry is not None:  # the frame and the picture of every event (kept) since it
+        since = kept & (t >= t_image)
+        picture = event_picture(*(v[:upto][since] for v in events.values()), t_query, max(t_query - t_image, 1.0), H, W)
+        image = np.concatenate([image, picture], axis=2)
     origin = t_image if hybrid else stream.origin_us
     sample = sample_of(image, tuple(v[:upto][keep] for v in events.values()), origin, t_query, math.ceil(start))
     with torch.no_grad():
@@ -468,6 +475,20 @@ def test_demo_writes_a_playable_animation_and_a_strip(hybrid_checkpoint, tmp_pat
         with pytest.raises(ConfigError, match=rf"seconds must be a positive number of seconds .*got {seconds}"):
             demo(config("demo", f"ckpt={hybrid_checkpoint}", f"out={tmp_path / 'c.gif'}", f"seconds={seconds}"))
     assert not (tmp_path / "c.gif").exists()
+
+
+@pytest.mark.parametrize("refractory_us", [0, 3_000])
+def test_streaming_with_a_carry_branch_equals_the_batch_model(refractory_us):
+    """The picture of every event since the image (those the refractory period keeps), kept as
+    per-pixel counts and latest times from the image on and read at each answer by the carry
+    branch, gives the batch model's answer; the image may come after events newer than it."""
+    model = small_model("hybrid", seed=7, carry_width=4)
+    rng = np.random.default_rng(23)
+    events = random_stream(rng, 2500, 250_000)
+    images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 190_000)]
+    checks, largest, stream = replay(model, events, images, seed=11, refractory_us=refractory_us, detect_prob=0.5)
+    assert checks >= 20 and largest >= 300
+    assert stream._carry is not None and stream._carry[0].sum() > 0
 
 
 def test_a_model_reading_a_picture_of_events_is_refused_by_its_key():

@@ -44,20 +44,32 @@ def event_picture(x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray, t_
 
     The dense peer the event branch is measured against reads this picture of the events-only
     sample in place of the camera frame (``data.event_picture``)."""
-    picture = np.zeros((height, width, 3), np.float64)
-    if len(t):
-        pixel = y.astype(np.int64) * width + x.astype(np.int64)
-        for channel, polarity in ((0, 1), (1, 0)):
-            counts = np.bincount(pixel[p == polarity], minlength=height * width)
-            picture[..., channel] = np.minimum(counts, PICTURE_COUNT_FULL).reshape(height, width)
-        picture[..., :2] *= 255.0 / PICTURE_COUNT_FULL
-        last = np.full(height * width, -np.inf)
-        np.maximum.at(last, pixel, t.astype(np.float64))
-        seen = np.isfinite(last)
-        recency = np.zeros(height * width)
-        recency[seen] = np.clip(1 - (t_end_us - last[seen]) / window_us, 0, 1) * 255.0
-        picture[..., 2] = recency.reshape(height, width)
-    return np.round(picture).astype(np.uint8)
+    counts, last = np.zeros((2, height * width), np.int64), np.full(height * width, -np.inf)
+    add_to_picture(counts, last, x, y, t, p, width)
+    return picture_of(counts, last, t_end_us, window_us, height, width)
+
+
+def add_to_picture(counts: np.ndarray, last: np.ndarray, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray,
+                   width: int) -> None:
+    """Adds events to a picture's per-pixel state, in place: ``counts (2, H * W)`` of ON (row 0)
+    and OFF (row 1) events and ``last (H * W,)``, each pixel's latest event time (-inf: none).
+    Adding events in any pieces gives the state of adding them at once (a stream's picture)."""
+    if not len(t):
+        return
+    pixel = y.astype(np.int64) * width + x.astype(np.int64)
+    for row, polarity in ((0, 1), (1, 0)):
+        counts[row] += np.bincount(pixel[p == polarity], minlength=counts.shape[1])
+    np.maximum.at(last, pixel, np.asarray(t, np.float64))
+
+
+def picture_of(counts: np.ndarray, last: np.ndarray, t_end_us: float, window_us: float, height: int,
+               width: int) -> np.ndarray:
+    """:func:`event_picture` from the per-pixel state of :func:`add_to_picture` at ``t_end_us``."""
+    picture = np.zeros((height * width, 3), np.float64)
+    picture[:, :2] = np.minimum(counts.T, PICTURE_COUNT_FULL) * (255.0 / PICTURE_COUNT_FULL)
+    seen = np.isfinite(last)
+    picture[seen, 2] = np.clip(1 - (t_end_us - last[seen]) / window_us, 0, 1) * 255.0
+    return np.round(picture).astype(np.uint8).reshape(height, width, 3)
 
 
 def refractory_keep(x: np.ndarray, y: np.ndarray, t: np.ndarray, refractory_us: float, width: int,

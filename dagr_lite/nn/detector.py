@@ -357,7 +357,11 @@ class Detector(nn.Module):
             raise ValueError(f"a detector with a carry branch reads images of {RGB_CHANNELS + PICTURE_CHANNELS} "
                              f"channels (the frame, then a picture of the events since it: data.carry_picture), "
                              f"got {images.shape[1]}")
-        return self.carry(images[:, RGB_CHANNELS:])[1:]
+        return self.picture_maps(images[:, RGB_CHANNELS:])
+
+    def picture_maps(self, pictures: torch.Tensor) -> list[torch.Tensor]:
+        """The carry branch's maps at the head's strides of ``(B, 3, H, W)`` uint8 pictures of the events since the image."""
+        return self.carry(pictures)[1:]
 
     def combine(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor],
                 recency: list[torch.Tensor], age_us: torch.Tensor, carry_maps: list[torch.Tensor] | None = None):
