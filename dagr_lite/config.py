@@ -41,6 +41,8 @@ def _eventegohands_root(version: str) -> str:
 
 
 OmegaConf.register_new_resolver("eventegohands_root", _eventegohands_root, replace=True)
+# data.carry_picture: whether the model has a carry branch (model.carry_width > 0), unless set.
+OmegaConf.register_new_resolver("has_carry", lambda width: isinstance(width, int) and width > 0, replace=True)
 # hydra.run.dir: the run's own run_dir when one is given, else a new dated folder.
 OmegaConf.register_new_resolver("run_folder", lambda run_dir, default: run_dir if run_dir is not None
                                 else torchrun_folder(default), replace=True)

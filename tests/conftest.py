@@ -88,9 +88,10 @@ def dataset_copy(tmp_path) -> Written:
 
 @pytest.fixture(scope="session")
 def trained_checkpoints(tmp_path_factory) -> dict[str, Path]:
-    """``last.pt`` of a hybrid, of an events-only model and of a hybrid whose query maps join its
-    head after the towers (``hybrid_late``) trained for three steps on the stub by the training
-    loop, on the CPU in float32, with the default sample settings."""
+    """``last.pt`` of a hybrid (with its carry branch), of an events-only model and of a hybrid
+    whose query maps join its head after the towers (``hybrid_late``, no carry branch) trained for
+    three steps on the stub by the training loop, on the CPU in float32, with the default sample
+    settings."""
     from dagr_lite.config import compose_config
     from dagr_lite.engine.train import train
 
@@ -98,6 +99,8 @@ def trained_checkpoints(tmp_path_factory) -> dict[str, Path]:
     paths = {}
     for variant, model in (("hybrid", "hybrid"), ("events_only", "events_only"), ("hybrid_late", "hybrid")):
         late = [f"model.late_query={variant.endswith('_late')}"]
+        if variant.endswith("_late"):
+            late += ["model.carry_width=0"]
         train(compose_config("train", [f"run_dir={root / variant}", f"model={model}", *late, "trainer.max_steps=3",
                                        "trainer.schedule_by=steps",
                                        "device=cpu", "trainer.amp=false", "loader.batch_size=4",

@@ -158,15 +158,19 @@ def test_model_defaults_come_from_conf_and_variants_inherit_them():
     assert image.graph is None and not image.use_events
     with pytest.raises(ConfigError, match=r"model\.graph radius must be a positive number, got -1"):
         build_model(resolve_config(compose_cfg("train", ["model.graph.radius=-1"])), height=180, width=320)
-    assert (hybrid.carry_width, hybrid.image_channels) == (0, 3)
-    carried = detector_config(resolve_config(compose_cfg("train", ["data.carry_picture=true", "model.carry_width=8"])),
-                              height=180, width=320)
-    assert (carried.carry_width, carried.image_channels) == (8, 3)  # the carry branch reads the picture
+    # The hybrid's carry branch reads the picture, which the sample then holds; the other models have none.
+    assert (hybrid.carry_width, hybrid.image_channels) == (8, 3) and compose_cfg("train").data.carry_picture is True
+    assert (events.carry_width, image.carry_width, image.image_channels) == (0, 0, 3)
+    for variant in ("events_only", "image_only"):
+        assert resolve_config(compose_cfg("train", [f"model={variant}"])).data.carry_picture is False
     peer = detector_config(resolve_config(compose_cfg("train", ["model=image_only", "data.carry_picture=true"])),
                            height=180, width=320)
     assert (peer.carry_width, peer.image_channels) == (0, 6)  # the image branch reads it
+    early = detector_config(resolve_config(compose_cfg("train", ["model.carry_width=0", "data.carry_picture=true"])),
+                            height=180, width=320)
+    assert (early.carry_width, early.image_channels) == (0, 6)
     with pytest.raises(ConfigError, match=r"model\.carry_width=8 .* needs data\.carry_picture=true"):
-        detector_config(resolve_config(compose_cfg("train", ["model.carry_width=8"])), height=180, width=320)
+        detector_config(resolve_config(compose_cfg("train", ["data.carry_picture=false"])), height=180, width=320)
 
 
 @pytest.mark.parametrize("override,match", [

@@ -35,7 +35,10 @@ def streaming(model: Detector, *, refractory_us: int = 0, score: float = 0.0,
 
 
 def small_model(variant: str, seed: int = 0, **changes) -> Detector:
+    """A small ``variant`` with weights away from the identity; without a carry branch unless
+    ``carry_width`` is given (the tests that give one add its picture to their samples)."""
     torch.manual_seed(seed)
+    changes = {"carry_width": 0, **changes}
     cfg = small_detector_config(H, W, variant=variant, image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16,
                                 **changes)
     model = Detector(cfg).double()
@@ -278,7 +281,7 @@ def test_streaming_equals_the_batch_model_with_head_strides_from_16():
     """A hybrid that reads strides 16 and 32 only (its image branch still passes stride 8)."""
     torch.manual_seed(4)
     cfg = small_detector_config(H, W, variant="hybrid", image_width=8, event_channels=(8, 8, 8), head_hidden=16,
-                                strides=(16, 32))
+                                strides=(16, 32), carry_width=0)
     model = trained(Detector(cfg).double())
     rng = np.random.default_rng(6)
     events = random_stream(rng, 2500, 250_000)
@@ -423,10 +426,11 @@ def hybrid_checkpoint(trained_checkpoints) -> Path:
 def test_from_checkpoint_matches_the_batch_model_in_float32(trained_checkpoints, name, full_fraction, monkeypatch):
     """A trained checkpoint, float32: equal to the batch model to 1e-5 (relative); with
     ``late_query``, the towers run whole where events changed most of a map, or always at the
-    changed cells only."""
+    changed cells only; the default hybrid's carry branch reads the picture of the events since the image."""
     monkeypatch.setattr(TowerCache, "FULL_FRACTION", full_fraction)
     stream = StreamingDetector.from_checkpoint(trained_checkpoints[name], score=0.0, nms_iou=EVAL["nms_threshold"])
     assert stream.model.cfg.late_query == name.endswith("_late")
+    assert (stream.model.carry is not None) == (name == "hybrid")
     model = stream.model
     assert stream.context_us == 10_000 and next(model.parameters()).dtype == torch.float32
     height, width = model.cfg.height, model.cfg.width
@@ -441,8 +445,13 @@ def test_from_checkpoint_matches_the_batch_model_in_float32(trained_checkpoints,
         t_query = float(events["t"][part[-1]])
         keep = (events["t"] >= sample_start_us(t_query, stream.window_us, 20_000, 10_000)) & (np.arange(n) <= part[-1])
         x, y, t, p = (v[keep] for v in events.values())
+        pixels = image
+        if model.carry is not None:
+            since = (events["t"] >= 20_000) & (np.arange(n) <= part[-1])
+            pixels = np.concatenate([image, event_picture(*(v[since] for v in events.values()), t_query,
+                                                          max(t_query - 20_000, 1.0), height, width)], axis=2)
         sample = Sample(events=torch.from_numpy(np.stack([x, y, t - 20_000, p], 1).astype(np.float32)),
-                        image=torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))),
+                        image=torch.from_numpy(np.ascontiguousarray(pixels.transpose(2, 0, 1))),
                         boxes=torch.zeros((0, 4)), labels=torch.zeros(0, dtype=torch.int64), video="v", frame=0,
                         image_frame=0, t_start_us=0, t_end_us=int(t_query), t_image_us=20_000)
         with torch.no_grad():

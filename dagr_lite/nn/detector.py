@@ -199,8 +199,9 @@ class DetectorConfig:
         if not (isinstance(self.carry_width, int) and self.carry_width >= 0):
             raise ValueError(f"carry_width must be an integer >= 0, got {self.carry_width!r}")
         if self.carry_width and not (self.use_image and self.use_events and not self.late_query):
-            raise ValueError("carry_width > 0 needs a hybrid whose query maps join at the fusion (late_query false): "
-                             "its maps join the fusion beside the event maps")
+            raise ValueError(f"carry_width={self.carry_width} (a carry branch) needs a hybrid whose query maps join at "
+                             "the fusion (late_query false), since its maps join the fusion beside the event maps; "
+                             "carry_width=0 for any other model")
         if self.image_stem not in IMAGE_STEMS:
             raise ValueError(f"image_stem must be one of {list(IMAGE_STEMS)}, got {self.image_stem!r}")
 

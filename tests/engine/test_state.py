@@ -147,7 +147,7 @@ def test_mixed_precision_choices_run_a_step_on_the_cpu():
     common = dict(total_steps=20, warmup_steps=4, min_lr_ratio=0.05, ema_decay=0.99, ema_tau=5.0, grad_clip=10.0)
     bf16 = TrainState.create(model, build_optimizer(cfg, model.parameters()), amp=torch.bfloat16, **common)
     assert bf16.amp and not bf16.scaler.is_enabled()
-    dataset = sample_set(stub_root(), "train", window_us=10_000)
+    dataset = sample_set(stub_root(), "train", window_us=10_000, carry_picture=True)
     out = train_step(bf16, collate([dataset[i] for i in (3, 40)]))
     assert torch.isfinite(out["loss"]) and out["loss"].dtype == torch.float32
     fp16 = TrainState.create(model, build_optimizer(cfg, model.parameters()), amp=True, **common)

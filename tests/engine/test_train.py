@@ -281,7 +281,7 @@ def test_image_first_learns_from_the_image_alone_then_the_events_join(tmp_path, 
     with pytest.raises(ConfigError, match=r"one branch learns alone first, not both"):
         train(small(tmp_path / "both", "trainer.image_first=0.5", "trainer.events_first=0.5"))
     with pytest.raises(ConfigError, match=r"trainer\.image_first=0\.5 needs model\.late_query=false"):
-        train(small(tmp_path / "late", "trainer.image_first=0.5", "model.late_query=true"))
+        train(small(tmp_path / "late", "trainer.image_first=0.5", "model.late_query=true", "model.carry_width=0"))
 
 
 def test_a_hybrid_with_its_event_weights_zeroed_answers_what_it_answers_without_events():
@@ -289,7 +289,7 @@ def test_a_hybrid_with_its_event_weights_zeroed_answers_what_it_answers_without_
     output with its events equals ``forward(events=False)``'s, and differs before the zeroing."""
     torch.manual_seed(0)
     model = Detector(small_detector_config(180, 320)).eval()
-    dataset = sample_set(stub_root(), "valid", image_age=2)
+    dataset = sample_set(stub_root(), "valid", image_age=2, carry_picture=True)
     batch = collate([dataset[i] for i in (3, 30)])
     with torch.no_grad():
         before, _, _ = model.outputs(batch)

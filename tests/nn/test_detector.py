@@ -13,7 +13,7 @@ from tests.settings import EVAL
 
 def test_the_hybrid_model_overfits_one_batch():
     torch.manual_seed(0)
-    dataset = sample_set(stub_root(), "train", window_us=20_000)
+    dataset = sample_set(stub_root(), "train", window_us=20_000, carry_picture=True)
     batch = collate([dataset[i] for i in (5, 60, 150, 260)])
     model = Detector(small_detector_config(image_width=8, event_channels=(8, 16, 16, 16), head_hidden=32))
     optimizer = torch.optim.AdamW(model.parameters(), lr=3e-3)
@@ -37,11 +37,12 @@ def test_the_hybrid_model_overfits_one_batch():
 
 
 def test_training_output_names_and_variants():
-    dataset = sample_set(stub_root(), "valid", window_us=10_000)
+    dataset = sample_set(stub_root(), "valid", window_us=10_000, carry_picture=True)
     batch = collate([dataset[i] for i in (0, 40)])
     for use_events, use_image in ((True, True), (True, False), (False, True)):
         model = Detector(small_detector_config(use_events=use_events, use_image=use_image, image_width=8,
-                                               event_channels=(8, 8, 8, 8), head_hidden=16))
+                                               event_channels=(8, 8, 8, 8), head_hidden=16,
+                                               carry_width=8 if use_events and use_image else 0))
         out = model(batch)
         assert set(out) == {"loss", "iou_loss", "obj_loss", "cls_loss", "num_fg"} and torch.isfinite(out["loss"])
         model.eval()
@@ -49,7 +50,7 @@ def test_training_output_names_and_variants():
 
 
 def test_the_event_head_adds_its_weighted_loss_in_training_and_leaves_detection_alone():
-    dataset = sample_set(stub_root(), "valid", window_us=10_000)
+    dataset = sample_set(stub_root(), "valid", window_us=10_000, carry_picture=True)
     batch = collate([dataset[i] for i in (0, 40)])
     torch.manual_seed(0)
     sizes = dict(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16)
@@ -79,13 +80,14 @@ def test_with_its_image_weights_zeroed_a_hybrid_answers_what_it_answers_without_
     """zero_image_weights: the hybrid's features with any frame (the stub's, or noise) equal, to
     the last bit, those of forward(image=False), which runs no image branch; before zeroing, the
     image changes them (the check can fail). In training the zeroed weights get no gradient."""
-    dataset = sample_set(stub_root(), "valid", window_us=10_000)
+    dataset = sample_set(stub_root(), "valid", window_us=10_000, carry_picture=not late_query)
     batch = collate([dataset[i] for i in (0, 40)])
     noise = collate([dataset[i] for i in (0, 40)])
-    noise.images.copy_(torch.randint(0, 256, noise.images.shape, dtype=noise.images.dtype))
+    frame = noise.images[:, :3]  # the camera frame (a picture of events beside it is events)
+    frame.copy_(torch.randint(0, 256, frame.shape, dtype=frame.dtype))
     torch.manual_seed(0)
     model = Detector(small_detector_config(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16,
-                                           late_query=late_query)).eval()
+                                           late_query=late_query, carry_width=0 if late_query else 8)).eval()
     with torch.no_grad():
         blank = model._features(batch, image=False)[0]
         assert any(not torch.equal(a, b) for a, b in zip(model.features(batch)[0], blank))
@@ -146,7 +148,7 @@ def test_mixed_precision_keeps_losses_and_graph_products_in_float32(monkeypatch)
         return real_bce(*args, **kwargs)
 
     monkeypatch.setattr(head_module.F, "binary_cross_entropy", guarded_bce)
-    dataset = sample_set(stub_root(), "valid", window_us=10_000)
+    dataset = sample_set(stub_root(), "valid", window_us=10_000, carry_picture=True)
     batch = collate([dataset[i] for i in (3, 50)])
     model = Detector(small_detector_config(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16))
     with torch.autocast("cpu", dtype=torch.bfloat16):
@@ -165,7 +167,7 @@ def in_float64(sample):
 def test_node_features_ignore_later_events_and_the_query_time():
     """The rule streaming depends on: a node depends on its event, its causal past and the image."""
     torch.manual_seed(0)
-    dataset = sample_set(stub_root(), "valid", image_age=3, max_events=None)
+    dataset = sample_set(stub_root(), "valid", image_age=3, max_events=None, carry_picture=True)
     sample = dataset[20]
     model = Detector(small_detector_config(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16)).double().eval()
     n = len(sample.events)
@@ -207,5 +209,5 @@ def test_a_carry_branch_reads_the_picture_into_the_fusion_and_nothing_else_does(
         torch.testing.assert_close(model.outputs(other)[0], blind, rtol=0, atol=0)
     with pytest.raises(ValueError, match="reads images of 6 channels"):
         model.carry_maps(batch.images[:, :3])
-    with pytest.raises(ValueError, match="carry_width > 0 needs a hybrid"):
+    with pytest.raises(ValueError, match="carry_width=4 .a carry branch. needs a hybrid"):
         small_detector_config(180, 320, carry_width=4, late_query=True)

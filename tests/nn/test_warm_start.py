@@ -44,9 +44,9 @@ def test_an_events_only_branch_started_in_a_hybrid_computes_the_same_maps_whatev
                                                + ["events.stages.0.0.conv.weight_offsets"] * directional)
     # layers reading more inputs outside the event branch, or only the hybrid's, keep their own weights
     # (the head's late layers read the image's age and image towers besides the recency maps; the image
-    # towers and their age gates are the hybrid's)
+    # towers and their age gates are the hybrid's, as is its carry branch)
     wider = ("image.", "to_nodes.", "fuse.", "head.stems.", "head.cls_late.", "head.reg_late.", "head.gates.",
-             "head.image_")
+             "head.image_", "carry.")
     assert all(name.startswith(wider) or name.endswith("num_batches_tracked") for name in report["kept"])
     dataset = sample_set(stub_root(), "valid", image_age=3, window_us=15_000)
     batch = collate([dataset[i] for i in (5, 40)])
