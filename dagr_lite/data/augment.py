@@ -75,7 +75,8 @@ class TrainAugment:
             the same with or without it).
         event_drop: each sample drops a fraction of its events drawn uniformly from
             ``[0, event_drop]`` (each event independently; drawn after the rest), so the event
-            branch meets sparser and denser scenes than the data holds; 0: none.
+            branch meets sparser and denser scenes than the data holds; 0: none. A picture of
+            the events since the image (``carry_picture``, made before augmentation) keeps them.
     """
 
     flip_prob: float
