@@ -282,17 +282,14 @@ class StreamingDetector:
         if not self.hybrid:
             return
         needed_from = self.sample.graph_start_us(max(t_us, self._last_t), t_us)
-        if needed_from < self._kept_from:
-            raise UserError(f"image at t={t_us:g} us needs the events from {needed_from:g} us, but "
-                             f"only those since {self._kept_from:g} us are kept (an image may be at most "
-                             f"{MAX_IMAGE_DELAY_US} us older than the latest event)")
-        if self.model.carry is not None and t_us < self._kept_from:
-            raise UserError(f"image at t={t_us:g} us needs every event since its time for its carry picture, but "
+        # A carry picture also reads every event since the image.
+        read_from = min(needed_from, t_us) if self.model.carry is not None else needed_from
+        if read_from < self._kept_from:
+            raise UserError(f"image at t={t_us:g} us needs the events from {read_from:g} us, but "
                              f"only those since {self._kept_from:g} us are kept (an image may be at most "
                              f"{MAX_IMAGE_DELAY_US} us older than the latest event)")
         with torch.no_grad(), self._part("image features"):
-            pixels = torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1)))[None].to(self.device)
-            image_maps = self.model.frame_maps(pixels)
+            image_maps = self.model.frame_maps(self._pixels(image))
             self._image = (image_maps, self.model.node_maps(image_maps))
         self._t_image = t_us
         if self.model.carry is not None:  # the picture restarts from the logged events since the image
@@ -423,8 +420,7 @@ class StreamingDetector:
         if self._carry is not None:
             with self._part("carry picture + branch"):
                 picture = picture_of(*self._carry, t_us, max(t_us - self._t_image, 1.0), self.height, self.width)
-                pixels = torch.from_numpy(np.ascontiguousarray(picture.transpose(2, 0, 1)))[None].to(self.device)
-                carry_maps = model.picture_maps(pixels)
+                carry_maps = model.picture_maps(self._pixels(picture))
         with self._part("recency + fusion + head"):
             return model.head(*model.combine(image_maps, event_maps, recency, age, carry_maps))
 
@@ -441,6 +437,10 @@ class StreamingDetector:
 
     def _sampler(self):
         return self.model.node_sampler(self._image[1]) if self.hybrid else None
+
+    def _pixels(self, array: np.ndarray) -> torch.Tensor:
+        """An ``(H, W, C)`` uint8 picture as the ``(1, C, H, W)`` batch the model reads."""
+        return torch.from_numpy(np.ascontiguousarray(array.transpose(2, 0, 1)))[None].to(self.device)
 
     def _add_to_carry(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> None:
         """Adds the events since the image (kept by the refractory period) to the carry picture's state."""

@@ -410,20 +410,11 @@ class EventEgoHands(Dataset):
         with_image = t_image if self.event_span == "image" else None
         t_start = int(sample_start_us(t_end, self.window_us, with_image, self.context_us))
         t_graph = int(sample_start_us(t_end, self.window_us + self.graph_context_us, with_image, self.context_us))
-        raw = self.events_of(v, t_graph - self.refractory_us, t_end)
         height, width = self.image_size
-        x, y = raw["x"], raw["y"]
-        if len(x) and (x.max() >= width or y.max() >= height):
-            raise DatasetFormatError.at(events_file.path, f"events of [{t_graph - self.refractory_us}, {t_end}) us lie "
-                                                          f"outside the {width}x{height} frame (x max {x.max()}, "
-                                                          f"y max {y.max()})", key="events/x, events/y")
-        first = int(np.searchsorted(raw["t"], t_graph, side="left"))
-        if self.refractory_us:  # decided from the events of one refractory period before each
-            keep = refractory_keep(x, y, raw["t"], self.refractory_us, width)
-            keep[:first] = False
-        else:
-            keep = slice(first, None)
-        raw = {key: values[keep] for key, values in raw.items()}
+        # One read serves the graph's events and, with a carry picture, every event since the image.
+        kept = self._kept_events(v, min(t_graph, t_image) if self.carry_picture else t_graph, t_end)
+        graph_from = int(np.searchsorted(kept["t"], t_graph, side="left"))
+        raw = {key: values[graph_from:] for key, values in kept.items()}
         if self.max_events is not None and len(raw["t"]) > self.max_events:
             raise SampleTooLarge(f"{events_file.path}: the sample of frame {k} (image frame {image_frame}) holds "
                                  f"{len(raw['t'])} events in [{t_graph}, {t_end}) us, more than max_events="
@@ -438,8 +429,11 @@ class EventEgoHands(Dataset):
                                   height, width)
         else:
             image = self.image_of(v, image_frame)  # (H, W, 3)
-        if self.carry_picture:
-            image = np.concatenate([image, self.carry_picture_of(v, t_image, t_end)], axis=2)  # (H, W, 6)
+        if self.carry_picture:  # every event since the image, recency over its age
+            since = int(np.searchsorted(kept["t"], t_image, side="left"))
+            picture = event_picture(*(kept[key][since:] for key in ("x", "y", "t", "p")), t_end,
+                                    max(t_end - t_image, 1), height, width)
+            image = np.concatenate([image, picture], axis=2)  # (H, W, 6)
         sample = Sample(events=torch.from_numpy(events),
                         image=torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))),  # (3, H, W)
                         boxes=torch.from_numpy(np.array(boxes, dtype=np.float32).reshape(-1, 4)),
@@ -449,19 +443,23 @@ class EventEgoHands(Dataset):
             sample = self.transform(sample, rng)
         return sample
 
-    def carry_picture_of(self, v: int, t_image: int, t_end: int) -> np.ndarray:
-        """:func:`event_picture` of video ``v``'s events of ``[t_image, t_end)`` (those the
-        refractory period keeps), recency over that span: ``(H, W, 3)`` uint8."""
+    def _kept_events(self, v: int, t_from: int, t_end: int) -> dict[str, np.ndarray]:
+        """Video ``v``'s events of ``[t_from, t_end)`` that the refractory period keeps (decided from
+        the events of one period before each), checked to lie in the frame."""
         height, width = self.image_size
-        raw = self.events_of(v, t_image - self.refractory_us, t_end)
-        first = int(np.searchsorted(raw["t"], t_image, side="left"))
+        raw = self.events_of(v, t_from - self.refractory_us, t_end)
+        x, y = raw["x"], raw["y"]
+        if len(x) and (x.max() >= width or y.max() >= height):
+            raise DatasetFormatError.at(self._events[v].path, f"events of [{t_from - self.refractory_us}, {t_end}) us "
+                                                              f"lie outside the {width}x{height} frame (x max "
+                                                              f"{x.max()}, y max {y.max()})", key="events/x, events/y")
+        first = int(np.searchsorted(raw["t"], t_from, side="left"))
         if self.refractory_us:
-            keep = refractory_keep(raw["x"], raw["y"], raw["t"], self.refractory_us, width)
+            keep = refractory_keep(x, y, raw["t"], self.refractory_us, width)
             keep[:first] = False
         else:
             keep = slice(first, None)
-        return event_picture(*(raw[key][keep] for key in ("x", "y", "t", "p")), t_end, max(t_end - t_image, 1),
-                             height, width)
+        return {key: values[keep] for key, values in raw.items()}
 
     def close(self) -> None:
         for events in self._events:
