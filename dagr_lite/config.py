@@ -20,7 +20,7 @@ from omegaconf.errors import OmegaConfBaseException
 from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.augment import TrainAugment
-from dagr_lite.data.dataset import PICTURE_CHANNELS, RGB_CHANNELS, EventEgoHands
+from dagr_lite.data.dataset import RGB_CHANNELS, EventEgoHands, picture_channels
 from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.detector import IMAGE_STEMS, Detector, DetectorConfig
 
@@ -124,6 +124,7 @@ _RULES = {
     "data.graph_context_us": ("an integer >= 0 (microseconds; 0: none)", lambda v: _integer(v) and v >= 0),
     "data.event_picture": ("true or false", lambda v: isinstance(v, bool)),
     "data.carry_picture": ("true or false", lambda v: isinstance(v, bool)),
+    "data.carry_recent_us": ("an integer >= 0 (microseconds; 0: no recent channel)", lambda v: _integer(v) and v >= 0),
     "data.max_events": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
     "loader.batch_size": ("a positive integer", lambda v: _integer(v) and v > 0),
     "loader.num_workers": ("an integer >= 0", lambda v: _integer(v) and v >= 0),
@@ -240,7 +241,8 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
                           fps=dataset.fps, image_size=image_size, transform=transform,
                           clip_boxes=data.clip_boxes, labelled_only=bool(data.get("labelled_only", False)),
                           seed=cfg.seed, age_power=data.train_image_age_power if train else 0.0,
-                          event_picture=picture, carry_picture=bool(data.get("carry_picture", False)))
+                          event_picture=picture, carry_picture=bool(data.get("carry_picture", False)),
+                          carry_recent_us=int(data.get("carry_recent_us", 0)))
     if not len(built) and built.videos and first_frame is None:  # (the sweep says its own)
         lengths = [built.num_frames(v) for v in range(len(built.videos))]
         raise ConfigError(f"{built.root} [{split}]: no sample at image age {image_age}: its videos have "
@@ -267,6 +269,7 @@ def detector_config(cfg: DictConfig, *, height: int, width: int) -> DetectorConf
         raise ConfigError(f"model.size must be one of {sorted(model.sizes)}, got {model.size!r}")
     size = model.sizes[model.size]
     picture, carry = bool(cfg.data.get("carry_picture", False)), int(model.carry_width)
+    channels = picture_channels(int(cfg.data.get("carry_recent_us", 0)) if picture else 0)  # the carry picture's
     if carry and not picture:
         raise ConfigError(f"model.carry_width={carry} reads the picture of the events since the image: it needs "
                           "data.carry_picture=true")
@@ -278,8 +281,8 @@ def detector_config(cfg: DictConfig, *, height: int, width: int) -> DetectorConf
                           recency_us=tuple(model.recency_us), event_head_weight=float(model.event_head_weight),
                           image_stem=model.image_stem, late_query=bool(model.late_query),
                           geometry=bool(model.geometry), directional=bool(model.directional),
-                          image_channels=RGB_CHANNELS + (PICTURE_CHANNELS if picture and not carry else 0),
-                          carry_width=carry)
+                          image_channels=RGB_CHANNELS + (channels if picture and not carry else 0),
+                          carry_width=carry, carry_channels=channels)
 
 
 def build_model(cfg: DictConfig, *, height: int, width: int) -> Detector:

@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from dagr_lite.errors import UserError
-from dagr_lite.data.dataset import add_to_picture, picture_of, refractory_keep, sample_start_us
+from dagr_lite.data.dataset import add_to_picture, picture_channels, picture_of, refractory_keep, sample_start_us
 from dagr_lite.data.spec import SampleSpec
 from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.graph.pool import PooledGraph, recency_cells, recency_from_latest
@@ -172,6 +172,10 @@ def check_streamable(detector: DetectorConfig, sample: SampleSpec, where: str = 
         raise UserError(f"{where}this model's image branch reads a picture of the events since the image beside the "
                          "camera frame (data.carry_picture without model.carry_width); the streaming detector runs "
                          "such a picture through a carry branch only, whose maps join at the fusion")
+    if detector.carry_width and picture_channels(sample.carry_recent_us) != detector.carry_channels:
+        raise UserError(f"{where}this model's carry branch reads pictures of {detector.carry_channels} channels, but "
+                         f"data.carry_recent_us={sample.carry_recent_us} makes pictures of "
+                         f"{picture_channels(sample.carry_recent_us)} (0: three channels, > 0: four)")
     if sample.event_picture:
         raise UserError(f"{where}this model reads a picture of events in place of the camera frame "
                          "(data.event_picture, the dense peer of benchmarks/dense_peer.py); the streaming "
@@ -419,7 +423,8 @@ class StreamingDetector:
         carry_maps = None
         if self._carry is not None:
             with self._part("carry picture + branch"):
-                picture = picture_of(*self._carry, t_us, max(t_us - self._t_image, 1.0), self.height, self.width)
+                picture = picture_of(*self._carry, t_us, max(t_us - self._t_image, 1.0), self.height, self.width,
+                                     self.sample.carry_recent_us)
                 carry_maps = model.picture_maps(self._pixels(picture))
         with self._part("recency + fusion + head"):
             return model.head(*model.combine(image_maps, event_maps, recency, age, carry_maps))

@@ -22,6 +22,7 @@ from tests.settings import EVAL
 
 H, W = 48, 64
 CONTEXT_US, WINDOW_US = 10_000, 33_333
+RECENT_US = 12_000  # a four-channel carry picture's recent window
 
 
 def streaming(model: Detector, *, refractory_us: int = 0, score: float = 0.0,
@@ -30,7 +31,8 @@ def streaming(model: Detector, *, refractory_us: int = 0, score: float = 0.0,
     return StreamingDetector(model, SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=refractory_us,
                                                max_events=None, event_picture=False,
                                                graph_context_us=graph_context_us,
-                                               carry_picture=model.carry is not None),
+                                               carry_picture=model.carry is not None,
+                                               carry_recent_us=RECENT_US if model.cfg.carry_channels == 4 else 0),
                              OperatingPoint(score=score, nms_iou=EVAL["nms_threshold"]))
 
 
@@ -102,7 +104,8 @@ def check_against_batch(stream: StreamingDetector, model: Detector, events: dict
         keep &= kept
     if model.carry is not None:  # the frame and the picture of every event (kept) since it
         since = kept & (t >= t_image)
-        picture = event_picture(*(v[:upto][since] for v in events.values()), t_query, max(t_query - t_image, 1.0), H, W)
+        picture = event_picture(*(v[:upto][since] for v in events.values()), t_query, max(t_query - t_image, 1.0), H, W,
+                                stream.sample.carry_recent_us)
         image = np.concatenate([image, picture], axis=2)
     origin = t_image if hybrid else stream.origin_us
     sample = sample_of(image, tuple(v[:upto][keep] for v in events.values()), origin, t_query, math.ceil(start))
@@ -486,12 +489,13 @@ def test_demo_writes_a_playable_animation_and_a_strip(hybrid_checkpoint, tmp_pat
     assert not (tmp_path / "c.gif").exists()
 
 
-@pytest.mark.parametrize("refractory_us", [0, 3_000])
-def test_streaming_with_a_carry_branch_equals_the_batch_model(refractory_us):
+@pytest.mark.parametrize(("refractory_us", "carry_channels"), [(0, 3), (3_000, 3), (0, 4)])
+def test_streaming_with_a_carry_branch_equals_the_batch_model(refractory_us, carry_channels):
     """The picture of every event since the image (those the refractory period keeps), kept as
     per-pixel counts and latest times from the image on and read at each answer by the carry
-    branch, gives the batch model's answer; the image may come after events newer than it."""
-    model = small_model("hybrid", seed=7, carry_width=4)
+    branch (with four channels also the recency over the last ``RECENT_US``), gives the batch
+    model's answer; the image may come after events newer than it."""
+    model = small_model("hybrid", seed=7, carry_width=4, carry_channels=carry_channels)
     rng = np.random.default_rng(23)
     events = random_stream(rng, 2500, 250_000)
     images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 190_000)]
@@ -504,6 +508,16 @@ def test_a_model_reading_a_picture_of_events_is_refused_by_its_key():
     model = small_model("hybrid")
     for key in ("event_picture", "carry_picture"):
         spec = SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=0, max_events=None,
-                          graph_context_us=0, **{"event_picture": False, "carry_picture": False, key: True})
+                          graph_context_us=0, carry_recent_us=0,
+                          **{"event_picture": False, "carry_picture": False, key: True})
         with pytest.raises(UserError, match=f"data.{key}"):
             StreamingDetector(model, spec, OperatingPoint(score=0.0, nms_iou=EVAL["nms_threshold"]))
+
+
+def test_a_carry_branch_is_refused_a_picture_of_other_channels():
+    """A four-channel carry branch on a sample of three-channel pictures (no recent window)."""
+    model = small_model("hybrid", carry_width=4, carry_channels=4)
+    spec = SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=0, max_events=None,
+                      graph_context_us=0, event_picture=False, carry_picture=True, carry_recent_us=0)
+    with pytest.raises(UserError, match="reads pictures of 4 channels, but data.carry_recent_us=0 makes pictures of 3"):
+        StreamingDetector(model, spec, OperatingPoint(score=0.0, nms_iou=EVAL["nms_threshold"]))

@@ -33,20 +33,29 @@ EVENT_SPANS = ("image", "window")
 # The event picture (:func:`event_picture`): a pixel's count of each polarity saturates at this many events.
 PICTURE_COUNT_FULL = 8
 RGB_CHANNELS = 3        # a camera frame's
-PICTURE_CHANNELS = 3    # an event picture's: ON count, OFF count, recency
+PICTURE_CHANNELS = 3    # an event picture's: ON count, OFF count, recency (a fourth with a recent window)
+
+
+def picture_channels(recent_us: float) -> int:
+    """The channels of an event picture: ON count, OFF count, recency, and with ``recent_us > 0``
+    the recency over the last ``recent_us`` (:func:`picture_of`)."""
+    return PICTURE_CHANNELS + (1 if recent_us > 0 else 0)
 
 
 def event_picture(x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray, t_end_us: float, window_us: float,
-                  height: int, width: int) -> np.ndarray:
+                  height: int, width: int, recent_us: float = 0) -> np.ndarray:
     """A picture of events for a dense CNN: ``(H, W, 3)`` uint8 with channel 0 the ON count, 1 the
     OFF count (each ``255 * min(count, PICTURE_COUNT_FULL) / PICTURE_COUNT_FULL``) and 2 the
     recency of each pixel's latest event, ``255 * (1 - (t_end_us - t_last) / window_us)`` (0: no event).
+    With ``recent_us > 0`` a fourth channel (``(H, W, 4)``) holds the recency over the last
+    ``recent_us`` alone, ``255 * (1 - (t_end_us - t_last) / recent_us)`` clipped at 0: where the
+    events are now, when ``window_us`` is long (a carry picture's span, since the image).
 
     The dense peer the event branch is measured against reads this picture of the events-only
     sample in place of the camera frame (``data.event_picture``)."""
     counts, last = np.zeros((2, height * width), np.int64), np.full(height * width, -np.inf)
     add_to_picture(counts, last, x, y, t, p, width)
-    return picture_of(counts, last, t_end_us, window_us, height, width)
+    return picture_of(counts, last, t_end_us, window_us, height, width, recent_us)
 
 
 def add_to_picture(counts: np.ndarray, last: np.ndarray, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray,
@@ -63,13 +72,17 @@ def add_to_picture(counts: np.ndarray, last: np.ndarray, x: np.ndarray, y: np.nd
 
 
 def picture_of(counts: np.ndarray, last: np.ndarray, t_end_us: float, window_us: float, height: int,
-               width: int) -> np.ndarray:
+               width: int, recent_us: float = 0) -> np.ndarray:
     """:func:`event_picture` from the per-pixel state of :func:`add_to_picture` at ``t_end_us``."""
-    picture = np.zeros((height * width, 3), np.float64)
+    channels = picture_channels(recent_us)
+    picture = np.zeros((height * width, channels), np.float64)
     picture[:, :2] = np.minimum(counts.T, PICTURE_COUNT_FULL) * (255.0 / PICTURE_COUNT_FULL)
     seen = np.isfinite(last)
-    picture[seen, 2] = np.clip(1 - (t_end_us - last[seen]) / window_us, 0, 1) * 255.0
-    return np.round(picture).astype(np.uint8).reshape(height, width, 3)
+    age = t_end_us - last[seen]
+    picture[seen, 2] = np.clip(1 - age / window_us, 0, 1) * 255.0
+    if recent_us > 0:
+        picture[seen, 3] = np.clip(1 - age / recent_us, 0, 1) * 255.0
+    return np.round(picture).astype(np.uint8).reshape(height, width, channels)
 
 
 def refractory_keep(x: np.ndarray, y: np.ndarray, t: np.ndarray, refractory_us: float, width: int,
@@ -232,6 +245,8 @@ class EventEgoHands(Dataset):
             of ``[t(k - a), t(k))``, since the image's time (recency over that span; with
             ``refractory_us`` those it keeps): ``(6, H, W)`` images, the dense peer of a hybrid
             that carries the image forward with every event since it.
+        carry_recent_us: > 0: the carry picture gains a fourth channel, the recency over the last
+            ``carry_recent_us`` (where the events are now; ``(7, H, W)`` images); 0: three.
         graph_context_us: > 0: a sample's events also hold those of this long before its start
             (for ``event_span="image"`` not from before ``t(k - a) - context_us``), which the event
             graph reads as neighbours and never pools (:class:`~dagr_lite.data.spec.SampleSpec`);
@@ -245,7 +260,8 @@ class EventEgoHands(Dataset):
                  image_size: Sequence[int] | None = None, videos: Sequence[str] | None = None,
                  transform: Callable[[Sample, np.random.Generator], Sample] | None = None,
                  clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0, age_power: float = 0.0,
-                 graph_context_us: int, event_picture: bool = False, carry_picture: bool = False):
+                 graph_context_us: int, event_picture: bool = False, carry_picture: bool = False,
+                 carry_recent_us: int = 0):
         if split not in fmt.SPLITS:
             raise UserError(f"split must be one of {fmt.SPLITS}, got {split!r}")
         self.age_range = age_range(image_age)
@@ -263,6 +279,9 @@ class EventEgoHands(Dataset):
         if carry_picture and event_picture:
             raise UserError("event_picture and carry_picture are two kinds of image: choose one")
         self.carry_picture = bool(carry_picture)
+        if carry_recent_us < 0:
+            raise UserError(f"carry_recent_us must be >= 0, got {carry_recent_us}")
+        self.carry_recent_us = int(carry_recent_us)
         if context_us < 0:
             raise UserError(f"context_us must be >= 0, got {context_us}")
         if refractory_us < 0:
@@ -309,7 +328,9 @@ class EventEgoHands(Dataset):
         """What each sample's events are (the streaming detector reads the same)."""
         return SampleSpec(window_us=self.window_us, context_us=self.context_us, refractory_us=self.refractory_us,
                           max_events=self.max_events, event_picture=self.event_picture,
-                          graph_context_us=self.graph_context_us, carry_picture=self.carry_picture)
+                          graph_context_us=self.graph_context_us, carry_picture=self.carry_picture,
+                          carry_recent_us=self.carry_recent_us)
+
     def _open_video(self, video: str, labels: dict[int, np.ndarray], clip_boxes: bool):
         frames_dir = fmt.frames_dir(self.root, self.split, video)
         frames = list_frames(frames_dir)
@@ -429,11 +450,11 @@ class EventEgoHands(Dataset):
                                   height, width)
         else:
             image = self.image_of(v, image_frame)  # (H, W, 3)
-        if self.carry_picture:  # every event since the image, recency over its age
+        if self.carry_picture:  # every event since the image, recency over its age (and the recent window)
             since = int(np.searchsorted(kept["t"], t_image, side="left"))
             picture = event_picture(*(kept[key][since:] for key in ("x", "y", "t", "p")), t_end,
-                                    max(t_end - t_image, 1), height, width)
-            image = np.concatenate([image, picture], axis=2)  # (H, W, 6)
+                                    max(t_end - t_image, 1), height, width, self.carry_recent_us)
+            image = np.concatenate([image, picture], axis=2)  # (H, W, 6 or 7)
         sample = Sample(events=torch.from_numpy(events),
                         image=torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))),  # (3, H, W)
                         boxes=torch.from_numpy(np.array(boxes, dtype=np.float32).reshape(-1, 4)),

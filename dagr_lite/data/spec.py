@@ -47,6 +47,8 @@ class SampleSpec:
         event_picture: the image is a picture of the events (the dense peer), not a camera frame.
         carry_picture: the image gains three channels, a picture of the events since the image's
             time (the dense peer of a hybrid that carries the image forward).
+        carry_recent_us: > 0: the carry picture gains a fourth channel, the recency of each pixel's
+            latest event over the last ``carry_recent_us`` (where the events are now); 0: none.
         graph_context_us: > 0: the event graph's first stage also reads the events of this long
             before the sample's start (for a model with an image, not from before ``image time -
             context_us``): they are neighbours of the sample's nodes, never pooled, so a node's
@@ -60,6 +62,7 @@ class SampleSpec:
     event_picture: bool
     graph_context_us: int
     carry_picture: bool
+    carry_recent_us: int
 
     def __post_init__(self):
         checks = {"window_us": (_integer(self.window_us) and self.window_us > 0, "a positive integer"),
@@ -69,6 +72,8 @@ class SampleSpec:
                                  "a positive integer or None"),
                   "event_picture": (isinstance(self.event_picture, bool), "true or false"),
                   "carry_picture": (isinstance(self.carry_picture, bool), "true or false"),
+                  "carry_recent_us": (_integer(self.carry_recent_us) and self.carry_recent_us >= 0,
+                                      "an integer >= 0"),
                   "graph_context_us": (_integer(self.graph_context_us) and self.graph_context_us >= 0,
                                        "an integer >= 0")}
         for name, (ok, expected) in checks.items():

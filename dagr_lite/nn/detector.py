@@ -156,13 +156,15 @@ class DetectorConfig:
         directional: the event branch's first stage weights each message by the neighbour's
             offset (:class:`~dagr_lite.nn.event_branch.EventBranch`); false in checkpoints saved
             before the key.
-        image_channels: the channels the image branch reads: 3 (RGB), or 6 with a picture of the
+        image_channels: the channels the image branch reads: 3 (RGB), or 6 or 7 with a picture of the
             events since the image (``data.carry_picture``) read by its stem.
-        carry_width: > 0 (a hybrid): the images hold the camera frame and, in channels 3 to 5, the
+        carry_width: > 0 (a hybrid): the images hold the camera frame and, in the channels after it, the
             picture of every event since the image (``data.carry_picture``); a carry branch of this
             width (an :class:`ImageBranch` of its own) reads the picture, and its maps join the
             fusion beside the event maps, while the image branch and the event nodes read the frame
             alone. 0: none.
+        carry_channels: the channels of the picture the carry branch reads: 3, or 4 with the
+            recency over a recent window (``data.carry_recent_us``).
     """
 
     height: int
@@ -186,6 +188,7 @@ class DetectorConfig:
     directional: bool = False
     image_channels: int = 3
     carry_width: int = 0
+    carry_channels: int = PICTURE_CHANNELS
 
     def __post_init__(self):
         if not (self.use_events or self.use_image):
@@ -196,6 +199,8 @@ class DetectorConfig:
             raise ValueError("a detector with an event branch needs an event-graph spec (graph)")
         if not (isinstance(self.image_channels, int) and self.image_channels >= 1):
             raise ValueError(f"image_channels must be a positive integer, got {self.image_channels!r}")
+        if not (isinstance(self.carry_channels, int) and self.carry_channels >= 1):
+            raise ValueError(f"carry_channels must be a positive integer, got {self.carry_channels!r}")
         if not (isinstance(self.carry_width, int) and self.carry_width >= 0):
             raise ValueError(f"carry_width must be an integer >= 0, got {self.carry_width!r}")
         if self.carry_width and not (self.use_image and self.use_events and not self.late_query):
@@ -245,8 +250,8 @@ class Detector(nn.Module):
                                       directional=cfg.directional)
         else:
             self.events = None
-        # The carry branch reads the picture of the events since the image (channels 3 to 5 of the images).
-        self.carry = (ImageBranch(cfg.carry_width, cfg.strides, "patch", PICTURE_CHANNELS) if cfg.carry_width
+        # The carry branch reads the picture of the events since the image (the channels after the frame's).
+        self.carry = (ImageBranch(cfg.carry_width, cfg.strides, "patch", cfg.carry_channels) if cfg.carry_width
                       else None)
         carry = [0] * len(cfg.strides) if self.carry is None else list(self.carry.channels[1:])
         # The query maps (recency, and with an image its age) join before the towers (early: at the
@@ -354,14 +359,15 @@ class Detector(nn.Module):
         """The carry branch's maps at the head's strides, of the picture beside the frame (None without one)."""
         if self.carry is None:
             return None
-        if images.shape[1] != RGB_CHANNELS + PICTURE_CHANNELS:
-            raise ValueError(f"a detector with a carry branch reads images of {RGB_CHANNELS + PICTURE_CHANNELS} "
+        if images.shape[1] != RGB_CHANNELS + self.cfg.carry_channels:
+            raise ValueError(f"a detector with a carry branch reads images of {RGB_CHANNELS + self.cfg.carry_channels} "
                              f"channels (the frame, then a picture of the events since it: data.carry_picture), "
                              f"got {images.shape[1]}")
         return self.picture_maps(images[:, RGB_CHANNELS:])
 
     def picture_maps(self, pictures: torch.Tensor) -> list[torch.Tensor]:
-        """The carry branch's maps at the head's strides of ``(B, 3, H, W)`` uint8 pictures of the events since the image."""
+        """The carry branch's maps at the head's strides of ``(B, carry_channels, H, W)`` uint8 pictures of the
+        events since the image."""
         return self.carry(pictures)[1:]
 
     def combine(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor],

@@ -7,7 +7,7 @@ from dagr_lite.synth.stub import stub_root
 from tests.settings import sample_set
 
 
-def _picture_by_loop(x, y, t, p, t_end, window, height, width):
+def _picture_by_loop(x, y, t, p, t_end, window, height, width, recent=0):
     on, off = np.zeros((height, width)), np.zeros((height, width))
     last = np.full((height, width), np.nan)
     for xi, yi, ti, pi in zip(x, y, t, p):
@@ -15,7 +15,10 @@ def _picture_by_loop(x, y, t, p, t_end, window, height, width):
         last[yi, xi] = ti if np.isnan(last[yi, xi]) else max(last[yi, xi], ti)
     recency = np.where(np.isnan(last), 0.0, np.clip(1 - (t_end - np.nan_to_num(last)) / window, 0, 1) * 255)
     counts = [np.minimum(c, PICTURE_COUNT_FULL) * 255 / PICTURE_COUNT_FULL for c in (on, off)]
-    return np.round(np.stack([*counts, recency], axis=2)).astype(np.uint8)
+    channels = [*counts, recency]
+    if recent:  # the recency over the recent window alone
+        channels.append(np.where(np.isnan(last), 0.0, np.clip(1 - (t_end - np.nan_to_num(last)) / recent, 0, 1) * 255))
+    return np.round(np.stack(channels, axis=2)).astype(np.uint8)
 
 
 def test_event_picture_equals_a_per_event_loop():
@@ -27,6 +30,10 @@ def test_event_picture_equals_a_per_event_loop():
     np.testing.assert_array_equal(got, _picture_by_loop(x, y, t, p, 30_000, 33_333, height, width))
     assert got[..., 0].max() == 255 and got[..., 1].max() == 255  # some pixel saturates at this density
     assert not event_picture(x[:0], y[:0], t[:0], p[:0], 0, 33_333, height, width).any()
+    recent = event_picture(x, y, t, p, 30_000, 33_333, height, width, recent_us=4_000)
+    np.testing.assert_array_equal(recent, _picture_by_loop(x, y, t, p, 30_000, 33_333, height, width, 4_000))
+    np.testing.assert_array_equal(recent[..., :3], got)  # the fourth channel is added, the three unchanged
+    assert (recent[..., 3] == 0).sum() > (got[..., 2] == 0).sum()  # older than the recent window: 0
 
 
 def test_a_dataset_with_the_event_picture_reads_the_window_not_the_frame():
@@ -59,5 +66,10 @@ def test_the_carry_picture_is_the_frame_beside_a_picture_of_every_event_since_th
                                     b.t_end_us - b.t_image_us, 180, 320)
         np.testing.assert_array_equal(b.image[3:].numpy().transpose(1, 2, 0), expected)
     assert len(raw["t"]) > 2 * len(b.events)  # the picture reads events the horizon does not hold
+    recent = sample_set(stub_root(), "valid", image_age=(1, 10), carry_picture=True, carry_recent_us=10_000)[old]
+    assert recent.image.shape == (7, 180, 320)
+    expected = _picture_by_loop(raw["x"], raw["y"], raw["t"].astype(np.float64), raw["p"], b.t_end_us,
+                                b.t_end_us - b.t_image_us, 180, 320, 10_000)
+    np.testing.assert_array_equal(recent.image[3:].numpy().transpose(1, 2, 0), expected)
     with pytest.raises(ValueError, match="choose one"):
         sample_set(stub_root(), "valid", event_span="window", event_picture=True, carry_picture=True)
