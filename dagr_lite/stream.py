@@ -260,6 +260,7 @@ class StreamingDetector:
         self._kept_from = -math.inf  # the log holds every event since this time
         self._image = None  # (image maps, node maps) of the latest image
         self._t_image: float | None = None
+        self._frame: np.ndarray | None = None  # the latest image's pixels (a carry branch with carry_frame reads them)
         # A carry branch's picture of the events since the image: per-pixel (ON, OFF) counts and latest time.
         self._carry: tuple[np.ndarray, np.ndarray] | None = None
         self._segment: _Segment | None = None
@@ -295,7 +296,7 @@ class StreamingDetector:
         with torch.no_grad(), self._part("image features"):
             image_maps = self.model.frame_maps(self._pixels(image))
             self._image = (image_maps, self.model.node_maps(image_maps))
-        self._t_image = t_us
+        self._t_image, self._frame = t_us, image
         if self.model.carry is not None:  # the picture restarts from the logged events since the image
             self._carry = (np.zeros((2, self.height * self.width), np.int64),
                            np.full(self.height * self.width, -math.inf))
@@ -425,6 +426,8 @@ class StreamingDetector:
             with self._part("carry picture + branch"):
                 picture = picture_of(*self._carry, t_us, max(t_us - self._t_image, 1.0), self.height, self.width,
                                      self.sample.carry_recent_us)
+                if model.cfg.carry_frame:  # the frame beside the picture
+                    picture = np.concatenate([self._frame, picture], axis=2)
                 carry_maps = model.picture_maps(self._pixels(picture))
         with self._part("recency + fusion + head"):
             return model.head(*model.combine(image_maps, event_maps, recency, age, carry_maps))

@@ -165,6 +165,9 @@ class DetectorConfig:
             alone. 0: none.
         carry_channels: the channels of the picture the carry branch reads: 3, or 4 with the
             recency over a recent window (``data.carry_recent_us``).
+        carry_frame: the carry branch also reads the camera frame beside the picture (its stem
+            joins them at the first layer, as the dense peer's image branch does); false: the
+            picture alone (as in checkpoints saved before the key).
     """
 
     height: int
@@ -189,6 +192,7 @@ class DetectorConfig:
     image_channels: int = 3
     carry_width: int = 0
     carry_channels: int = PICTURE_CHANNELS
+    carry_frame: bool = False
 
     def __post_init__(self):
         if not (self.use_events or self.use_image):
@@ -203,6 +207,8 @@ class DetectorConfig:
             raise ValueError(f"carry_channels must be a positive integer, got {self.carry_channels!r}")
         if not (isinstance(self.carry_width, int) and self.carry_width >= 0):
             raise ValueError(f"carry_width must be an integer >= 0, got {self.carry_width!r}")
+        if self.carry_frame and not self.carry_width:
+            raise ValueError("carry_frame (the carry branch reads the frame too) needs a carry branch (carry_width > 0)")
         if self.carry_width and not (self.use_image and self.use_events and not self.late_query):
             raise ValueError(f"carry_width={self.carry_width} (a carry branch) needs a hybrid whose query maps join at "
                              "the fusion (late_query false), since its maps join the fusion beside the event maps; "
@@ -250,8 +256,10 @@ class Detector(nn.Module):
                                       directional=cfg.directional)
         else:
             self.events = None
-        # The carry branch reads the picture of the events since the image (the channels after the frame's).
-        self.carry = (ImageBranch(cfg.carry_width, cfg.strides, "patch", cfg.carry_channels) if cfg.carry_width
+        # The carry branch reads the picture of the events since the image (the channels after the
+        # frame's), with carry_frame the frame beside it.
+        self.carry = (ImageBranch(cfg.carry_width, cfg.strides, "patch",
+                                  cfg.carry_channels + (RGB_CHANNELS if cfg.carry_frame else 0)) if cfg.carry_width
                       else None)
         carry = [0] * len(cfg.strides) if self.carry is None else list(self.carry.channels[1:])
         # The query maps (recency, and with an image its age) join before the towers (early: at the
@@ -328,8 +336,12 @@ class Detector(nn.Module):
         recency = [recency_maps(events, event_batch, batch.age_us, batch_size=len(batch), stride=stride,
                                 height=m.shape[-2], width=m.shape[-1], taus_us=self.cfg.recency_us)
                    for m, stride in zip(event_maps, self.strides)]
+        images = batch.images
+        if not image and self.cfg.carry_frame:  # the carry branch reads a grey frame too
+            images = images.clone()
+            images[:, :RGB_CHANNELS] = 128
         maps, query, image_inputs = self.combine(image_maps, event_maps, recency, batch.age_us,
-                                                 self.carry_maps(batch.images))
+                                                 self.carry_maps(images))
         event_inputs = None
         if self.event_head is not None and self.training:
             event_inputs = ((event_maps, recency) if self.cfg.late_query else
@@ -363,11 +375,11 @@ class Detector(nn.Module):
             raise ValueError(f"a detector with a carry branch reads images of {RGB_CHANNELS + self.cfg.carry_channels} "
                              f"channels (the frame, then a picture of the events since it: data.carry_picture), "
                              f"got {images.shape[1]}")
-        return self.picture_maps(images[:, RGB_CHANNELS:])
+        return self.picture_maps(images if self.cfg.carry_frame else images[:, RGB_CHANNELS:])
 
     def picture_maps(self, pictures: torch.Tensor) -> list[torch.Tensor]:
-        """The carry branch's maps at the head's strides of ``(B, carry_channels, H, W)`` uint8 pictures of the
-        events since the image."""
+        """The carry branch's maps at the head's strides of ``(B, C, H, W)`` uint8 pictures of the
+        events since the image (``carry_channels``), with ``carry_frame`` behind the frame's channels."""
         return self.carry(pictures)[1:]
 
     def combine(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor],

@@ -211,3 +211,29 @@ def test_a_carry_branch_reads_the_picture_into_the_fusion_and_nothing_else_does(
         model.carry_maps(batch.images[:, :3])
     with pytest.raises(ValueError, match="carry_width=4 .a carry branch. needs a hybrid"):
         small_detector_config(180, 320, carry_width=4, late_query=True)
+
+
+def test_a_carry_branch_with_the_frame_reads_both_and_the_nodes_still_only_the_frame():
+    """``carry_frame``: the carry branch's stem reads the frame and the picture (seven channels with
+    the recent window); its maps follow either, the event nodes the frame alone; with the image
+    off (``forward(image=False)``) it reads a grey frame."""
+    torch.manual_seed(0)
+    model = Detector(small_detector_config(180, 320, carry_width=4, carry_channels=4, carry_frame=True)).eval()
+    assert model.carry.stem[0][0].weight.shape[1] == 7 and model.image.stem[0][0].weight.shape[1] == 3
+    dataset = sample_set(stub_root(), "valid", image_age=(1, 10), carry_picture=True, carry_recent_us=10_000)
+    batch = collate([dataset[i] for i in (3, 30)])
+    assert batch.images.shape[1] == 7
+    picture, frame = collate([dataset[i] for i in (3, 30)]), collate([dataset[i] for i in (3, 30)])
+    picture.images[:, 3:] = torch.flip(picture.images[:, 3:], dims=[-1])
+    frame.images[:, :3] = torch.flip(frame.images[:, :3], dims=[-1])
+    grey = collate([dataset[i] for i in (3, 30)])
+    grey.images[:, :3] = 128
+    with torch.no_grad():
+        carry = model.carry_maps(batch.images)
+        for changed in (picture, frame):
+            assert not all(torch.equal(a, b) for a, b in zip(carry, model.carry_maps(changed.images)))
+        torch.testing.assert_close(model.event_node_features(batch), model.event_node_features(picture), rtol=0, atol=0)
+        blank = model._features(batch, image=False)[0]
+        torch.testing.assert_close(blank, model._features(grey, image=False)[0], rtol=0, atol=0)
+    with pytest.raises(ValueError, match="carry_frame .* needs a carry branch"):
+        small_detector_config(180, 320, carry_width=0, carry_frame=True)
