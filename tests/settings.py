@@ -12,9 +12,10 @@ CONF = Path(__file__).resolve().parents[1] / "conf"
 _eval = OmegaConf.load(CONF / "eval" / "default.yaml")
 EVAL = {"conf_threshold": float(_eval.conf_threshold), "nms_threshold": float(_eval.nms_threshold)}  # conf/eval's own
 EVAL_ANSWER = {"score": EVAL["conf_threshold"], "nms_iou": EVAL["nms_threshold"]}  # the same, as an operating point
-# One sample: the image one frame old, the events of its horizon since the image, no filter, no guard.
+# One sample: the image one frame old, the events of its horizon since the image, no filter, no guard;
+# a carry picture (where asked for) with conf/data's recent channel.
 SAMPLE = {"image_age": 1, "window_us": 33_333, "context_us": 0, "refractory_us": 0, "max_events": None,
-          "graph_context_us": 0}
+          "graph_context_us": 0, "carry_recent_us": 33_333}
 # detect's settings (conf/detect.yaml): its video, its UDP receiver.
 _detect = OmegaConf.load(CONF / "detect.yaml")
 VIDEO = OmegaConf.to_container(_detect.video)

@@ -160,15 +160,16 @@ def test_model_defaults_come_from_conf_and_variants_inherit_them():
         build_model(resolve_config(compose_cfg("train", ["model.graph.radius=-1"])), height=180, width=320)
     # The hybrid's carry branch reads the picture, which the sample then holds; the other models have none.
     assert (hybrid.carry_width, hybrid.image_channels) == (8, 3) and compose_cfg("train").data.carry_picture is True
+    assert (hybrid.carry_channels, hybrid.carry_frame) == (4, True)  # the frame beside a picture with a recent channel
     assert (events.carry_width, image.carry_width, image.image_channels) == (0, 0, 3)
     for variant in ("events_only", "image_only"):
         assert resolve_config(compose_cfg("train", [f"model={variant}"])).data.carry_picture is False
     peer = detector_config(resolve_config(compose_cfg("train", ["model=image_only", "data.carry_picture=true"])),
                            height=180, width=320)
-    assert (peer.carry_width, peer.image_channels) == (0, 6)  # the image branch reads it
+    assert (peer.carry_width, peer.image_channels) == (0, 7)  # the image branch reads it
     early = detector_config(resolve_config(compose_cfg("train", ["model.carry_width=0", "data.carry_picture=true"])),
                             height=180, width=320)
-    assert (early.carry_width, early.image_channels) == (0, 6)
+    assert (early.carry_width, early.image_channels) == (0, 7)
     with pytest.raises(ConfigError, match=r"model\.carry_width=8 .* needs data\.carry_picture=true"):
         detector_config(resolve_config(compose_cfg("train", ["data.carry_picture=false"])), height=180, width=320)
 

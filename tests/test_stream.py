@@ -452,7 +452,8 @@ def test_from_checkpoint_matches_the_batch_model_in_float32(trained_checkpoints,
         if model.carry is not None:
             since = (events["t"] >= 20_000) & (np.arange(n) <= part[-1])
             pixels = np.concatenate([image, event_picture(*(v[since] for v in events.values()), t_query,
-                                                          max(t_query - 20_000, 1.0), height, width)], axis=2)
+                                                          max(t_query - 20_000, 1.0), height, width,
+                                                          stream.sample.carry_recent_us)], axis=2)
         sample = Sample(events=torch.from_numpy(np.stack([x, y, t - 20_000, p], 1).astype(np.float32)),
                         image=torch.from_numpy(np.ascontiguousarray(pixels.transpose(2, 0, 1))),
                         boxes=torch.zeros((0, 4)), labels=torch.zeros(0, dtype=torch.int64), video="v", frame=0,

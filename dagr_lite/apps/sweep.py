@@ -9,9 +9,10 @@ frames ``k`` and ``k + 1`` (every ``1/N`` of a frame interval), against boxes in
 linearly between the two frames (:func:`interpolate_boxes`); only frame pairs whose boxes all
 match are used. With ``stream=true`` each point scores what the streaming detector answers when
 fed as a camera feeds it (:func:`streamed_detections`); it reads the same sample as the batch
-model, so the figures agree (tests/apps/test_sweep_stream.py). Writes ``sweep.json``, ``sweep.csv``
-and ``sweep.png`` into ``out`` and prints
-the table.
+model, so the figures agree (tests/apps/test_sweep_stream.py). Each point also gives the recall
+of the hands that moved since the image and of those that did not (:func:`moved_recall`, at the
+checkpoint's operating point): what carrying the image forward is about. Writes ``sweep.json``,
+``sweep.csv`` and ``sweep.png`` into ``out`` and prints the table.
 """
 from __future__ import annotations
 
@@ -37,14 +38,17 @@ from dagr_lite.data.writer import write_text_atomically
 from dagr_lite.data.spec import SampleSpec
 from dagr_lite.engine.checkpoint import Checkpoint, load_checkpoint, load_model, override
 from dagr_lite.eval.operating import OperatingPoint
-from dagr_lite.eval.score import score_entries, score_model
+from dagr_lite.eval.score import detections_of, score_entries
 from dagr_lite.nn.detector import Detector
 from dagr_lite.nn.head import box_iou
 from dagr_lite.stream import StreamingDetector
 
 # Boxes of frames k and k + 1 are the same hand when their IoU is at least this (after the best one-to-one match).
 MATCH_IOU = 0.3
-RESULT_KEYS = ("ckpt", "model", "age_frames", "age_ms", "mAP", "AP50", "AP75", "num_images")
+# A true box moved since the image when it overlaps every box of the image's frame by less than this.
+MOVED_IOU = 0.5
+RESULT_KEYS = ("ckpt", "model", "age_frames", "age_ms", "mAP", "AP50", "AP75", "num_images", "recall_moved",
+               "recall_still", "num_moved", "num_still")
 
 
 def match_boxes(a: np.ndarray, b: np.ndarray, min_iou: float = MATCH_IOU) -> np.ndarray | None:
@@ -152,6 +156,31 @@ class SweepSamples(Dataset):
         return sample
 
 
+def moved_recall(entries: list[tuple], image_boxes: list[np.ndarray], score: float) -> dict:
+    """The recall of true boxes that moved since the image and of those that did not.
+
+    A true box moved when its IoU with every box of the image's frame (``image_boxes``, one array
+    per entry) is below :data:`MOVED_IOU`; it is found when a detection of score ``score`` or more
+    overlaps it by IoU 0.5 or more. Entries are :func:`~dagr_lite.eval.score.detections_of`'s.
+    Returns ``recall_moved``, ``recall_still`` (None where there is no such box) and their counts.
+    """
+    found = {"moved": [0, 0], "still": [0, 0]}
+    for (_, _, _, truth, boxes, scores), before in zip(entries, image_boxes, strict=True):
+        if not len(truth):
+            continue
+        truth = torch.as_tensor(np.asarray(truth), dtype=torch.float64).reshape(-1, 4)
+        before = torch.as_tensor(np.asarray(before), dtype=torch.float64).reshape(-1, 4)
+        kept = torch.as_tensor(np.asarray(boxes)[np.asarray(scores) >= score], dtype=torch.float64).reshape(-1, 4)
+        moved = (box_iou(truth, before).max(dim=1).values < MOVED_IOU if len(before)
+                 else torch.ones(len(truth), dtype=torch.bool))
+        hit = box_iou(truth, kept).max(dim=1).values >= 0.5 if len(kept) else torch.zeros(len(truth), dtype=torch.bool)
+        for kind, mask in (("moved", moved), ("still", ~moved)):
+            found[kind][0] += int(hit[mask].sum())
+            found[kind][1] += int(mask.sum())
+    return {**{f"recall_{kind}": (hits / count if count else None) for kind, (hits, count) in found.items()},
+            **{f"num_{kind}": count for kind, (_, count) in found.items()}}
+
+
 def sweep_points(ages: list[int], between: int) -> list[tuple[int, float]]:
     """``(age, fraction)`` of every point: each age, and with ``between`` its in-between times."""
     steps = max(1, between)
@@ -159,23 +188,24 @@ def sweep_points(ages: list[int], between: int) -> list[tuple[int, float]]:
 
 
 def score_point(cfg: DictConfig, model, dataset: EventEgoHands, frames: list[tuple[int, int]], age: int,
-                fraction: float, device: torch.device) -> dict[str, float]:
+                fraction: float, device: torch.device, score: float) -> dict[str, float]:
     """COCO metrics of ``model`` at one sweep point: of the batch model, or with ``cfg.stream`` of
-    what the streaming detector answers (:func:`streamed_detections`)."""
+    what the streaming detector answers (:func:`streamed_detections`); and :func:`moved_recall`
+    of its detections of ``score`` or more (the checkpoint's operating point)."""
     desc = f"age {age + fraction:g} frames"
     if cfg.stream:
         entries = streamed_detections(model, dataset, frames, age, fraction, conf_threshold=cfg.eval.conf_threshold,
                                       nms_threshold=cfg.eval.nms_threshold, desc=desc + ", streaming")
-        metrics, evaluator = score_entries(entries, backend=cfg.eval.backend)
     else:
         samples = SweepSamples(dataset, frames, age, fraction, cfg.seed, blank_image=cfg.blank_image)
         loader = make_loader(samples, batch_size=cfg.loader.batch_size, num_workers=cfg.loader.num_workers,
                              graph=model.graph_spec, worker_nice=cfg.loader.worker_nice)
-        metrics, evaluator = score_model(model, loader, device, backend=cfg.eval.backend,
-                                         conf_threshold=cfg.eval.conf_threshold, nms_threshold=cfg.eval.nms_threshold,
-                                         desc=desc)
+        entries = detections_of(model, loader, device, conf_threshold=cfg.eval.conf_threshold,
+                                nms_threshold=cfg.eval.nms_threshold, desc=desc)
+    metrics, evaluator = score_entries(entries, backend=cfg.eval.backend)
+    image_boxes = [dataset.boxes_of(v, k - age) for v, k in frames]
     return {"mAP": metrics["mAP"], "AP50": metrics["AP50"], "AP75": metrics["AP75"],
-            "num_images": len(evaluator.images)}
+            "num_images": len(evaluator.images), **moved_recall(entries, image_boxes, score)}
 
 
 # What a sample is, besides its image age (the sweep's own): the checkpoint's unless given.
@@ -210,7 +240,7 @@ def sweep_checkpoint(cfg: DictConfig, checkpoint: Checkpoint, frames: list[tuple
     print(f"{path}: {name}, {len(frames)} label frames of {cfg.split}{changed}", flush=True)
     rows = [{"ckpt": str(path), "model": name, "age_frames": age + fraction,
              "age_ms": 1000 * (age + fraction) / cfg.dataset.fps,
-             **score_point(run_cfg, model, dataset, frames, age, fraction, device)}
+             **score_point(run_cfg, model, dataset, frames, age, fraction, device, checkpoint.operating.score)}
             for age, fraction in sweep_points(list(cfg.ages), cfg.between)]
     return rows, frames, overrides
 
@@ -282,15 +312,18 @@ def checkpoint_name(ckpt: str) -> str:
 
 
 def format_table(rows: list[dict]) -> str:
-    """AP50 and mAP per checkpoint (rows) and image age (columns)."""
+    """AP50, mAP and the recall of moved and of still hands per checkpoint (rows) and image age (columns)."""
     ages = sorted({r["age_ms"] for r in rows})
     lines = []
-    for metric in ("AP50", "mAP"):
-        lines.append(f"{metric:<10s} {'checkpoint':<40s} " + " ".join(f"{a:7.1f}" for a in ages) + "   (image age, ms)")
+    for metric, title in (("AP50", "AP50"), ("mAP", "mAP"), ("recall_moved", "moved"), ("recall_still", "still")):
+        lines.append(f"{title:<10s} {'checkpoint':<40s} " + " ".join(f"{a:7.1f}" for a in ages) + "   (image age, ms)")
         for ckpt in dict.fromkeys(r["ckpt"] for r in rows):
             mine = {r["age_ms"]: r for r in rows if r["ckpt"] == ckpt}
             name = f"{mine[ages[0]]['model']} {checkpoint_name(ckpt)}"
-            lines.append(f"{'':<10s} {name[-40:]:<40s} " + " ".join(f"{mine[a][metric]:7.3f}" for a in ages))
+            lines.append(f"{'':<10s} {name[-40:]:<40s} "
+                         + " ".join("      -" if mine[a].get(metric) is None else f"{mine[a][metric]:7.3f}" for a in ages))
+    lines.append("moved / still: recall of the hands that moved since the image (IoU < 0.5 with every box of its frame) "
+                 "/ did not, at each checkpoint's operating point")
     return "\n".join(lines)
 
 

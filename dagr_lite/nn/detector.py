@@ -167,7 +167,7 @@ class DetectorConfig:
             recency over a recent window (``data.carry_recent_us``).
         carry_frame: the carry branch also reads the camera frame beside the picture (its stem
             joins them at the first layer, as the dense peer's image branch does); false: the
-            picture alone (as in checkpoints saved before the key).
+            picture alone (as in checkpoints saved before the key). Read only with a carry branch.
     """
 
     height: int
@@ -207,8 +207,6 @@ class DetectorConfig:
             raise ValueError(f"carry_channels must be a positive integer, got {self.carry_channels!r}")
         if not (isinstance(self.carry_width, int) and self.carry_width >= 0):
             raise ValueError(f"carry_width must be an integer >= 0, got {self.carry_width!r}")
-        if self.carry_frame and not self.carry_width:
-            raise ValueError("carry_frame (the carry branch reads the frame too) needs a carry branch (carry_width > 0)")
         if self.carry_width and not (self.use_image and self.use_events and not self.late_query):
             raise ValueError(f"carry_width={self.carry_width} (a carry branch) needs a hybrid whose query maps join at "
                              "the fusion (late_query false), since its maps join the fusion beside the event maps; "
@@ -457,8 +455,8 @@ class Detector(nn.Module):
     def zero_image_weights(self) -> None:
         """Zero every weight through which an image feature reaches the output: the columns of the
         event branch's level inputs that read the image features at the nodes, those of the
-        fusion's 1x1 convolutions that read the image maps and (``late_query``) the stems of the
-        head's image towers. The hybrid then answers exactly what
+        fusion's 1x1 convolutions that read the image maps, (``late_query``) the stems of the
+        head's image towers and (``carry_frame``) the carry stem's frame channels. The hybrid then answers exactly what
         ``forward(image=False)`` answers, whatever its image, until training moves those weights:
         the start of ``trainer.events_first``, in which they stay zero because every image
         feature is zero (no gradient reaches them, and weight decay keeps a zero at zero)."""
@@ -477,6 +475,8 @@ class Detector(nn.Module):
                 first.skip.weight[:, -k:].zero_()  # (out, in)
             for fuse, c in zip(self.fuse, self.image.channels[1:]):
                 fuse[0].weight[:, :c].zero_()  # the fusion reads [image map, event map(, age)]
+            if self.carry is not None and self.cfg.carry_frame:
+                self.carry.stem[0][0].weight[:, :RGB_CHANNELS].zero_()  # the carry stem's frame channels
             if self.head.has_image:  # the head's image towers: their stems
                 for stem in self.head.image_stems:
                     stem[0].weight.zero_()

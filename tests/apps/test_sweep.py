@@ -7,7 +7,7 @@ import pytest
 
 from dagr_lite.config import ConfigError, compose_config
 from dagr_lite.engine.train import train
-from dagr_lite.apps.sweep import SweepSamples, interpolate_boxes, match_boxes, sweep, sweep_frames, sweep_points
+from dagr_lite.apps.sweep import SweepSamples, interpolate_boxes, match_boxes, moved_recall, sweep, sweep_frames, sweep_points
 from dagr_lite.synth.stub import stub_root
 from tests.settings import sample_set
 
@@ -55,6 +55,21 @@ def test_every_age_scores_the_same_frames_with_events_since_its_image():
     assert sample.events[:, 2].max() + sample.t_image_us >= t_k  # events past frame k come in
 
 
+def test_moved_and_still_recall_by_hand():
+    truth = np.array([[0, 0, 10, 10], [50, 50, 60, 60], [100, 100, 110, 110]], np.float32)
+    before = np.array([[1, 0, 11, 10], [80, 80, 90, 90]], np.float32)  # the first still (IoU 90/110), two moved
+    boxes = np.array([[0, 0, 10, 10], [50, 52, 60, 62], [100, 100, 110, 110]], np.float32)  # IoU 1, 80/120, 1
+    scores = np.array([0.9, 0.6, 0.2])  # the third under the operating score
+    entries = [("a", 180, 320, truth, boxes, scores),
+               ("b", 180, 320, truth[:1], boxes[:0], scores[:0]),  # no box in the image's frame: moved, not found
+               ("c", 180, 320, truth[:0], boxes, scores)]  # no hand: counts nowhere
+    images = [before, before[:0], before]
+    assert moved_recall(entries, images, score=0.5) == {"recall_moved": 1 / 3, "recall_still": 1.0,
+                                                        "num_moved": 3, "num_still": 1}
+    assert moved_recall(entries[1:], images[1:], score=0.5) == {"recall_moved": 0.0, "recall_still": None,
+                                                                "num_moved": 1, "num_still": 0}
+
+
 def test_points_cover_ages_and_in_between_times():
     assert sweep_points([1, 3], 0) == [(1, 0.0), (3, 0.0)]
     assert sweep_points([2], 4) == [(2, 0.0), (2, 0.25), (2, 0.5), (2, 0.75)]
@@ -76,6 +91,9 @@ def test_the_sweep_writes_its_table_plot_and_rows(tmp_path, capsys, monkeypatch)
     assert sorted({r["age_frames"] for r in rows}) == [1.0, 1.5, 4.0, 4.5]
     assert [r["age_ms"] for r in rows if r["age_frames"] == 1.5] == [pytest.approx(50.0)] * 2
     assert len({r["num_images"] for r in rows}) == 1  # the same frames everywhere
+    for r in rows:  # every hand is moved or still since the image, and found or not
+        assert r["num_moved"] + r["num_still"] > 0
+        assert all(r[key] is None or 0 <= r[key] <= 1 for key in ("recall_moved", "recall_still"))
     with open(out / "sweep.csv") as handle:
         assert len(list(csv.DictReader(handle))) == len(rows)
     assert (out / "sweep.png").stat().st_size > 10_000

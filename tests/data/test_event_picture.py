@@ -53,7 +53,7 @@ def test_a_dataset_with_the_event_picture_reads_the_window_not_the_frame():
 
 def test_the_carry_picture_is_the_frame_beside_a_picture_of_every_event_since_the_image():
     plain = sample_set(stub_root(), "valid", image_age=(1, 10))
-    carried = sample_set(stub_root(), "valid", image_age=(1, 10), carry_picture=True)
+    carried = sample_set(stub_root(), "valid", image_age=(1, 10), carry_picture=True, carry_recent_us=0)
     old = next(i for i in range(len(plain)) if plain[i].age_us > 4 * 33_333)  # an image older than the horizon
     for index in (3, old):
         a, b = plain[index], carried[index]
