@@ -176,7 +176,8 @@ def full_pass(model: Detector, rec: Recording, t_query: float, *, sample: Sample
         since = slice(int(np.searchsorted(t, t_image)), keep.stop)
         height, width = pixels.shape[:2]
         pixels = np.concatenate([pixels, event_picture(*(rec.events[key][since] for key in ("x", "y", "t", "p")),
-                                                       t_query, max(t_query - t_image, 1.0), height, width)], axis=2)
+                                                       t_query, max(t_query - t_image, 1.0), height, width,
+                                                       sample.carry_recent_us)], axis=2)
     sample = Sample(events=events, image=torch.from_numpy(np.ascontiguousarray(pixels.transpose(2, 0, 1))),
                     boxes=torch.zeros((0, 4)), labels=torch.zeros(0, dtype=torch.int64), video=rec.video, frame=k,
                     image_frame=k, t_start_us=int(begin), t_end_us=int(t_query), t_image_us=int(t_image))
