@@ -490,14 +490,16 @@ def test_demo_writes_a_playable_animation_and_a_strip(hybrid_checkpoint, tmp_pat
     assert not (tmp_path / "c.gif").exists()
 
 
-@pytest.mark.parametrize(("refractory_us", "carry_channels", "carry_frame"),
-                         [(0, 3, False), (3_000, 3, False), (0, 4, True)])
-def test_streaming_with_a_carry_branch_equals_the_batch_model(refractory_us, carry_channels, carry_frame):
+@pytest.mark.parametrize(("refractory_us", "carry_channels", "carry_frame", "carry_attend"),
+                         [(0, 3, False, 0), (3_000, 3, False, 0), (0, 4, True, 0), (0, 4, True, 1)])
+def test_streaming_with_a_carry_branch_equals_the_batch_model(refractory_us, carry_channels, carry_frame,
+                                                              carry_attend):
     """The picture of every event since the image (those the refractory period keeps), kept as
     per-pixel counts and latest times from the image on and read at each answer by the carry
     branch (with four channels also the recency over the last ``RECENT_US``, with ``carry_frame``
     beside the frame), gives the batch model's answer; the image may come after events newer than it."""
-    model = small_model("hybrid", seed=7, carry_width=4, carry_channels=carry_channels, carry_frame=carry_frame)
+    model = small_model("hybrid", seed=7, carry_width=4, carry_channels=carry_channels, carry_frame=carry_frame,
+                        carry_attend=carry_attend)
     rng = np.random.default_rng(23)
     events = random_stream(rng, 2500, 250_000)
     images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 190_000)]

@@ -122,6 +122,52 @@ def sample_at(feature: torch.Tensor, xy: torch.Tensor, batch: torch.Tensor, stri
     return top * (1 - fv) + bottom * fv  # (N, C)
 
 
+class CarryAttention(nn.Module):
+    """Local attention from the events' now to the image's then, at one map stride.
+
+    Each cell ``x`` of a query map (the carry branch's: the events since the image, and the frame)
+    attends to the image map's cells ``x + d``, ``|d| <= radius`` each way (cells beyond the map
+    are left out), and to a "nothing" slot of logit 0 and value 0; its output is the attention-
+    weighted sum of the image cells' values::
+
+        a(x, d) = softmax_d [0, <q(x), k(x + d)> / sqrt(D)],   out(x) = sum_d a(x, d) v(x + d)
+
+    with 1x1 projections ``q``, ``k`` (``dim`` channels) and ``v`` (``value_channels``). A hand that
+    moved since the image by up to ``radius`` cells can so bring the image's features of it to
+    where its events are now. Shapes: query ``(B, Cq, h, w)``, image ``(B, Ci, h, w)`` ->
+    ``(B, value_channels, h, w)``.
+    """
+
+    def __init__(self, query_channels: int, image_channels: int, radius: int, dim: int = 16,
+                 value_channels: int = 16):
+        super().__init__()
+        if not (isinstance(radius, int) and radius >= 1):
+            raise ValueError(f"carry_attend must be an integer >= 1 (cells each way), got {radius!r}")
+        self.radius, self.dim, self.value_channels = radius, dim, value_channels
+        self.query = nn.Conv2d(query_channels, dim, 1)
+        self.key = nn.Conv2d(image_channels, dim, 1)
+        self.value = nn.Conv2d(image_channels, value_channels, 1)
+
+    def forward(self, query_map: torch.Tensor, image_map: torch.Tensor) -> torch.Tensor:
+        if query_map.shape[-2:] != image_map.shape[-2:]:
+            raise ValueError(f"carry attention: query map {tuple(query_map.shape[-2:])} and image map "
+                             f"{tuple(image_map.shape[-2:])} differ in size")
+        b, _, h, w = query_map.shape
+        size, pad = 2 * self.radius + 1, self.radius
+        q = self.query(query_map).reshape(b, self.dim, 1, h * w)
+        k = F.unfold(self.key(image_map), size, padding=pad).reshape(b, self.dim, size * size, h * w)
+        v = F.unfold(self.value(image_map), size, padding=pad).reshape(b, self.value_channels, size * size, h * w)
+        logits = (q * k).sum(1) / math.sqrt(self.dim)  # (B, S, hw)
+        inside = F.unfold(query_map.new_ones(1, 1, h, w), size, padding=pad) > 0  # (1, S, hw): d within the map
+        logits = logits.masked_fill(~inside, float("-inf"))
+        weights = torch.softmax(torch.cat([logits.new_zeros(b, 1, h * w), logits], dim=1), dim=1)[:, 1:]
+        return (weights.unsqueeze(1) * v).sum(2).reshape(b, self.value_channels, h, w)
+
+
+# The stride whose maps the carry attention reads; its output joins the fusion at every head stride.
+ATTEND_STRIDE = 16
+
+
 @dataclass(frozen=True)
 class DetectorConfig:
     """Everything that defines a detector's architecture (defaults: ``conf/model/hybrid.yaml``).
@@ -168,6 +214,11 @@ class DetectorConfig:
         carry_frame: the carry branch also reads the camera frame beside the picture (its stem
             joins them at the first layer, as the dense peer's image branch does); false: the
             picture alone (as in checkpoints saved before the key). Read only with a carry branch.
+        carry_attend: > 0 (with a carry branch): each cell of the carry branch's stride-16 map
+            attends to the image's stride-16 cells up to this many cells away each way
+            (:class:`CarryAttention`), and what it gathers joins the fusion at every stride beside
+            the carry maps, so the image's features of a hand that moved can follow its events.
+            0: none (as in checkpoints saved before the key).
     """
 
     height: int
@@ -193,6 +244,7 @@ class DetectorConfig:
     carry_width: int = 0
     carry_channels: int = PICTURE_CHANNELS
     carry_frame: bool = False
+    carry_attend: int = 0
 
     def __post_init__(self):
         if not (self.use_events or self.use_image):
@@ -211,6 +263,11 @@ class DetectorConfig:
             raise ValueError(f"carry_width={self.carry_width} (a carry branch) needs a hybrid whose query maps join at "
                              "the fusion (late_query false), since its maps join the fusion beside the event maps; "
                              "carry_width=0 for any other model")
+        if not (isinstance(self.carry_attend, int) and self.carry_attend >= 0):
+            raise ValueError(f"carry_attend must be an integer >= 0, got {self.carry_attend!r}")
+        if self.carry_attend and not (self.carry_width and ATTEND_STRIDE in self.strides):
+            raise ValueError(f"carry_attend={self.carry_attend} needs a carry branch (carry_width > 0) and the "
+                             f"head stride {ATTEND_STRIDE} among strides {list(self.strides)}")
         if self.image_stem not in IMAGE_STEMS:
             raise ValueError(f"image_stem must be one of {list(IMAGE_STEMS)}, got {self.image_stem!r}")
 
@@ -259,7 +316,11 @@ class Detector(nn.Module):
         self.carry = (ImageBranch(cfg.carry_width, cfg.strides, "patch",
                                   cfg.carry_channels + (RGB_CHANNELS if cfg.carry_frame else 0)) if cfg.carry_width
                       else None)
-        carry = [0] * len(cfg.strides) if self.carry is None else list(self.carry.channels[1:])
+        self.attend = None
+        if cfg.carry_attend:
+            at = cfg.strides.index(ATTEND_STRIDE)
+            self.attend = CarryAttention(self.carry.channels[1 + at], self.image.channels[1 + at], cfg.carry_attend)
+        carry = self.carry_widths
         # The query maps (recency, and with an image its age) join before the towers (early: at the
         # fusion, or an events-only head's input) or after them (late_query).
         late = self.num_query if cfg.late_query else 0
@@ -356,8 +417,8 @@ class Detector(nn.Module):
                  for m, c in zip(image_maps[1:], self.events.out_channels)]
         recency = [m.new_zeros(len(batch), self.num_recency, *m.shape[-2:]) for m in image_maps[1:]]
         carry = None if self.carry is None else [m.new_zeros(len(batch), c, *m.shape[-2:]) for m, c in
-                                                 zip(image_maps[1:], self.carry.channels[1:])]
-        maps, query, image_inputs = self.combine(image_maps, zeros, recency, batch.age_us, carry)
+                                                 zip(image_maps[1:], self.carry_widths)]
+        maps, query, image_inputs = self.combine(image_maps, zeros, recency, batch.age_us, carry, attend=False)
         return maps, query, image_inputs, None
 
     def frame_maps(self, images: torch.Tensor) -> list[torch.Tensor]:
@@ -380,24 +441,53 @@ class Detector(nn.Module):
         events since the image (``carry_channels``), with ``carry_frame`` behind the frame's channels."""
         return self.carry(pictures)[1:]
 
+    @property
+    def carry_widths(self) -> list[int]:
+        """The channels the carry joins the fusion with at each head stride: its maps' and the carry
+        attention's output (:meth:`attended`)."""
+        if self.carry is None:
+            return [0] * len(self.strides)
+        extra = 0 if self.attend is None else self.attend.value_channels
+        return [c + extra for c in self.carry.channels[1:]]
+
     def combine(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor],
-                recency: list[torch.Tensor], age_us: torch.Tensor, carry_maps: list[torch.Tensor] | None = None):
+                recency: list[torch.Tensor], age_us: torch.Tensor, carry_maps: list[torch.Tensor] | None = None,
+                attend: bool = True):
         """The head's inputs from the event maps, the recency maps (``(B, num_recency, h, w)`` per
         stride, how recently each cell saw events at the query time) and, in a hybrid, the image
         maps (all strides of :class:`ImageBranch`) and the image's age ``(B,)`` in microseconds:
         the maps its towers read (:meth:`fuse_maps`), the query maps it reads after them
         (:meth:`query_maps`; None without ``late_query``) and the image maps its own image towers
         read (a hybrid with ``late_query``; else None). ``carry_maps`` (a carry branch's) join the
-        fusion after the recency maps."""
+        fusion after the recency maps, with the carry attention's output behind them (``attend``
+        false: they already hold it, as :attr:`carry_widths` counts)."""
         if self.cfg.late_query:
             return (self.fuse_maps(image_maps, event_maps), self.query_maps(recency, age_us),
                     None if image_maps is None else image_maps[1:])
         joined = [torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)]
         if carry_maps is not None:
+            if self.attend is not None and attend:
+                carry_maps = self.attended(image_maps, carry_maps)
             joined = [torch.cat([j, c], dim=1) for j, c in zip(joined, carry_maps)]
         if image_maps is None:
             return joined, None, None
         return self._fuse(image_maps, joined, self._age_planes(age_us, image_maps[1:])), None, None
+
+    def attended(self, image_maps: list[torch.Tensor], carry_maps: list[torch.Tensor]) -> list[torch.Tensor]:
+        """The carry maps, each with the carry attention's output (:class:`CarryAttention`, at
+        stride 16) behind it, brought to its stride: repeated to finer strides, averaged over
+        2x2 cells per doubling to coarser ones."""
+        at = self.strides.index(ATTEND_STRIDE)
+        gathered = self.attend(carry_maps[at], image_maps[1 + at])
+        out = []
+        for stride, carry in zip(self.strides, carry_maps):
+            g = gathered
+            if stride > ATTEND_STRIDE:
+                g = F.avg_pool2d(g, stride // ATTEND_STRIDE, ceil_mode=True)
+            if g.shape[-2:] != carry.shape[-2:]:
+                g = F.interpolate(g, size=carry.shape[-2:], mode="nearest")
+            out.append(torch.cat([carry, g], dim=1))
+        return out
 
     def fuse_maps(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor]) -> list[torch.Tensor]:
         """With ``late_query``, the head's input: the event maps, fused with the image maps in a
@@ -456,7 +546,8 @@ class Detector(nn.Module):
         """Zero every weight through which an image feature reaches the output: the columns of the
         event branch's level inputs that read the image features at the nodes, those of the
         fusion's 1x1 convolutions that read the image maps, (``late_query``) the stems of the
-        head's image towers and (``carry_frame``) the carry stem's frame channels. The hybrid then answers exactly what
+        head's image towers, (``carry_frame``) the carry stem's frame channels and (``carry_attend``) the carry
+        attention's key and value projections. The hybrid then answers exactly what
         ``forward(image=False)`` answers, whatever its image, until training moves those weights:
         the start of ``trainer.events_first``, in which they stay zero because every image
         feature is zero (no gradient reaches them, and weight decay keeps a zero at zero)."""
@@ -477,6 +568,9 @@ class Detector(nn.Module):
                 fuse[0].weight[:, :c].zero_()  # the fusion reads [image map, event map(, age)]
             if self.carry is not None and self.cfg.carry_frame:
                 self.carry.stem[0][0].weight[:, :RGB_CHANNELS].zero_()  # the carry stem's frame channels
+            if self.attend is not None:  # the carry attention's keys and values read the image map
+                self.attend.key.weight.zero_()
+                self.attend.value.weight.zero_()
             if self.head.has_image:  # the head's image towers: their stems
                 for stem in self.head.image_stems:
                     stem[0].weight.zero_()
@@ -494,8 +588,7 @@ class Detector(nn.Module):
             raise ValueError("trainer.image_first needs model.late_query=false and model.event_head_weight=0: "
                              "there the fusion is the only way from the events to the output")
         with torch.no_grad():
-            carry = [0] * len(self.fuse) if self.carry is None else self.carry.channels[1:]
-            for fuse, c, e, k in zip(self.fuse, self.image.channels[1:], self.events.out_channels, carry):
+            for fuse, c, e, k in zip(self.fuse, self.image.channels[1:], self.events.out_channels, self.carry_widths):
                 fuse[0].weight[:, c:c + e + self.num_recency + k].zero_()  # [image, event, recency, carry, age]
 
     def node_maps(self, image_maps: list[torch.Tensor]) -> list[torch.Tensor]:

@@ -3,7 +3,7 @@ import torch
 
 from dagr_lite.data.collate import collate
 from dagr_lite.engine.checkpoint import upgraded_detector
-from dagr_lite.nn.detector import Detector, DetectorConfig
+from dagr_lite.nn.detector import CarryAttention, Detector, DetectorConfig
 from dagr_lite.nn.head import box_iou
 from dagr_lite.synth.stub import stub_root
 from tests.models import small_detector_config
@@ -75,8 +75,8 @@ def test_the_event_head_adds_its_weighted_loss_in_training_and_leaves_detection_
         assert Detector(small_detector_config(variant=variant, **sizes, event_head_weight=1.0)).event_head is None
 
 
-@pytest.mark.parametrize("late_query", [False, True])
-def test_with_its_image_weights_zeroed_a_hybrid_answers_what_it_answers_without_an_image(late_query):
+@pytest.mark.parametrize(("late_query", "carry_attend"), [(False, 0), (True, 0), (False, 2)])
+def test_with_its_image_weights_zeroed_a_hybrid_answers_what_it_answers_without_an_image(late_query, carry_attend):
     """zero_image_weights: the hybrid's features with any frame (the stub's, or noise) equal, to
     the last bit, those of forward(image=False), which runs no image branch; before zeroing, the
     image changes them (the check can fail). In training the zeroed weights get no gradient."""
@@ -87,7 +87,8 @@ def test_with_its_image_weights_zeroed_a_hybrid_answers_what_it_answers_without_
     frame.copy_(torch.randint(0, 256, frame.shape, dtype=frame.dtype))
     torch.manual_seed(0)
     model = Detector(small_detector_config(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16,
-                                           late_query=late_query, carry_width=0 if late_query else 8)).eval()
+                                           late_query=late_query, carry_width=0 if late_query else 8,
+                                           carry_attend=carry_attend)).eval()
     with torch.no_grad():
         blank = model._features(batch, image=False)[0]
         assert any(not torch.equal(a, b) for a, b in zip(model.features(batch)[0], blank))
@@ -108,6 +109,8 @@ def test_with_its_image_weights_zeroed_a_hybrid_answers_what_it_answers_without_
     if late_query:  # the stems of the head's image towers read the image maps
         assert all(stem[0].weight.grad.abs().sum() == 0 for stem in model.head.image_stems)
     assert all(p.grad is None for p in [*model.image.parameters(), *model.to_nodes.parameters()])
+    if carry_attend:  # the carry attention's keys and values read the image map; its queries the carry's
+        assert model.attend.key.weight.grad.abs().sum() == 0 and model.attend.value.weight.grad.abs().sum() == 0
     for variant in ("events_only", "image_only"):
         with pytest.raises(ValueError, match="only a hybrid"):
             Detector(small_detector_config(variant=variant, image_width=8, event_channels=(8, 8, 8, 8),
@@ -186,13 +189,90 @@ def test_node_features_ignore_later_events_and_the_query_time():
     assert not torch.equal(now, later_scores)
 
 
-def test_a_carry_branch_reads_the_picture_into_the_fusion_and_nothing_else_does():
+def attention_by_loops(query: torch.Tensor, image: torch.Tensor, attend: CarryAttention) -> torch.Tensor:
+    """:class:`CarryAttention` cell by cell: each cell's dot products with the image cells within
+    ``radius`` each way (inside the map), a softmax with the nothing slot's logit 0, the weighted sum."""
+    q, k, v = attend.query(query), attend.key(image), attend.value(image)
+    b, _, h, w = q.shape
+    r = attend.radius
+    out = torch.zeros(b, v.shape[1], h, w, dtype=q.dtype)
+    for n in range(b):
+        for y in range(h):
+            for x in range(w):
+                logits, values = [torch.zeros((), dtype=q.dtype)], [torch.zeros(v.shape[1], dtype=q.dtype)]
+                for yy in range(max(y - r, 0), min(y + r, h - 1) + 1):
+                    for xx in range(max(x - r, 0), min(x + r, w - 1) + 1):
+                        logits.append(q[n, :, y, x] @ k[n, :, yy, xx] / attend.dim ** 0.5)
+                        values.append(v[n, :, yy, xx])
+                weights = torch.softmax(torch.stack(logits), dim=0)
+                out[n, :, y, x] = (weights[:, None] * torch.stack(values)).sum(0)
+    return out
+
+
+@pytest.mark.parametrize("radius", [1, 2, 6])
+def test_the_carry_attention_equals_its_cell_by_cell_definition(radius):
+    """Values and gradients in float64, on maps smaller than the window (radius 6 on 5 x 7 cells)
+    and larger (radius 1), so the cells beyond the map are left out at every border."""
+    torch.manual_seed(radius)
+    attend = CarryAttention(6, 5, radius, dim=4, value_channels=3).double()
+    query = torch.randn(2, 6, 5, 7, dtype=torch.float64, requires_grad=True)
+    image = torch.randn(2, 5, 5, 7, dtype=torch.float64, requires_grad=True)
+    fast, slow = attend(query, image), attention_by_loops(query, image, attend)
+    torch.testing.assert_close(fast, slow, rtol=1e-12, atol=1e-12)
+    weights = torch.randn_like(fast)
+    grads = torch.autograd.grad((fast * weights).sum(), (query, image, attend.key.weight))
+    reference = torch.autograd.grad((slow * weights).sum(), (query, image, attend.key.weight))
+    for a, b in zip(grads, reference):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+    with pytest.raises(ValueError, match="carry_attend must be an integer >= 1"):
+        CarryAttention(6, 5, 0)
+
+
+def test_the_carry_attention_gathers_a_moved_feature_and_joins_every_stride():
+    """A hand-computed case: one image cell matches the query of a cell two cells away, strongly;
+    that cell gathers its value and the others almost nothing. In a detector, the gathered map
+    joins the carry maps at every head stride; it needs a carry branch and stride 16."""
+    attend = CarryAttention(1, 1, 2, dim=1, value_channels=1).double()
+    with torch.no_grad():
+        for conv in (attend.query, attend.key, attend.value):
+            conv.weight.fill_(1.0), conv.bias.zero_()
+    query, image = torch.zeros(1, 1, 5, 5, dtype=torch.float64), torch.zeros(1, 1, 5, 5, dtype=torch.float64)
+    query[0, 0, 1, 1], image[0, 0, 3, 3] = 10.0, 3.0  # the "hand" was at (3, 3), its events are at (1, 1)
+    with torch.no_grad():
+        out = attend(query, image)[0, 0]
+    # (1, 1) sees 16 of the image cells within 2 (the nothing slot and 15 zeros at logit 0, the hand at 30)
+    expected = 3.0 * torch.exp(torch.tensor(30.0, dtype=torch.float64)) / (16 + torch.exp(torch.tensor(30.0)))
+    torch.testing.assert_close(out[1, 1], expected)
+    assert float(out[0, 0]) == 0.0  # the hand's cell is 3 cells away: out of its window
+    torch.testing.assert_close(out[2, 2], torch.tensor(3.0 / 26, dtype=torch.float64))  # all 25 cells plus nothing
+    model = Detector(small_detector_config(180, 320, image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16,
+                                           carry_width=4, carry_attend=3)).eval()
+    dataset = sample_set(stub_root(), "valid", image_age=(1, 10), carry_picture=True)
+    batch = collate([dataset[i] for i in (3, 30)])
+    with torch.no_grad():
+        image_maps, carry = model.frame_maps(batch.images), model.carry_maps(batch.images)
+        joined = model.attended(image_maps, carry)
+        gathered = model.attend(carry[1], image_maps[2])
+    for c, j in zip(carry, joined):
+        assert j.shape == (2, c.shape[1] + model.attend.value_channels, *c.shape[-2:])
+        torch.testing.assert_close(j[:, :c.shape[1]], c, rtol=0, atol=0)
+    torch.testing.assert_close(joined[1][:, carry[1].shape[1]:], gathered, rtol=0, atol=0)
+    torch.testing.assert_close(joined[0][:, carry[0].shape[1]:, ::2, ::2], gathered, rtol=0, atol=0)  # repeated
+    torch.testing.assert_close(joined[2][:, carry[2].shape[1]:, 0, 0], gathered[:, :, :2, :2].mean((-1, -2)))
+    with pytest.raises(ValueError, match="carry_attend=3 needs a carry branch"):
+        small_detector_config(180, 320, carry_width=0, carry_attend=3)
+    with pytest.raises(ValueError, match="the head stride 16"):
+        small_detector_config(180, 320, carry_width=4, carry_attend=3, strides=(32,), event_channels=(8, 8))
+
+
+@pytest.mark.parametrize("carry_attend", [0, 2])
+def test_a_carry_branch_reads_the_picture_into_the_fusion_and_nothing_else_does(carry_attend):
     """``carry_width``: the picture beside the frame reaches the output only through the carry
     branch's maps at the fusion. The event nodes and the image branch read the frame alone (a
     different picture leaves them as they were); the picture changes the answer; with the event
     weights zeroed (which include the carry's) the answer is ``forward(events=False)``'s."""
     torch.manual_seed(0)
-    model = Detector(small_detector_config(180, 320, carry_width=4)).eval()
+    model = Detector(small_detector_config(180, 320, carry_width=4, carry_attend=carry_attend)).eval()
     assert model.carry is not None and model.image.stem[0][0].weight.shape[1] == 3
     dataset = sample_set(stub_root(), "valid", image_age=(1, 10), carry_picture=True)
     batch = collate([dataset[i] for i in (3, 30)])
