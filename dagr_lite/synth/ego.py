@@ -27,9 +27,9 @@ from dagr_lite.synth.stub import boxes_of, cached_dataset, paint_ellipse, write_
 from dagr_lite.synth.video import choose_dvs_model
 
 # Bump when the generated data changes, so caches made by an older recipe are not reused.
-EGO_VERSION = 1
+EGO_VERSION = 2           # 2: splits of 48 / 4 / 16 videos (1: 16 / 3 / 4, too few test videos to judge a change by)
 EGO_HEIGHT, EGO_WIDTH = 180, 320
-EGO_SPLITS = {"train": 16, "valid": 3, "test": 4}
+EGO_SPLITS = {"train": 48, "valid": 4, "test": 16}
 EGO_SECONDS = 2.0
 EGO_UPSAMPLE = 6
 EGO_DVS_MODEL = "mixed"     # per video clean or noisy (synth.video.choose_dvs_model, seeded by the video's name)
