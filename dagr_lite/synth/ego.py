@@ -17,19 +17,21 @@ the stub's.
 """
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
-from dagr_lite.synth.stub import boxes_of, cached_dataset, paint_ellipse, write_scenes
+from dagr_lite.synth.stub import Splits, boxes_of, cached_dataset, paint_ellipse, scene_at, write_scenes
 from dagr_lite.synth.video import choose_dvs_model
 
 # Bump when the generated data changes, so caches made by an older recipe are not reused.
-EGO_VERSION = 2           # 2: splits of 48 / 4 / 16 videos (1: 16 / 3 / 4, too few test videos to judge a change by)
+EGO_VERSION = 3           # 3: 96 training videos, the 48 of version 2 and 48 after its test videos (valid and test
+                          # as in version 2); 2: splits of 48 / 4 / 16 (1: 16 / 3 / 4, too few test videos)
 EGO_HEIGHT, EGO_WIDTH = 180, 320
-EGO_SPLITS = {"train": 48, "valid": 4, "test": 16}
+EGO_SPLITS = (("train", 48), ("valid", 4), ("test", 16), ("train", 48))  # videos ego_000, ... in this order
 EGO_SECONDS = 2.0
 EGO_UPSAMPLE = 6
 EGO_DVS_MODEL = "mixed"     # per video clean or noisy (synth.video.choose_dvs_model, seeded by the video's name)
@@ -285,16 +287,18 @@ class EgoScene:
         return boxes_of(corners, MIN_BOX_SIZE)
 
 
-def generate_ego(out: Path | str, *, seconds: float = EGO_SECONDS, splits: dict[str, int] | None = None,
+def generate_ego(out: Path | str, *, seconds: float = EGO_SECONDS, splits: Splits | None = None,
                  seed: int = 0, upsample: int = EGO_UPSAMPLE, dvs_model: str = EGO_DVS_MODEL,
-                 compression: str | None = "blosc", progress: bool = True) -> Path:
+                 compression: str | None = "blosc", progress: bool = True, workers: int | None = None) -> Path:
     """Write the ego dataset to ``out``; videos are ``ego_000``, ``ego_001``, ... in split order.
 
     ``dvs_model``: ``mixed`` (each video clean or noisy by a draw on its name), ``clean`` or
-    ``noisy`` (every video; the same scenes, for measuring mixed training)."""
+    ``noisy`` (every video; the same scenes, for measuring mixed training). ``splits``:
+    :func:`~dagr_lite.synth.stub.split_of_videos`; ``workers``: processes
+    (:func:`~dagr_lite.synth.stub.write_scenes`)."""
     if dvs_model not in ("clean", "noisy", "mixed"):
         raise UserError(f"dvs_model must be clean, noisy or mixed, got {dvs_model!r}")
-    return write_scenes(out, lambda index: EgoScene(seed * 1000 + index, seconds=seconds), "ego",
-                        splits or EGO_SPLITS,
+    return write_scenes(out, partial(scene_at, EgoScene, seed, seconds), "ego", splits or EGO_SPLITS,
                         lambda video: choose_dvs_model(video, seed=seed) if dvs_model == "mixed" else dvs_model,
-                        upsample=upsample, seed=seed, compression=compression, progress=progress)
+                        upsample=upsample, seed=seed, compression=compression, progress=progress,
+                        workers=workers)

@@ -10,9 +10,13 @@ dataset (:func:`dagr_lite.synth.video.emulate_video`).
 """
 from __future__ import annotations
 
+import multiprocessing
 import os
 import shutil
 import tempfile
+from collections.abc import Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from functools import partial
 from pathlib import Path
 from typing import Callable
 
@@ -204,29 +208,85 @@ def boxes_of(corners, least: float) -> np.ndarray:
 
 def generate_stub(out: Path | str, *, seconds: float = STUB_SECONDS, splits: dict[str, int] | None = None,
                   seed: int = 0, upsample: int = STUB_UPSAMPLE, dvs_model: str = STUB_DVS_MODEL,
-                  compression: str | None = "blosc", progress: bool = True) -> Path:
-    """Write the stub dataset to ``out``; videos are ``stub_000``, ``stub_001``, ... in split order."""
-    return write_scenes(out, lambda index: HandScene(seed * 1000 + index, seconds=seconds), "stub",
-                        splits or STUB_SPLITS, lambda video: dvs_model, upsample=upsample, seed=seed,
-                        compression=compression, progress=progress)
+                  compression: str | None = "blosc", progress: bool = True, workers: int | None = None) -> Path:
+    """Write the stub dataset to ``out``; videos are ``stub_000``, ``stub_001``, ... in split order
+    (``workers``: processes, :func:`write_scenes`)."""
+    return write_scenes(out, partial(scene_at, HandScene, seed, seconds), "stub", splits or STUB_SPLITS,
+                        lambda video: dvs_model, upsample=upsample, seed=seed, compression=compression,
+                        progress=progress, workers=workers)
 
 
-def write_scenes(out: Path | str, scene_of: Callable[[int], "HandScene"], prefix: str, splits: dict[str, int],
+Splits = Mapping[str, int] | Sequence[tuple[str, int]]
+
+
+def split_of_videos(splits: Splits) -> list[str]:
+    """The split of each video in index order. ``splits``: ``{split: count}`` in its order, or
+    segments ``[(split, count), ...]`` in which a split may come back, so a later version of a
+    dataset can add videos after the others without renaming (and so changing) any of them."""
+    segments = list(splits.items()) if isinstance(splits, Mapping) else list(splits)
+    jobs = []
+    for segment in segments:
+        if len(segment) != 2 or segment[0] not in fmt.SPLITS or int(segment[1]) < 0:
+            raise ValueError(f"splits: each entry is (split, count) with split one of {fmt.SPLITS} and count >= 0, "
+                             f"got {segment!r}")
+        jobs += [segment[0]] * int(segment[1])
+    return jobs
+
+
+def scene_at(scene_class: type, seed: int, seconds: float, index: int):
+    """Video ``index``'s scene of a generator seeded by ``seed``: ``scene_class(seed * 1000 + index)``.
+    A module-level function, so ``partial(scene_at, ...)`` reaches generation's worker processes."""
+    return scene_class(seed * 1000 + index, seconds=seconds)
+
+
+def generation_workers(videos: int, workers: int | None) -> int:
+    """Processes that write ``videos`` videos: ``workers``, or with None one per CPU core this
+    process may use, with at least two videos each (fewer videos are written in this process)."""
+    if workers is not None:
+        if workers < 1:
+            raise ValueError(f"workers must be at least 1, got {workers}")
+        return min(workers, max(videos, 1))
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(cores, videos // 2))
+
+
+def _write_video(out: Path, split: str, video: str, index: int, scene_of: Callable[[int], "HandScene"],
+                 dvs_model: str, upsample: int, seed: int, compression: str | None) -> tuple[str, dict]:
+    scene = scene_of(index)
+    with VideoWriter(out, split, video, num_frames=scene.num_frames, height=scene.height, width=scene.width,
+                     compression=compression) as writer:
+        emulate_video(scene, writer, params=preset(dvs_model), upsample=upsample, seed=seed * 1000 + index)
+    return video, {k: scene.boxes(k) for k in range(scene.num_frames)}
+
+
+def write_scenes(out: Path | str, scene_of: Callable[[int], "HandScene"], prefix: str, splits: Splits,
                  dvs_model_of: Callable[[str], str], *, upsample: int, seed: int, compression: str | None,
-                 progress: bool) -> Path:
+                 progress: bool, workers: int | None = None) -> Path:
     """Render, emulate and write one synthetic scene per video, ``<prefix>_000``, ... in split order
     (``scene_of(index)``, a frame source with ``boxes(k)``), each with the DVS preset
-    ``dvs_model_of(video)``, and every frame's boxes as the labels."""
+    ``dvs_model_of(video)``, and every frame's boxes as the labels.
+
+    ``splits``: see :func:`split_of_videos`. Videos are written by :func:`generation_workers`
+    processes, started fresh (never forked from this one, which may hold torch's threads), so
+    ``scene_of`` must pickle, as ``partial(scene_at, ...)`` does. Each video depends on its index
+    alone: the dataset is the same for any number of workers."""
     out = Path(out)
-    jobs = [split for split, count in splits.items() for _ in range(count)]
+    jobs = [(split, f"{prefix}_{index:03d}", index) for index, split in enumerate(split_of_videos(splits))]
+    write = partial(_write_video, out, scene_of=scene_of, upsample=upsample, seed=seed, compression=compression)
+    bar = tqdm(total=len(jobs), desc=f"{prefix} videos", unit="video", disable=not progress)
     labels = {}
-    for index, split in enumerate(tqdm(jobs, desc=f"{prefix} videos", unit="video", disable=not progress)):
-        video = f"{prefix}_{index:03d}"
-        scene = scene_of(index)
-        with VideoWriter(out, split, video, num_frames=scene.num_frames, height=scene.height, width=scene.width,
-                         compression=compression) as writer:
-            emulate_video(scene, writer, params=preset(dvs_model_of(video)), upsample=upsample,
-                          seed=seed * 1000 + index)
-        labels[video] = {k: scene.boxes(k) for k in range(scene.num_frames)}
-    write_labels(out, labels)
+    count = generation_workers(len(jobs), workers)
+    if count == 1:
+        for split, video, index in jobs:
+            labels.update([write(split, video, index, dvs_model=dvs_model_of(video))])
+            bar.update(1)
+    else:
+        with ProcessPoolExecutor(count, mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = [pool.submit(write, split, video, index, dvs_model=dvs_model_of(video))
+                       for split, video, index in jobs]
+            for future in futures:  # in index order
+                labels.update([future.result()])
+                bar.update(1)
+    bar.close()
+    write_labels(out, {video: labels[video] for _, video, _ in jobs})
     return out
