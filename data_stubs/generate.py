@@ -3,7 +3,8 @@
 The default run (``python train.py``, or ``dataset=ego``) generates the same dataset on first use
 into ``$DAGR_LITE_CACHE`` (default ``~/.cache/dagr_lite``); this script writes it anywhere.
 ``--dvs-model clean|noisy`` makes the ego dataset's scenes with one DVS model throughout (its
-default is mixed: each video clean or noisy).
+default is mixed: each video clean or noisy). ``--workers``: processes writing videos (default one per
+CPU core); the dataset is the same for any number.
 """
 import argparse
 import sys
@@ -22,6 +23,7 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--dvs-model", choices=("clean", "noisy", "mixed"), default=None,
                         help=f"ego only: the DVS model of every video (default {EGO_DVS_MODEL})")
+    parser.add_argument("--workers", type=int, default=None, help="processes writing videos (default: one per core)")
     args = parser.parse_args(argv)
     if args.out.exists():
         print(f"{args.out}: already exists; choose a new folder", file=sys.stderr)
@@ -30,10 +32,10 @@ def main(argv=None) -> int:
         if args.dvs_model is not None:
             print("--dvs-model is for --dataset ego (the stub is clean)", file=sys.stderr)
             return 1
-        generate_stub(args.out, seconds=args.seconds or STUB_SECONDS, seed=args.seed)
+        generate_stub(args.out, seconds=args.seconds or STUB_SECONDS, seed=args.seed, workers=args.workers)
     else:
         generate_ego(args.out, seconds=args.seconds or EGO_SECONDS, seed=args.seed,
-                     dvs_model=args.dvs_model or EGO_DVS_MODEL)
+                     dvs_model=args.dvs_model or EGO_DVS_MODEL, workers=args.workers)
     print(f"wrote {args.out}")
     return 0
 

@@ -3,6 +3,7 @@ hands that rest and leave, occlusion, noisy events), with boxes that hold each h
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
 
 from dagr_lite.data import format as fmt
@@ -10,7 +11,7 @@ from dagr_lite.data.check import check_dataset
 from dagr_lite.data.events import EventFile
 from dagr_lite.synth import ego
 from dagr_lite.synth.ego import EgoScene, generate_ego
-from dagr_lite.synth.stub import generate_stub
+from dagr_lite.synth.stub import generate_stub, generation_workers, split_of_videos
 from tests.settings import sample_set
 
 
@@ -38,6 +39,39 @@ def test_generation_is_deterministic(tmp_path):
     for name in "xytp":
         np.testing.assert_array_equal(read(a)[name], read(b)[name])
     assert (a / fmt.LABELS_FILE).read_text() == (b / fmt.LABELS_FILE).read_text()
+
+
+def test_worker_processes_write_the_dataset_one_process_writes(tmp_path):
+    # Segments in which a split comes back: videos are named in order across them, so a version that appends
+    # training videos after the test videos leaves every earlier video (and its name) as it was.
+    splits = [("train", 2), ("test", 1), ("train", 1)]
+    one = generate_ego(tmp_path / "one", seconds=0.2, splits=splits, progress=False, workers=1)
+    two = generate_ego(tmp_path / "two", seconds=0.2, splits=splits, progress=False, workers=2)
+    assert sorted(p.stem for p in (one / "train" / "events").iterdir()) == ["ego_000", "ego_001", "ego_003"]
+    assert [p.stem for p in (one / "test" / "events").iterdir()] == ["ego_002"]
+    for split, video in (("train", "ego_000"), ("test", "ego_002"), ("train", "ego_003")):
+        a = EventFile(fmt.events_path(one, split, video)).read(0, 10**9)
+        b = EventFile(fmt.events_path(two, split, video)).read(0, 10**9)
+        assert a["t"].size > 0
+        for name in "xytp":
+            np.testing.assert_array_equal(a[name], b[name])
+    assert (one / fmt.LABELS_FILE).read_text() == (two / fmt.LABELS_FILE).read_text()
+    # The first videos of a longer list are those of the shorter one.
+    short = generate_ego(tmp_path / "short", seconds=0.2, splits={"train": 2}, progress=False)
+    np.testing.assert_array_equal(EventFile(fmt.events_path(short, "train", "ego_001")).read(0, 10**9)["t"],
+                                  EventFile(fmt.events_path(one, "train", "ego_001")).read(0, 10**9)["t"])
+
+
+def test_split_lists_and_worker_counts_are_checked():
+    assert split_of_videos({"train": 2, "valid": 1}) == ["train", "train", "valid"]
+    assert split_of_videos([("train", 1), ("test", 2), ("train", 1)]) == ["train", "test", "test", "train"]
+    with pytest.raises(ValueError, match="'val'"):
+        split_of_videos({"val": 2})
+    with pytest.raises(ValueError, match="workers must be at least 1"):
+        generation_workers(4, 0)
+    assert generation_workers(3, 8) == 3 and generation_workers(0, None) == 1 and generation_workers(1, None) == 1
+    assert ego.EGO_VERSION == 3 and split_of_videos(ego.EGO_SPLITS)[:68] == split_of_videos(
+        {"train": 48, "valid": 4, "test": 16})  # version 2's videos keep their names and splits
 
 
 def test_the_camera_pans_by_several_pixels_a_frame_and_the_light_flickers():
