@@ -284,9 +284,14 @@ def write_scenes(out: Path | str, scene_of: Callable[[int], "HandScene"], prefix
         with ProcessPoolExecutor(count, mp_context=multiprocessing.get_context("spawn")) as pool:
             futures = [pool.submit(write, split, video, index, dvs_model=dvs_model_of(video))
                        for split, video, index in jobs]
-            for future in futures:  # in index order
-                labels.update([future.result()])
-                bar.update(1)
+            try:
+                for future in futures:  # in index order
+                    labels.update([future.result()])
+                    bar.update(1)
+            except BaseException:  # a failed video or Ctrl-C: the videos not yet started are not written
+                for future in futures:
+                    future.cancel()
+                raise
     bar.close()
     write_labels(out, {video: labels[video] for _, video, _ in jobs})
     return out
