@@ -206,7 +206,7 @@ def boxes_of(corners, least: float) -> np.ndarray:
     return np.asarray(out, dtype=np.float64).reshape(-1, 4)
 
 
-def generate_stub(out: Path | str, *, seconds: float = STUB_SECONDS, splits: dict[str, int] | None = None,
+def generate_stub(out: Path | str, *, seconds: float = STUB_SECONDS, splits: Splits | None = None,
                   seed: int = 0, upsample: int = STUB_UPSAMPLE, dvs_model: str = STUB_DVS_MODEL,
                   compression: str | None = "blosc", progress: bool = True, workers: int | None = None) -> Path:
     """Write the stub dataset to ``out``; videos are ``stub_000``, ``stub_001``, ... in split order
