@@ -340,7 +340,10 @@ def plot_sweep(rows: list[dict], path: Path, *, between: int) -> None:
         for ax, metric in zip(axes, ("mAP", "AP50")):
             ax.plot([r["age_ms"] for r in mine], [max(r[metric], 0.0) for r in mine], marker="." if between else "o",
                     label=label)
+    ages = sorted({r["age_ms"] for r in rows})
     for ax, metric in zip(axes, ("mAP (AP@[.5:.95])", "AP50")):
+        if not between and len(ages) <= 12:  # ticks at the ages measured, in whole milliseconds
+            ax.set_xticks(ages, [f"{age:.0f}" for age in ages])
         ax.set_xlabel("image age: time since the image (ms)")
         ax.set_ylabel(metric)
         ax.set_ylim(0, min(1.0, 1.15 * max(max(r["AP50" if "50" in metric else "mAP"] for r in rows), 0.05)))
