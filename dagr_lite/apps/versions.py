@@ -43,7 +43,7 @@ def write_stub_source(out: Path, height: int, width: int, *, seconds: float = 2.
                       splits: dict[str, int] | None = None) -> tuple[Path, Path, Path]:
     """Frame folders, labels (xywh at ``height x width``) and a split file of the stub's scenes,
     rendered at 320x180 and upscaled; returns ``(frames folder, labels file, splits file)``."""
-    from dagr_lite.synth.stub import STUB_SPLITS, HandScene
+    from dagr_lite.synth.stub import STUB_SPLITS, HandScene, split_of_videos
 
     frames_dir, labels_file, splits_file = out / "frames", out / "labels.json", out / "splits.json"
     counts = dict(splits or STUB_SPLITS)
@@ -55,19 +55,16 @@ def write_stub_source(out: Path, height: int, width: int, *, seconds: float = 2.
                              f"choose another --out or remove {out}")
         return frames_dir, labels_file, splits_file
     names, labels = {s: [] for s in counts}, {}
-    index = 0
-    for split, count in counts.items():
-        for _ in range(count):
-            video = f"source_{index:03d}"
-            scene = HandScene(index, seconds=seconds)
-            factor = (width / scene.width, height / scene.height)
-            for k in range(scene.num_frames):
-                image = Image.fromarray(scene.frame(k).clip(0, 255).astype(np.uint8)).resize((width, height),
-                                                                                           Image.BICUBIC)
-                write_frame(frames_dir / video / fmt.frame_name(k), np.asarray(image), overwrite=True)
-            labels[f"{video}"] = {k: (scene.boxes(k) * [*factor, *factor]).tolist() for k in range(scene.num_frames)}
-            names[split].append(video)
-            index += 1
+    for index, split in enumerate(split_of_videos(counts)):
+        video = f"source_{index:03d}"
+        scene = HandScene(index, seconds=seconds)
+        factor = (width / scene.width, height / scene.height)
+        for k in range(scene.num_frames):
+            image = Image.fromarray(scene.frame(k).clip(0, 255).astype(np.uint8)).resize((width, height),
+                                                                                       Image.BICUBIC)
+            write_frame(frames_dir / video / fmt.frame_name(k), np.asarray(image), overwrite=True)
+        labels[video] = {k: (scene.boxes(k) * [*factor, *factor]).tolist() for k in range(scene.num_frames)}
+        names[split].append(video)
     write_text_atomically(made, json.dumps(settings))
     write_text_atomically(splits_file, json.dumps(names))
     write_text_atomically(labels_file, json.dumps({fmt.label_key(v, k): boxes for v, frames in labels.items()

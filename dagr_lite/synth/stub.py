@@ -26,6 +26,7 @@ from tqdm import tqdm
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.writer import VideoWriter, write_labels
+from dagr_lite.graph.compiled import threads_for
 from dagr_lite.synth.dvs import preset
 from dagr_lite.synth.video import emulate_video
 
@@ -246,8 +247,7 @@ def generation_workers(videos: int, workers: int | None) -> int:
         if workers < 1:
             raise ValueError(f"workers must be at least 1, got {workers}")
         return min(workers, max(videos, 1))
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, min(cores, videos // 2))
+    return max(1, min(threads_for(None), videos // 2))
 
 
 def _write_video(out: Path, split: str, video: str, index: int, scene_of: Callable[[int], "HandScene"],
