@@ -28,6 +28,9 @@ def main(argv=None) -> int:
     if args.out.exists():
         print(f"{args.out}: already exists; choose a new folder", file=sys.stderr)
         return 1
+    if args.workers is not None and args.workers < 1:
+        print(f"--workers must be at least 1, got {args.workers}", file=sys.stderr)
+        return 1
     if args.dataset == "stub":
         if args.dvs_model is not None:
             print("--dvs-model is for --dataset ego (the stub is clean)", file=sys.stderr)

@@ -139,3 +139,13 @@ def test_ego_config_describes_the_generated_data():
     assert (conf["height"], conf["width"]) == (ego.EGO_HEIGHT, ego.EGO_WIDTH)
     assert (conf["upsample"], conf["dvs_model"]) == (ego.EGO_UPSAMPLE, ego.EGO_DVS_MODEL)
     assert conf["name"] == "ego" and conf["root"] is None
+
+
+def test_the_generation_script_refuses_a_worker_count_below_one(tmp_path, capsys):
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("generate", Path(__file__).parents[2] / "data_stubs" / "generate.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    assert script.main([str(tmp_path / "out"), "--dataset", "ego", "--workers", "0"]) == 1
+    assert "--workers must be at least 1, got 0" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
