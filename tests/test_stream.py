@@ -525,3 +525,15 @@ def test_a_carry_branch_is_refused_a_picture_of_other_channels():
                       graph_context_us=0, event_picture=False, carry_picture=True, carry_recent_us=0)
     with pytest.raises(UserError, match="reads pictures of 4 channels, but data.carry_recent_us=0 makes pictures of 3"):
         StreamingDetector(model, spec, OperatingPoint(score=0.0, nms_iou=EVAL["nms_threshold"]))
+
+
+@pytest.mark.parametrize("variant", ["hybrid", "events_only"])
+def test_streaming_with_dense_pooled_stages_equals_the_batch_model(variant):
+    """``event_dense``: the cells kept up to date are written out as a map and convolved, as the
+    batch model pools and convolves its sample's nodes."""
+    model = trained(small_model(variant, seed=8, geometry=True, event_dense=True))
+    rng = np.random.default_rng(29)
+    events = random_stream(rng, 2500, 250_000)
+    images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 190_000)]
+    checks, largest, _ = replay(model, events, images, seed=12, detect_prob=0.7)
+    assert checks >= 20 and largest >= 300

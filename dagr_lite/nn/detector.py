@@ -27,18 +27,9 @@ from dagr_lite.data.collate import Batch
 from dagr_lite.data.dataset import PICTURE_CHANNELS, RGB_CHANNELS
 from dagr_lite.graph.pool import recency_maps
 from dagr_lite.graph.spec import EventGraphSpec
-from dagr_lite.nn.blocks import conv_bn_act
+from dagr_lite.nn.blocks import Residual, conv_bn_act
 from dagr_lite.nn.event_branch import EventBranch
 from dagr_lite.nn.head import TowerCache, YOLOXHead, block_rows, postprocess, yolox_losses
-
-
-class _Residual(nn.Module):
-    def __init__(self, channels: int):
-        super().__init__()
-        self.body = nn.Sequential(conv_bn_act(channels, channels, k=1), conv_bn_act(channels, channels))
-
-    def forward(self, x):
-        return x + self.body(x)
 
 
 IMAGE_STEMS = ("patch", "conv")
@@ -79,11 +70,11 @@ class ImageBranch(nn.Module):
         self.read = [0] + [1 + stage_strides.index(s) for s in strides]  # which maps are given out
         self.channels = tuple(stage_channels[i] for i in self.read)
         if stem == "patch":
-            self.stem = nn.Sequential(conv_bn_act(in_channels, 2 * width, stride=4, k=4), _Residual(2 * width))
+            self.stem = nn.Sequential(conv_bn_act(in_channels, 2 * width, stride=4, k=4), Residual(2 * width))
         else:
             self.stem = nn.Sequential(conv_bn_act(in_channels, width, stride=2), conv_bn_act(width, 2 * width, stride=2),
-                                      _Residual(2 * width))
-        self.stages = nn.ModuleList(nn.Sequential(conv_bn_act(c_in, c_out, stride=2), _Residual(c_out))
+                                      Residual(2 * width))
+        self.stages = nn.ModuleList(nn.Sequential(conv_bn_act(c_in, c_out, stride=2), Residual(c_out))
                                     for c_in, c_out in zip(stage_channels[:-1], stage_channels[1:]))
 
     def forward(self, images: torch.Tensor) -> list[torch.Tensor]:
@@ -219,6 +210,9 @@ class DetectorConfig:
             (:class:`CarryAttention`), and what it gathers joins the fusion at every stride beside
             the carry maps, so the image's features of a hand that moved can follow its events.
             0: none (as in checkpoints saved before the key).
+        event_dense: the event branch's pooled stages are convolutions over the first pooled graph
+            written out as a map (:class:`~dagr_lite.nn.event_branch.EventBranch` ``dense``); false:
+            GCN blocks over the pooled graphs (as in checkpoints saved before the key).
     """
 
     height: int
@@ -245,6 +239,7 @@ class DetectorConfig:
     carry_channels: int = PICTURE_CHANNELS
     carry_frame: bool = False
     carry_attend: int = 0
+    event_dense: bool = False
 
     def __post_init__(self):
         if not (self.use_events or self.use_image):
@@ -303,12 +298,14 @@ class Detector(nn.Module):
         self.strides = list(cfg.strides)
         self.image = ImageBranch(cfg.image_width, cfg.strides, cfg.image_stem, cfg.image_channels) if cfg.use_image else None
         if cfg.use_events:
-            fuse = (cfg.fuse_channels,) * (len(cfg.strides) + 1) if cfg.use_image else None
+            # image features join the nodes at every level (with dense pooled stages, the input level alone)
+            fuse = ((cfg.fuse_channels,) + (0 if cfg.event_dense else cfg.fuse_channels,) * len(cfg.strides)
+                    if cfg.use_image else None)
             self.events = EventBranch(height=cfg.height, width=cfg.width, channels=cfg.event_channels,
                                       strides=cfg.strides, graph=cfg.graph,
                                       time_scale_us=cfg.time_scale_us if cfg.use_image else None,
                                       blocks=cfg.event_blocks, image_channels=fuse, geometry=cfg.geometry,
-                                      directional=cfg.directional)
+                                      directional=cfg.directional, dense=cfg.event_dense)
         else:
             self.events = None
         # The carry branch reads the picture of the events since the image (the channels after the
@@ -327,7 +324,8 @@ class Detector(nn.Module):
         early = 0 if cfg.late_query else self.num_recency  # the recency maps, where they join early
         if cfg.use_image and cfg.use_events:
             # 1x1 projections of the image maps (strides 4, 8, 16, 32) sampled at event nodes.
-            self.to_nodes = nn.ModuleList(nn.Conv2d(c, cfg.fuse_channels, 1) for c in self.image.channels)
+            self.to_nodes = nn.ModuleList(nn.Conv2d(c, cfg.fuse_channels, 1) for c, k in
+                                          zip(self.image.channels, self.events.image_channels) if k)
             # The fusion mixes the image and event maps (and, early, the recency maps and the age plane).
             age = 0 if cfg.late_query else 1
             self.fuse = nn.ModuleList(conv_bn_act(ci + ce + early + cc + age, ci, k=1) for ci, ce, cc in

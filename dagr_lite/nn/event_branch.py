@@ -6,7 +6,10 @@ normalised to [0, 1] (x / W, y / H), in a model with an image the time since the
 its earlier neighbours lie in space and time, the local motion a GCN's isotropic sum cannot see). A stage of GCN blocks runs on the full event
 graph, then the graph is max-pooled into ``stride``-pixel cells for each output stride in turn,
 with more GCN blocks after each pooling; each pooled level is written out as a dense map
-``(B, C, H / stride, W / stride)`` for the detection head.
+``(B, C, H / stride, W / stride)`` for the detection head. With ``dense`` the pooled stages are
+convolutions instead: the first pooled graph is written out as a dense map at the first stride,
+and residual convolution stages (a 3x3 one at the first stride, then one of stride 2 per further
+stride) give the maps, as a CNN reads a picture.
 
 A hook lets image features join the nodes: ``image_sampler(pos_xy, batch, level)`` returns
 ``(N, C_level)`` features sampled at the nodes' pixels (level 0 is the input, level ``s`` the
@@ -22,6 +25,7 @@ from torch import nn
 
 from dagr_lite.graph.pool import PooledGraph, to_dense, voxel_max_pool
 from dagr_lite.graph.spec import EventGraphSpec
+from dagr_lite.nn.blocks import Residual, conv_bn_act
 from dagr_lite.nn.gcn import GCNConv, GraphOperator
 
 ImageSampler = Callable[[torch.Tensor, torch.Tensor, int], torch.Tensor]
@@ -93,6 +97,11 @@ class EventBranch(nn.Module):
         directional: the first stage's messages are also weighted by the neighbour's offset from
             the node in units of the graph's radius (``GCNConv(offsets=True)``), so its blocks sense
             the direction of motion.
+        dense: the pooled stages are convolutions over dense maps (one :func:`conv_bn_act` and one
+            :class:`Residual` each; the first at the first stride, the others of stride 2) that
+            read the first pooled graph written out as a map, instead of GCN blocks over the pooled
+            graphs; image features then join at the input level alone (``image_channels`` is 0
+            after it).
 
     Shapes:
         events ``(N, 4)`` x, y, t (us since the image), p; batch ``(N,)`` sorted ->
@@ -101,7 +110,7 @@ class EventBranch(nn.Module):
 
     def __init__(self, *, height: int, width: int, channels: Sequence[int], strides: Sequence[int],
                  graph: EventGraphSpec, time_scale_us: float | None, blocks: int, image_channels: Sequence[int] | None = None,
-                 geometry: bool = False, directional: bool = False):
+                 geometry: bool = False, directional: bool = False, dense: bool = False):
         super().__init__()
         if len(channels) != len(strides) + 1:
             raise ValueError(f"channels needs one entry for the input stage and one per stride: "
@@ -114,10 +123,16 @@ class EventBranch(nn.Module):
         if len(self.image_channels) != len(channels):
             raise ValueError(f"image_channels needs {len(channels)} entries, got {len(self.image_channels)}")
         self.out_channels = tuple(channels[1:])
-        self.geometry, self.directional = bool(geometry), bool(directional)
+        self.geometry, self.directional, self.dense = bool(geometry), bool(directional), bool(dense)
+        if self.dense and any(self.image_channels[1:]):
+            raise ValueError(f"dense pooled stages read image features at the input level alone, got image_channels "
+                             f"{list(self.image_channels)}")
         in_features = (3 if time_scale_us is None else 4) + (GEOMETRY_FEATURES if self.geometry else 0)
         self.stages = nn.ModuleList()
-        for level, out in enumerate(channels):
+        self.dense_stages = nn.ModuleList(
+            nn.Sequential(conv_bn_act(c_in, c_out, stride=1 if level == 1 else 2), Residual(c_out))
+            for level, (c_in, c_out) in enumerate(zip(channels[:-1], channels[1:]), start=1)) if self.dense else None
+        for level, out in enumerate(channels[:1] if self.dense else channels):
             width_in = (in_features if level == 0 else channels[level - 1]) + self.image_channels[level]
             self.stages.append(nn.ModuleList(GCNBlock(width_in if b == 0 else out, out,
                                                       offsets=self.directional and level == 0)
@@ -187,6 +202,15 @@ class EventBranch(nn.Module):
         ``first``: the first pooled graph when it is already known (the streaming detector keeps it
         up to date as nodes arrive); ``x``, ``pos``, ``batch`` and ``edge_index`` are then unused.
         """
+        if self.dense:
+            pooled = first if first is not None else voxel_max_pool(x, pos, batch, edge_index, self.strides[0])
+            m = to_dense(pooled.x, pooled.batch, pooled.cell, batch_size=batch_size,
+                         height=math.ceil(self.height / self.strides[0]), width=math.ceil(self.width / self.strides[0]))
+            maps = []
+            for stage in self.dense_stages:
+                m = stage(m)
+                maps.append(m)
+            return maps
         maps = []
         for level, stride in enumerate(self.strides, start=1):
             if level == 1 and first is not None:

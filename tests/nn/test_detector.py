@@ -137,7 +137,7 @@ def test_a_detector_config_saved_before_the_patch_stem_rebuilds_its_conv_stem():
     del saved["image_stem"]
     old = DetectorConfig.from_dict(upgraded_detector(saved))
     assert old.image_stem == "conv"
-    assert [type(layer).__name__ for layer in Detector(old).image.stem] == ["Sequential", "Sequential", "_Residual"]
+    assert [type(layer).__name__ for layer in Detector(old).image.stem] == ["Sequential", "Sequential", "Residual"]
     with pytest.raises(ValueError, match="image_stem must be one of"):
         small_detector_config(image_stem="big")
 
