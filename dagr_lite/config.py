@@ -118,7 +118,8 @@ _RULES = {
     "model.late_query": ("true or false", lambda v: isinstance(v, bool)),
     "model.carry_width": ("an integer >= 0 (0: no carry branch)", lambda v: _integer(v) and v >= 0),
     "model.carry_frame": ("true or false", lambda v: isinstance(v, bool)),
-    "model.event_dense": ("true or false", lambda v: isinstance(v, bool)),
+    "model.event_dense": ("an integer >= 0 (pixels: the first stride, or that halved; 0: GCN pooled stages)",
+                          lambda v: _integer(v) and v >= 0),
     "model.carry_attend": ("an integer >= 0 (cells each way at stride 16; 0: none)", lambda v: _integer(v) and v >= 0),
     "model.image_stem": (f"one of {', '.join(IMAGE_STEMS)}", lambda v: v in IMAGE_STEMS),
     "model.time_scale_us": ("a positive number (microseconds)", lambda v: _number(v) and v > 0),
@@ -288,7 +289,7 @@ def detector_config(cfg: DictConfig, *, height: int, width: int) -> DetectorConf
                           carry_width=carry, carry_channels=channels,
                           carry_frame=bool(model.get("carry_frame", False)) and bool(carry),
                           carry_attend=int(model.get("carry_attend", 0)) if carry else 0,
-                          event_dense=bool(model.get("event_dense", False)))
+                          event_dense=int(model.get("event_dense", 0)))
 
 
 def build_model(cfg: DictConfig, *, height: int, width: int) -> Detector:

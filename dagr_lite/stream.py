@@ -156,7 +156,7 @@ class _Segment:
         self.edges = _Rows(torch.zeros((0, 2), dtype=torch.int64, device=detector.device))  # (src, dst), global ids
         self.cell = _Rows(torch.zeros(0, dtype=torch.int64, device=detector.device))  # first pooled cell, hybrid
         # A hybrid's first pooled cells over every node of the segment: valid until a node leaves the horizon.
-        self.cells = (_Cells(model.cfg.height, model.cfg.width, model.strides[0], branch.first_stage_widths[-1],
+        self.cells = (_Cells(model.cfg.height, model.cfg.width, branch.pool_stride, branch.first_stage_widths[-1],
                              detector.dtype, detector.device) if detector.hybrid else None)
         self.latest = [like.new_full((2 * h * w,), -math.inf) for h, w in detector.map_sizes]
         self.maps: tuple[int, list[torch.Tensor]] | None = None  # a hybrid's event maps, with the node count they saw

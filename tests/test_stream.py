@@ -527,11 +527,12 @@ def test_a_carry_branch_is_refused_a_picture_of_other_channels():
         StreamingDetector(model, spec, OperatingPoint(score=0.0, nms_iou=EVAL["nms_threshold"]))
 
 
-@pytest.mark.parametrize("variant", ["hybrid", "events_only"])
-def test_streaming_with_dense_pooled_stages_equals_the_batch_model(variant):
-    """``event_dense``: the cells kept up to date are written out as a map and convolved, as the
-    batch model pools and convolves its sample's nodes."""
-    model = trained(small_model(variant, seed=8, geometry=True, event_dense=True))
+@pytest.mark.parametrize(("variant", "cell"), [("hybrid", 8), ("events_only", 8), ("hybrid", 4), ("events_only", 4)])
+def test_streaming_with_dense_pooled_stages_equals_the_batch_model(variant, cell):
+    """``event_dense``: the cells kept up to date (of ``cell`` pixels) are written out as a map and
+    convolved, as the batch model pools and convolves its sample's nodes."""
+    model = trained(small_model(variant, seed=8, geometry=True, event_dense=cell))
+    assert model.events.pool_stride == cell
     rng = np.random.default_rng(29)
     events = random_stream(rng, 2500, 250_000)
     images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 190_000)]

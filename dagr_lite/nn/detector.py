@@ -210,9 +210,10 @@ class DetectorConfig:
             (:class:`CarryAttention`), and what it gathers joins the fusion at every stride beside
             the carry maps, so the image's features of a hand that moved can follow its events.
             0: none (as in checkpoints saved before the key).
-        event_dense: the event branch's pooled stages are convolutions over the first pooled graph
-            written out as a map (:class:`~dagr_lite.nn.event_branch.EventBranch` ``dense``); false:
-            GCN blocks over the pooled graphs (as in checkpoints saved before the key).
+        event_dense: > 0: the event branch's pooled stages are convolutions over its nodes max-pooled
+            into cells of this many pixels and written out as a map (the first stride, or that
+            halved; :class:`~dagr_lite.nn.event_branch.EventBranch` ``dense``); 0: GCN blocks over
+            the pooled graphs (as in checkpoints saved before the key).
     """
 
     height: int
@@ -239,7 +240,7 @@ class DetectorConfig:
     carry_channels: int = PICTURE_CHANNELS
     carry_frame: bool = False
     carry_attend: int = 0
-    event_dense: bool = False
+    event_dense: int = 0
 
     def __post_init__(self):
         if not (self.use_events or self.use_image):

@@ -7,9 +7,9 @@ its earlier neighbours lie in space and time, the local motion a GCN's isotropic
 graph, then the graph is max-pooled into ``stride``-pixel cells for each output stride in turn,
 with more GCN blocks after each pooling; each pooled level is written out as a dense map
 ``(B, C, H / stride, W / stride)`` for the detection head. With ``dense`` the pooled stages are
-convolutions instead: the first pooled graph is written out as a dense map at the first stride,
-and residual convolution stages (a 3x3 one at the first stride, then one of stride 2 per further
-stride) give the maps, as a CNN reads a picture.
+convolutions instead: the first stage's nodes are max-pooled into ``dense``-pixel cells written
+out as a dense map, and residual convolution stages (a 3x3 one at that stride, then one of
+stride 2 per doubling) give the maps, as a CNN reads a picture.
 
 A hook lets image features join the nodes: ``image_sampler(pos_xy, batch, level)`` returns
 ``(N, C_level)`` features sampled at the nodes' pixels (level 0 is the input, level ``s`` the
@@ -97,11 +97,13 @@ class EventBranch(nn.Module):
         directional: the first stage's messages are also weighted by the neighbour's offset from
             the node in units of the graph's radius (``GCNConv(offsets=True)``), so its blocks sense
             the direction of motion.
-        dense: the pooled stages are convolutions over dense maps (one :func:`conv_bn_act` and one
-            :class:`Residual` each; the first at the first stride, the others of stride 2) that
-            read the first pooled graph written out as a map, instead of GCN blocks over the pooled
-            graphs; image features then join at the input level alone (``image_channels`` is 0
-            after it).
+        dense: > 0: the pooled stages are convolutions over dense maps instead of GCN blocks over
+            the pooled graphs. The first stage's nodes are max-pooled into cells of ``dense``
+            pixels (the first stride, or that halved one or more times), written out as a map, and
+            read by one stage per stride from ``dense`` to the last (a :func:`conv_bn_act`, of
+            stride 2 after the first, and a :class:`Residual`); a stride below the first gets half
+            the width of the stride above it. Image features then join at the input level alone
+            (``image_channels`` is 0 after it). 0: GCN blocks over the pooled graphs.
 
     Shapes:
         events ``(N, 4)`` x, y, t (us since the image), p; batch ``(N,)`` sorted ->
@@ -110,7 +112,7 @@ class EventBranch(nn.Module):
 
     def __init__(self, *, height: int, width: int, channels: Sequence[int], strides: Sequence[int],
                  graph: EventGraphSpec, time_scale_us: float | None, blocks: int, image_channels: Sequence[int] | None = None,
-                 geometry: bool = False, directional: bool = False, dense: bool = False):
+                 geometry: bool = False, directional: bool = False, dense: int = 0):
         super().__init__()
         if len(channels) != len(strides) + 1:
             raise ValueError(f"channels needs one entry for the input stage and one per stride: "
@@ -123,20 +125,34 @@ class EventBranch(nn.Module):
         if len(self.image_channels) != len(channels):
             raise ValueError(f"image_channels needs {len(channels)} entries, got {len(self.image_channels)}")
         self.out_channels = tuple(channels[1:])
-        self.geometry, self.directional, self.dense = bool(geometry), bool(directional), bool(dense)
+        self.geometry, self.directional, self.dense = bool(geometry), bool(directional), int(dense)
+        below = [self.strides[0] // 2 ** k for k in range(1, 8)]
+        if self.dense and self.dense not in (self.strides[0], *below):
+            raise ValueError(f"event_dense must be 0 or the first stride {self.strides[0]} halved zero or more "
+                             f"times, got {dense}")
         if self.dense and any(self.image_channels[1:]):
             raise ValueError(f"dense pooled stages read image features at the input level alone, got image_channels "
                              f"{list(self.image_channels)}")
         in_features = (3 if time_scale_us is None else 4) + (GEOMETRY_FEATURES if self.geometry else 0)
         self.stages = nn.ModuleList()
-        self.dense_stages = nn.ModuleList(
-            nn.Sequential(conv_bn_act(c_in, c_out, stride=1 if level == 1 else 2), Residual(c_out))
-            for level, (c_in, c_out) in enumerate(zip(channels[:-1], channels[1:]), start=1)) if self.dense else None
+        self.dense_stages = None
+        if self.dense:  # widths: below the first stride, half the width of the stride above
+            extra = int(math.log2(self.strides[0] // self.dense))
+            widths = [channels[0], *(max(channels[1] // 2 ** k, 1) for k in range(extra, 0, -1)), *channels[1:]]
+            self.dense_stages = nn.ModuleList(
+                nn.Sequential(conv_bn_act(c_in, c_out, stride=1 if i == 0 else 2), Residual(c_out))
+                for i, (c_in, c_out) in enumerate(zip(widths[:-1], widths[1:])))
+            self._dense_out = extra  # the stages before this one give no map
         for level, out in enumerate(channels[:1] if self.dense else channels):
             width_in = (in_features if level == 0 else channels[level - 1]) + self.image_channels[level]
             self.stages.append(nn.ModuleList(GCNBlock(width_in if b == 0 else out, out,
                                                       offsets=self.directional and level == 0)
                                              for b in range(blocks)))
+
+    @property
+    def pool_stride(self) -> int:
+        """The cell size, in pixels, of the first pooling of the event nodes."""
+        return self.dense or self.strides[0]
 
     @property
     def first_stage(self) -> nn.ModuleList:
@@ -203,13 +219,14 @@ class EventBranch(nn.Module):
         up to date as nodes arrive); ``x``, ``pos``, ``batch`` and ``edge_index`` are then unused.
         """
         if self.dense:
-            pooled = first if first is not None else voxel_max_pool(x, pos, batch, edge_index, self.strides[0])
+            pooled = first if first is not None else voxel_max_pool(x, pos, batch, edge_index, self.dense)
             m = to_dense(pooled.x, pooled.batch, pooled.cell, batch_size=batch_size,
-                         height=math.ceil(self.height / self.strides[0]), width=math.ceil(self.width / self.strides[0]))
+                         height=math.ceil(self.height / self.dense), width=math.ceil(self.width / self.dense))
             maps = []
-            for stage in self.dense_stages:
+            for i, stage in enumerate(self.dense_stages):
                 m = stage(m)
-                maps.append(m)
+                if i >= self._dense_out:
+                    maps.append(m)
             return maps
         maps = []
         for level, stride in enumerate(self.strides, start=1):

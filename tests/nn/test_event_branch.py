@@ -98,26 +98,33 @@ def test_a_branch_with_geometry_reads_the_neighbourhood_and_refuses_features_wit
         branch.node_features(events)
 
 
-def test_dense_pooled_stages_convolve_the_first_stages_cell_maxima():
-    """``dense``: the first stage's node features, max-pooled per stride-8 cell by a loop over the
-    cells (empty cells zero), then the convolution stages; maps at every stride, samples apart."""
+@pytest.mark.parametrize("cell", [8, 4])
+def test_dense_pooled_stages_convolve_the_first_stages_cell_maxima(cell):
+    """``dense``: the first stage's node features, max-pooled per ``cell``-pixel cell by a loop over
+    the cells (empty cells zero), then the convolution stages; maps at every stride (a stage at
+    stride 4 first gives none), samples apart."""
     torch.manual_seed(0)
     branch = EventBranch(height=48, width=64, channels=(8, 12, 16, 24), strides=STRIDES, graph=SPEC,
-                         time_scale_us=1e5, blocks=1, dense=True).double().eval()
+                         time_scale_us=1e5, blocks=1, dense=cell).double().eval()
+    assert branch.pool_stride == cell and len(branch.dense_stages) == 3 + (cell == 4)
     a, b = events_of(300, 5).double(), events_of(200, 6).double()
     events = torch.cat([a, b])
     batch = torch.cat([torch.zeros(300), torch.ones(200)]).long()
     maps = branch(events, batch, batch_size=2)
     assert [tuple(m.shape) for m in maps] == [(2, 12, 6, 8), (2, 16, 3, 4), (2, 24, 2, 2)]
     x, _, _ = branch.event_nodes(events, batch)
-    grid = torch.full((2, 8, 6, 8), -torch.inf, dtype=torch.float64)
+    grid = torch.full((2, 8, 48 // cell, 64 // cell), -torch.inf, dtype=torch.float64)
     for node in range(len(events)):
-        col, row, s = int(events[node, 0]) // 8, int(events[node, 1]) // 8, int(batch[node])
+        col, row, s = int(events[node, 0]) // cell, int(events[node, 1]) // cell, int(batch[node])
         grid[s, :, row, col] = torch.maximum(grid[s, :, row, col], x[node])
-    expected = grid.nan_to_num(neginf=0.0)  # empty cells
-    for stage, m in zip(branch.dense_stages, maps):
+    expected, out = grid.nan_to_num(neginf=0.0), []  # empty cells are zero
+    for stage in branch.dense_stages:
         expected = stage(expected)
-        torch.testing.assert_close(m, expected, rtol=0, atol=1e-12)
+        out.append(expected)
+    if cell == 4:
+        assert out[0].shape == (2, 6, 12, 16)  # half the first stride's width
+    for m, e in zip(maps, out[-3:]):
+        torch.testing.assert_close(m, e, rtol=0, atol=1e-12)
     alone = branch(a, torch.zeros(300, dtype=torch.long), batch_size=1)
     for m_alone, m_both in zip(alone, maps):
         torch.testing.assert_close(m_alone[0], m_both[0], rtol=0, atol=1e-12)
@@ -126,7 +133,11 @@ def test_dense_pooled_stages_convolve_the_first_stages_cell_maxima():
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in branch.parameters())
 
 
-def test_dense_pooled_stages_refuse_image_features_after_the_input_level():
+def test_dense_pooled_stages_refuse_image_features_after_the_input_level_and_odd_cells():
     with pytest.raises(ValueError, match="input level alone"):
         EventBranch(height=48, width=64, channels=(8, 8, 8, 8), strides=STRIDES, graph=SPEC, time_scale_us=1e5,
-                    blocks=1, image_channels=(4, 4, 0, 0), dense=True)
+                    blocks=1, image_channels=(4, 4, 0, 0), dense=8)
+    for cell in (6, 16):
+        with pytest.raises(ValueError, match=f"event_dense must be 0 or the first stride 8 halved .*got {cell}"):
+            EventBranch(height=48, width=64, channels=(8, 8, 8, 8), strides=STRIDES, graph=SPEC,
+                        time_scale_us=1e5, blocks=1, dense=cell)
