@@ -38,15 +38,16 @@ def test_the_gpu_builds_the_kdtree_graph():
     assert on_gpu.is_cuda and on_cpu.shape[1] > n and torch.equal(on_gpu.cpu(), on_cpu)
 
 
-@pytest.mark.parametrize("carry_attend", [0, 5])
-def test_the_detector_on_the_gpu_equals_the_detector_on_the_cpu(carry_attend):
+@pytest.mark.parametrize(("carry_attend", "event_dense"), [(0, 0), (5, 0), (0, 4)])
+def test_the_detector_on_the_gpu_equals_the_detector_on_the_cpu(carry_attend, event_dense):
     """Losses and gradients of the same float64 weights on the same batch; the GPU builds its own
     graph (torch backend), the CPU its KD-tree one. Measured on an H100: losses within 1e-7 and
     gradients within 1e-6 (relative), from the order of the GPU's sums."""
     dataset = sample_set(stub_root(), "valid", window_us=15_000, carry_picture=True)  # the default hybrid's carry
     batch = collate([dataset[i] for i in (2, 30, 61)])
     torch.manual_seed(0)
-    cfg = small_detector_config(image_width=8, event_channels=(8, 16, 16, 16), head_hidden=16, carry_attend=carry_attend)
+    cfg = small_detector_config(image_width=8, event_channels=(8, 16, 16, 16), head_hidden=16, carry_attend=carry_attend,
+                                event_dense=event_dense)
     model, twin = Detector(cfg).double(), Detector(cfg).double()
     twin.load_state_dict(model.state_dict())
     twin = twin.cuda()
