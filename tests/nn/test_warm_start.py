@@ -16,6 +16,7 @@ from tests.models import small_detector_config
 from tests.settings import SAMPLE, sample_set
 
 SIZES = dict(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16)
+GRAPH = dict(SIZES, event_dense=0)  # GCN pooled stages: image features join every stage
 
 
 def test_widen_puts_the_source_first_and_zeros_after_it():
@@ -30,16 +31,19 @@ def test_widen_puts_the_source_first_and_zeros_after_it():
     assert torch.equal(widen(source, torch.Size([4, 3]), dim=0), widen(source, torch.Size([4, 3])))
 
 
-@pytest.mark.parametrize("directional", [False, True])
-def test_an_events_only_branch_started_in_a_hybrid_computes_the_same_maps_whatever_the_image(directional):
+@pytest.mark.parametrize(("directional", "event_dense"), [(False, 0), (True, 0), (False, 4)])
+def test_an_events_only_branch_started_in_a_hybrid_computes_the_same_maps_whatever_the_image(directional,
+                                                                                             event_dense):
     torch.manual_seed(0)
-    events_only = Detector(small_detector_config(variant="events_only", directional=directional, **SIZES)).eval()
-    hybrid = Detector(small_detector_config(directional=directional, **SIZES)).eval()
+    sizes = dict(SIZES, directional=directional, event_dense=event_dense)
+    events_only = Detector(small_detector_config(variant="events_only", **sizes)).eval()
+    hybrid = Detector(small_detector_config(**sizes)).eval()
     report = warm_start(hybrid, events_only.state_dict())
-    # every first block of a stage reads the node's time (stage 0) and image channels besides the source's inputs
-    # (there, with as many channels in as out, the source's skip is the identity: widened from it); a
-    # directional first stage's offset weights are widened along their input dimension too
-    assert sorted(report["widened"]) == sorted([f"events.stages.{s}.0.{layer}.weight" for s in range(4)
+    # every first block of a GCN stage reads the node's time (stage 0) and image channels besides the source's
+    # inputs (there, with as many channels in as out, the source's skip is the identity: widened from it); a
+    # directional first stage's offset weights are widened along their input dimension too; dense pooled
+    # stages read no image and are copied
+    assert sorted(report["widened"]) == sorted([f"events.stages.{s}.0.{layer}.weight" for s in range(1 if event_dense else 4)
                                                 for layer in ("conv", "skip")]
                                                + ["events.stages.0.0.conv.weight_offsets"] * directional)
     # layers reading more inputs outside the event branch, or only the hybrid's, keep their own weights
@@ -66,18 +70,18 @@ def test_an_events_only_branch_started_in_a_hybrid_computes_the_same_maps_whatev
 
 def test_same_shapes_are_copied_and_only_the_event_branch_is_widened():
     torch.manual_seed(0)
-    source = Detector(small_detector_config(**SIZES))
-    target = Detector(small_detector_config(**SIZES))
+    source = Detector(small_detector_config(**GRAPH))
+    target = Detector(small_detector_config(**GRAPH))
     report = warm_start(target, source.state_dict())
     assert report["widened"] == [] and all(name.endswith("num_batches_tracked") for name in report["kept"])
     for name, value in source.state_dict().items():
         assert torch.equal(target.state_dict()[name], value)
     # a head reading more channels is not widened: its inputs are not laid out source-first
-    wider_image = Detector(small_detector_config(**{**SIZES, "image_width": 16}))
+    wider_image = Detector(small_detector_config(**{**GRAPH, "image_width": 16}))
     report = warm_start(wider_image, source.state_dict())
     assert report["widened"] == [] and any(name.startswith("head.stems.") for name in report["kept"])
     # a wider event branch (more outputs per stage, as in size m) is not widened: it would zero whole channels
-    wider_events = Detector(small_detector_config(**{**SIZES, "event_channels": (12, 12, 12, 12)}))
+    wider_events = Detector(small_detector_config(**{**GRAPH, "event_channels": (12, 12, 12, 12)}))
     report = warm_start(wider_events, source.state_dict())
     assert report["widened"] == [] and "events.stages.1.0.norm.weight" in report["kept"]
 
@@ -90,9 +94,9 @@ def _save(path, model):
 
 def test_start_from_reads_a_checkpoint_and_refuses_what_cannot_start_a_run(tmp_path):
     torch.manual_seed(0)
-    events_only = Detector(small_detector_config(variant="events_only", **SIZES))
+    events_only = Detector(small_detector_config(variant="events_only", **GRAPH))
     _save(tmp_path / "ev.pt", events_only)
-    hybrid = Detector(small_detector_config(**SIZES))
+    hybrid = Detector(small_detector_config(**GRAPH))
     report = start_from(hybrid, tmp_path / "ev.pt", verbose=False)
     assert len(report["widened"]) == 8
     assert torch.equal(hybrid.state_dict()["events.stages.1.0.norm.weight"],
