@@ -56,7 +56,7 @@ def main(argv=None) -> int:
     by_ckpt = {Path(r["ckpt"]): r for r in rows}
     a, b = by_ckpt[events], by_ckpt[peer]
     print(f"\n{args.dataset}, seed {args.seed}, {args.split} split:")
-    print(f"  events_only (graph)          AP50 {a['AP50']:.3f}  mAP {a['mAP']:.3f}")
+    print(f"  events_only (event branch)   AP50 {a['AP50']:.3f}  mAP {a['mAP']:.3f}")
     print(f"  dense peer (event picture)   AP50 {b['AP50']:.3f}  mAP {b['mAP']:.3f}")
     print(f"  events_only - peer           AP50 {a['AP50'] - b['AP50']:+.3f}  (target: >= -0.020)")
     return 0

@@ -148,13 +148,18 @@ def test_the_optim_group_chooses_the_optimiser():
 
 def test_model_defaults_come_from_conf_and_variants_inherit_them():
     hybrid = detector_config(resolve_config(compose_cfg("train")), height=180, width=320)
-    assert hybrid.strides == (8, 16, 32) and hybrid.event_channels == (16, 64, 128, 256) and hybrid.time_scale_us == 1e5
-    assert hybrid.event_dense == 4  # convolution stages from 4-pixel cells
+    assert hybrid.strides == (8, 16, 32) and hybrid.event_channels == (16, 32, 48, 64) and hybrid.time_scale_us == 1e5
+    assert hybrid.event_dense == 0  # GCN blocks over the pooled graphs
     assert hybrid.graph.as_dict() == {"radius": 5.0, "beta": 5e-4, "max_neighbors": 16}
     events = detector_config(resolve_config(compose_cfg("train", ["model=events_only", "model.graph.radius=3"])),
                              height=180, width=320)
     assert not events.use_image and events.use_events and events.graph.radius == 3.0
-    assert events.event_channels == hybrid.event_channels and events.event_dense == hybrid.event_dense
+    # the events-only model reads its nodes as a CNN reads a picture, as wide as the image CNN
+    assert events.event_channels == (16, 64, 128, 256) and events.event_dense == 4
+    assert (events.image_width, events.head_hidden) == (hybrid.image_width, hybrid.head_hidden)
+    sized = detector_config(resolve_config(compose_cfg("train", ["model=events_only", "model.size=m"])),
+                            height=180, width=320)
+    assert sized.event_channels == (24, 96, 192, 384) and sized.image_width == 24
     image = detector_config(resolve_config(compose_cfg("train", ["model=image_only"])), height=180, width=320)
     assert image.graph is None and not image.use_events
     with pytest.raises(ConfigError, match=r"model\.graph radius must be a positive number, got -1"):
