@@ -53,7 +53,7 @@ def run_training(rank: int, world: int, port: int, run_dir: str, overrides: list
 def launch(tmp_path: Path, name: str, world: int, *overrides: str) -> list[dict]:
     run_dir = tmp_path / name
     common = [f"loader.batch_size={PER_RANK * 2 // world}", f"trainer.max_steps={STEPS}", "trainer.schedule_by=steps", "trainer.val_every=4",
-              "trainer.checkpoint_every=1", "model=events_only", "data.window_us=20000"]
+              "trainer.checkpoint_every=1", "model=events_only", "model.event_dense=0", "data.window_us=20000"]
     args = (world, free_port(), str(run_dir), [*common, *overrides], str(tmp_path / f"{name}.out"))
     if world == 1:
         run_training(0, *args)
@@ -79,6 +79,8 @@ def test_ranks_hold_identical_weights_after_every_step_and_match_one_process(run
     assert ddp["world_size"] == 2 and ddp["global_batch_size"] == 4 and single["world_size"] == 1
     where = [{key: saved["position"][key] for key in ("epoch", "offset")} for saved in (ddp, single)]
     assert where[0] == where[1] == {"epoch": 0, "offset": STEPS * 4}
+    # The events-only model with GCN pooled stages (event_dense=0): its dense stages' batch norms over
+    # mostly empty maps give many more near-zero gradients, which the bound below does not allow for.
     # Sums in another order differ in the last bits; AdamW divides each gradient by its own size, so
     # where a gradient is near zero that can move a weight by a fraction of a step (lr = 2e-3, at most
     # about lr per step). Wrong gradients would move most weights by whole steps.
