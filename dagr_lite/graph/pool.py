@@ -33,9 +33,12 @@ class PooledGraph:
     cluster: torch.Tensor
 
 
-def voxel_max_pool(x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge_index: torch.Tensor,
+def voxel_max_pool(x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge_index: torch.Tensor | None,
                    size: float) -> PooledGraph:
     """Max-pool nodes into ``size``-pixel cells over (x, y).
+
+    ``edge_index`` None: the cells alone, without edges (``edge_index`` of the result is empty),
+    for a caller that reads no pooled graph (dense stages): the edges are most of the work.
 
     Shapes:
         x ``(N, F)``, pos ``(N, 3)`` with columns x, y, z, batch ``(N,)``, edge_index ``(2, E)``
@@ -61,6 +64,9 @@ def voxel_max_pool(x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge
     pos_c = pos_c.index_add(0, cluster, pos) / counts[:, None]  # (C, 3)
     batch_c = torch.div(unique, height * width, rounding_mode="floor")
     cell = torch.stack([torch.div(unique, width, rounding_mode="floor") % height, unique % width], dim=1)
+    if edge_index is None:
+        return PooledGraph(x=pooled, pos=pos_c, batch=batch_c, cell=cell,
+                           edge_index=torch.zeros((2, 0), dtype=torch.int64, device=device), cluster=cluster)
     edges = cluster[edge_index]  # (2, E)
     edge_key = edges[1] * max(num_cells, 1) + edges[0]  # (E,)
     if len(edge_key) > 1:  # neighbouring edges often map to the same cell pair: drop those repeats first

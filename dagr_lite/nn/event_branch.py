@@ -126,8 +126,8 @@ class EventBranch(nn.Module):
             raise ValueError(f"image_channels needs {len(channels)} entries, got {len(self.image_channels)}")
         self.out_channels = tuple(channels[1:])
         self.geometry, self.directional, self.dense = bool(geometry), bool(directional), int(dense)
-        below = [self.strides[0] // 2 ** k for k in range(1, 8)]
-        if self.dense and self.dense not in (self.strides[0], *below):
+        halvings = self.strides[0] // self.dense if self.dense > 0 else 0
+        if self.dense and (self.dense * halvings != self.strides[0] or halvings & (halvings - 1)):
             raise ValueError(f"event_dense must be 0 or the first stride {self.strides[0]} halved zero or more "
                              f"times, got {dense}")
         if self.dense and any(self.image_channels[1:]):
@@ -142,7 +142,6 @@ class EventBranch(nn.Module):
             self.dense_stages = nn.ModuleList(
                 nn.Sequential(conv_bn_act(c_in, c_out, stride=1 if i == 0 else 2), Residual(c_out))
                 for i, (c_in, c_out) in enumerate(zip(widths[:-1], widths[1:])))
-            self._dense_out = extra  # the stages before this one give no map
         for level, out in enumerate(channels[:1] if self.dense else channels):
             width_in = (in_features if level == 0 else channels[level - 1]) + self.image_channels[level]
             self.stages.append(nn.ModuleList(GCNBlock(width_in if b == 0 else out, out,
@@ -218,16 +217,15 @@ class EventBranch(nn.Module):
         ``first``: the first pooled graph when it is already known (the streaming detector keeps it
         up to date as nodes arrive); ``x``, ``pos``, ``batch`` and ``edge_index`` are then unused.
         """
-        if self.dense:
-            pooled = first if first is not None else voxel_max_pool(x, pos, batch, edge_index, self.dense)
+        if self.dense:  # the cells' edges are not read
+            pooled = first if first is not None else voxel_max_pool(x, pos, batch, None, self.dense)
             m = to_dense(pooled.x, pooled.batch, pooled.cell, batch_size=batch_size,
                          height=math.ceil(self.height / self.dense), width=math.ceil(self.width / self.dense))
             maps = []
-            for i, stage in enumerate(self.dense_stages):
+            for stage in self.dense_stages:
                 m = stage(m)
-                if i >= self._dense_out:
-                    maps.append(m)
-            return maps
+                maps.append(m)
+            return maps[-len(self.strides):]  # a stage below the first stride gives no map
         maps = []
         for level, stride in enumerate(self.strides, start=1):
             if level == 1 and first is not None:

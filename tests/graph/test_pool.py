@@ -41,6 +41,10 @@ def test_pooling_and_dense_maps_equal_a_loop():
     assert torch.allclose(pooled.pos, mean_pos)
     assert [tuple(e) for e in pooled.edge_index.T.tolist()] == edges
     assert any(s == d for s, d in edges)  # edges inside a cell become kept self-loops
+    cells_only = voxel_max_pool(x, pos, batch, None, 8)  # no edges asked for: the same cells, none
+    for name in ("x", "pos", "batch", "cell", "cluster"):
+        assert torch.equal(getattr(cells_only, name), getattr(pooled, name)), name
+    assert cells_only.edge_index.shape == (2, 0) and cells_only.edge_index.dtype == torch.int64
     dense = to_dense(pooled.x, pooled.batch, pooled.cell, batch_size=3, height=4, width=5)
     expected = torch.zeros(3, 5, 4, 5)
     for c, (b, row, col) in enumerate(keys):
