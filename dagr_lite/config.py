@@ -246,7 +246,8 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
                           clip_boxes=data.clip_boxes, labelled_only=bool(data.get("labelled_only", False)),
                           seed=cfg.seed, age_power=data.train_image_age_power if train else 0.0,
                           event_picture=picture, carry_picture=bool(data.get("carry_picture", False)),
-                          carry_recent_us=int(data.get("carry_recent_us", 0)))
+                          carry_recent_us=int(data.get("carry_recent_us", 0)),
+                          frames=with_image or not train)  # a frameless model's training skips the frames
     if not len(built) and built.videos and first_frame is None:  # (the sweep says its own)
         lengths = [built.num_frames(v) for v in range(len(built.videos))]
         raise ConfigError(f"{built.root} [{split}]: no sample at image age {image_age}: its videos have "

@@ -35,13 +35,14 @@ def zoom_translate(sample: Sample, scale: float, tx: float, ty: float, *, min_bo
     ``min_box_size`` pixels.
     """
     height, width = sample.height, sample.width
-    # Image: output pixel centre u' samples the source at (u' - t) / scale.
-    us = (torch.arange(width, dtype=torch.float32) + 0.5 - tx) / scale  # (W,)
-    vs = (torch.arange(height, dtype=torch.float32) + 0.5 - ty) / scale  # (H,)
-    grid = torch.stack(torch.meshgrid(2 * us / width - 1, 2 * vs / height - 1, indexing="xy"), dim=-1)  # (H, W, 2)
-    image = F.grid_sample(sample.image[None].float(), grid[None], mode="bilinear", padding_mode="zeros",
-                          align_corners=False)[0]  # (3, H, W)
-    image = image.round().clamp(0, 255).to(torch.uint8)
+    image = sample.image  # a frame of no channels (a frameless sample) stays as it is
+    if len(image):  # output pixel centre u' samples the source at (u' - t) / scale
+        us = (torch.arange(width, dtype=torch.float32) + 0.5 - tx) / scale  # (W,)
+        vs = (torch.arange(height, dtype=torch.float32) + 0.5 - ty) / scale  # (H,)
+        grid = torch.stack(torch.meshgrid(2 * us / width - 1, 2 * vs / height - 1, indexing="xy"), dim=-1)  # (H, W, 2)
+        image = F.grid_sample(image[None].float(), grid[None], mode="bilinear", padding_mode="zeros",
+                              align_corners=False)[0]  # (C, H, W)
+        image = image.round().clamp(0, 255).to(torch.uint8)
 
     events = sample.events.clone()  # (N, 4)
     events[:, 0] = scale * (events[:, 0] + 0.5) + tx - 0.5

@@ -24,6 +24,7 @@ from dagr_lite.data.events import EventFile
 from dagr_lite.data.frames import frame_header_problems, list_frames, read_frame
 from dagr_lite.data.spec import SampleSpec, sample_start_us
 from dagr_lite.data.labels import box_problems, list_videos, read_labels
+from dagr_lite.data.picture import add_events, render
 
 # At most this many frame problems are listed when the dataset refuses to open.
 MAX_LISTED_PROBLEMS = 10
@@ -65,24 +66,16 @@ def add_to_picture(counts: np.ndarray, last: np.ndarray, x: np.ndarray, y: np.nd
     Adding events in any pieces gives the state of adding them at once (a stream's picture)."""
     if not len(t):
         return
-    pixel = y.astype(np.int64) * width + x.astype(np.int64)
-    for row, polarity in ((0, 1), (1, 0)):
-        counts[row] += np.bincount(pixel[p == polarity], minlength=counts.shape[1])
-    np.maximum.at(last, pixel, np.asarray(t, np.float64))
+    pixel = np.asarray(y, np.int64) * width + np.asarray(x, np.int64)
+    add_events(counts, last, pixel, np.asarray(t, np.float64), np.asarray(p, np.int64))
 
 
 def picture_of(counts: np.ndarray, last: np.ndarray, t_end_us: float, window_us: float, height: int,
                width: int, recent_us: float = 0) -> np.ndarray:
     """:func:`event_picture` from the per-pixel state of :func:`add_to_picture` at ``t_end_us``."""
-    channels = picture_channels(recent_us)
-    picture = np.zeros((height * width, channels), np.float64)
-    picture[:, :2] = np.minimum(counts.T, PICTURE_COUNT_FULL) * (255.0 / PICTURE_COUNT_FULL)
-    seen = np.isfinite(last)
-    age = t_end_us - last[seen]
-    picture[seen, 2] = np.clip(1 - age / window_us, 0, 1) * 255.0
-    if recent_us > 0:
-        picture[seen, 3] = np.clip(1 - age / recent_us, 0, 1) * 255.0
-    return np.round(picture).astype(np.uint8).reshape(height, width, channels)
+    picture = np.empty((height * width, picture_channels(recent_us)), np.uint8)
+    render(counts, last, float(t_end_us), float(window_us), float(recent_us), PICTURE_COUNT_FULL, picture)
+    return picture.reshape(height, width, -1)
 
 
 def refractory_keep(x: np.ndarray, y: np.ndarray, t: np.ndarray, refractory_us: float, width: int,
@@ -251,6 +244,9 @@ class EventEgoHands(Dataset):
             (for ``event_span="image"`` not from before ``t(k - a) - context_us``), which the event
             graph reads as neighbours and never pools (:class:`~dagr_lite.data.spec.SampleSpec`);
             ``Sample.t_start_us`` stays the pooled start.
+        frames: read the camera frames; false (a model without an image, in training, where
+            nothing draws the frame): ``Sample.image`` is ``(0, H, W)``, a frame of no channels,
+            saving each sample's frame decode and warp.
     """
 
     def __init__(self, root: Path | str, split: str, *, image_age: int | Sequence[int], window_us: int,
@@ -261,7 +257,7 @@ class EventEgoHands(Dataset):
                  transform: Callable[[Sample, np.random.Generator], Sample] | None = None,
                  clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0, age_power: float = 0.0,
                  graph_context_us: int, event_picture: bool = False, carry_picture: bool = False,
-                 carry_recent_us: int = 0):
+                 carry_recent_us: int = 0, frames: bool = True):
         if split not in fmt.SPLITS:
             raise UserError(f"split must be one of {fmt.SPLITS}, got {split!r}")
         self.age_range = age_range(image_age)
@@ -279,6 +275,7 @@ class EventEgoHands(Dataset):
         if carry_picture and event_picture:
             raise UserError("event_picture and carry_picture are two kinds of image: choose one")
         self.carry_picture = bool(carry_picture)
+        self.frames = bool(frames)
         if carry_recent_us < 0:
             raise UserError(f"carry_recent_us must be >= 0, got {carry_recent_us}")
         self.carry_recent_us = int(carry_recent_us)
@@ -448,8 +445,10 @@ class EventEgoHands(Dataset):
             pooled = int(np.searchsorted(raw["t"], t_start, side="left"))
             image = event_picture(*(raw[key][pooled:] for key in ("x", "y", "t", "p")), t_end, self.window_us,
                                   height, width)
-        else:
+        elif self.frames:
             image = self.image_of(v, image_frame)  # (H, W, 3)
+        else:
+            image = np.zeros((height, width, 0), np.uint8)  # no frame: (H, W, 0)
         if self.carry_picture:  # every event since the image, recency over its age (and the recent window)
             since = int(np.searchsorted(kept["t"], t_image, side="left"))
             picture = event_picture(*(kept[key][since:] for key in ("x", "y", "t", "p")), t_end,

@@ -68,6 +68,8 @@ def render_sample(batch: Batch, index: int, detections: dict | None = None, *, s
     (ON red, OFF blue on white) with the same boxes."""
     image = batch.images[index, :3].permute(1, 2, 0).cpu().numpy()  # the frame (or picture) alone
     height, width = image.shape[:2]
+    if not image.shape[2]:  # a frameless sample: a grey frame
+        image = np.full((height, width, 3), 128, np.uint8)
     canvas = np.full((height, width, 3), 255, np.uint8)
     events = batch.events[batch.ptr[index]:batch.ptr[index + 1]].cpu().numpy()
     events = events[events[:, 2] >= int(batch.t_start_us[index] - batch.t_image_us[index])]  # its own window

@@ -143,3 +143,13 @@ def test_event_drop_removes_a_drawn_fraction_of_the_events_and_nothing_else():
     assert 0.2 < np.mean(fractions) < 0.4
     with pytest.raises(ValueError, match="event_drop"):
         TrainAugment(**{**AUGMENT, "event_drop": 1.0})
+
+
+def test_a_frameless_sample_moves_its_events_and_boxes_as_one_with_a_frame():
+    augment = TrainAugment(**AUGMENT)
+    sample = make_sample((5.0, 12.0, 20.0, 28.0))
+    frameless = sample.replace(image=sample.image[:0])  # (0, H, W): a model without an image
+    for seed in range(20):
+        a, b = augment(sample, np.random.default_rng(seed)), augment(frameless, np.random.default_rng(seed))
+        assert b.image.shape == (0, H, W)
+        assert torch.equal(a.events, b.events) and torch.equal(a.boxes, b.boxes) and torch.equal(a.labels, b.labels)

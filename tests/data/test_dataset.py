@@ -146,6 +146,26 @@ def test_window_with_no_events_gives_zero_events(tmp_path):
         assert sample.events.shape == ((1, 4) if inside else (0, 4))
 
 
+def test_a_frameless_set_holds_the_same_samples_without_the_frame(dataset):
+    framed = sample_set(dataset.root, "train", image_age=(1, 3))
+    frameless = sample_set(dataset.root, "train", image_age=(1, 3), frames=False)
+    for index in range(0, len(framed), 3):
+        a, b = framed[index], frameless[index]
+        assert b.image.shape == (0, *a.image.shape[1:]) and (b.height, b.width) == (a.height, a.width)
+        assert torch.equal(a.events, b.events) and torch.equal(a.boxes, b.boxes)
+        assert (a.image_frame, a.t_start_us, a.t_end_us, a.t_image_us) == (b.image_frame, b.t_start_us, b.t_end_us,
+                                                                            b.t_image_us)
+
+
+def test_build_dataset_skips_the_frames_for_a_frameless_model_in_training_alone():
+    from dagr_lite.config import build_dataset, compose_config
+
+    cfg = compose_config("train", ["model=events_only"])
+    assert not build_dataset(cfg, "valid", train=True, with_image=False).frames
+    assert build_dataset(cfg, "valid", train=False, with_image=False).frames  # evaluation draws the frame
+    assert build_dataset(compose_config("train", []), "valid", train=True, with_image=True).frames
+
+
 def test_loader_workers_reopen_files(dataset):
     ds = sample_set(dataset.root, "train")
     ds[0]  # open the file in the main process first: workers must not reuse that handle
@@ -154,6 +174,17 @@ def test_loader_workers_reopen_files(dataset):
     assert sum(len(b) for b in batches) == len(ds)
     first = collate([ds[i] for i in range(4)])
     assert torch.equal(batches[0].events, first.events)
+
+
+def test_an_event_file_reads_the_same_through_its_kept_arrays_and_after_pickling(dataset):
+    import pickle
+
+    ds = sample_set(dataset.root, "train")
+    first = ds[3]
+    again = pickle.loads(pickle.dumps(ds))[3]  # a worker's copy opens the file afresh
+    assert torch.equal(first.events, again.events) and torch.equal(ds[3].events, first.events)
+    ds._events[0].close()
+    assert torch.equal(ds[3].events, first.events)  # reopened after a close
 
 
 def test_new_epochs_reach_loader_workers(dataset):

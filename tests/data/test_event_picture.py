@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from dagr_lite.data.dataset import PICTURE_COUNT_FULL, event_picture
+from dagr_lite.data.dataset import PICTURE_COUNT_FULL, add_to_picture, event_picture, picture_of
 from dagr_lite.synth.stub import stub_root
 from tests.settings import sample_set
 
@@ -34,6 +34,20 @@ def test_event_picture_equals_a_per_event_loop():
     np.testing.assert_array_equal(recent, _picture_by_loop(x, y, t, p, 30_000, 33_333, height, width, 4_000))
     np.testing.assert_array_equal(recent[..., :3], got)  # the fourth channel is added, the three unchanged
     assert (recent[..., 3] == 0).sum() > (got[..., 2] == 0).sum()  # older than the recent window: 0
+
+
+def test_a_large_picture_in_pieces_equals_the_loop_ties_rounded_to_even():
+    rng = np.random.default_rng(1)
+    height, width, n = 30, 40, 6000
+    x, y = rng.integers(0, width, n).astype(np.uint16), rng.integers(0, height, n).astype(np.uint16)
+    t, p = np.sort(rng.integers(0, 90_000, n)), rng.integers(0, 2, n).astype(np.uint8)
+    counts, last = np.zeros((2, height * width), np.int64), np.full(height * width, -np.inf)
+    for piece in np.array_split(np.arange(n), 7):  # a stream's pieces
+        add_to_picture(counts, last, x[piece], y[piece], t[piece], p[piece], width)
+    got = picture_of(counts, last, 90_000, 90_000, height, width, 20_000)
+    np.testing.assert_array_equal(got, _picture_by_loop(x, y, t, p, 90_000, 90_000, height, width, 20_000))
+    ties = counts[0].reshape(height, width) == PICTURE_COUNT_FULL // 2  # 255 * 4 / 8 = 127.5
+    assert ties.any() and (got[..., 0][ties] == 128).all()  # half to even
 
 
 def test_a_dataset_with_the_event_picture_reads_the_window_not_the_frame():
