@@ -152,7 +152,8 @@ class Sample:
     Attributes:
         events: ``(N, 4)`` float32 columns x, y, t, p: pixel coordinates, microseconds since the
             image (``t_image_us``; negative for events before it), polarity in {0, 1}; sorted by t.
-        image: ``(3, H, W)`` uint8 RGB frame ``image_frame``.
+        image: ``(3, H, W)`` uint8 RGB frame ``image_frame`` (with a picture of events, more channels;
+            a frameless sample, ``EventEgoHands(frames=False)``, ``(0, H, W)``).
         boxes: ``(M, 4)`` float32 x1, y1, x2, y2 in pixels (M may be 0).
         labels: ``(M,)`` int64 class indices (0 = hand).
         video: video name; ``frame``: label frame index k; ``image_frame``: ``k - a`` for image age a.
