@@ -9,7 +9,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-KERNEL = {"cache": True, "nogil": True, "error_model": "numpy"}
+from dagr_lite.graph.compiled import KERNEL  # the project's kernel options: cached, GIL released
 
 
 @numba.njit(**KERNEL)
