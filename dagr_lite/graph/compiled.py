@@ -424,3 +424,34 @@ class CellChains:
                 self._regrid(points)
             else:
                 self._grow_ring(self.held + len(points))
+
+
+@numba.njit(**KERNEL)
+def neighbourhood_moments(pos, src, dst, first, radius, max_neighbors, out):
+    """``out (n, 10)`` zeros -> per node ``first + i`` the means over its incoming edges of the offsets
+    ``d = (pos[src] - pos[dst]) / radius``, of their squares and of ``dx dt, dy dt, dx dy``, then the
+    in-degree over ``max_neighbors`` (``nn.event_branch.neighbourhood_geometry``). One pass over the
+    edges in their order, each product in ``out``'s precision."""
+    for e in range(len(src)):
+        s, d = src[e], dst[e]
+        i = d - first
+        dx = (pos[s, 0] - pos[d, 0]) / radius
+        dy = (pos[s, 1] - pos[d, 1]) / radius
+        dt = (pos[s, 2] - pos[d, 2]) / radius
+        row = out[i]
+        row[0] += dx
+        row[1] += dy
+        row[2] += dt
+        row[3] += dx * dx
+        row[4] += dy * dy
+        row[5] += dt * dt
+        row[6] += dx * dt
+        row[7] += dy * dt
+        row[8] += dx * dy
+        row[9] += 1
+    for i in range(len(out)):
+        degree = out[i, 9]
+        if degree > 0:
+            for c in range(9):
+                out[i, c] /= degree
+        out[i, 9] = degree / max_neighbors

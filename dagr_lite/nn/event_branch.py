@@ -20,9 +20,11 @@ from __future__ import annotations
 import math
 from typing import Callable, Sequence
 
+import numpy as np
 import torch
 from torch import nn
 
+from dagr_lite.graph.compiled import neighbourhood_moments
 from dagr_lite.graph.pool import PooledGraph, to_dense, voxel_max_pool
 from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.blocks import Residual, conv_bn_act
@@ -44,7 +46,25 @@ def neighbourhood_geometry(pos: torch.Tensor, edge_index: torch.Tensor, radius: 
     They depend on the node's edges alone, which the causal graph fixes when the node arrives, so
     they never change afterwards (the streaming detector computes them for new nodes only).
     ``first``: the nodes whose features are wanted are ``first, first + 1, ...`` (every edge's
-    destination among them); ``pos`` holds every node an edge names."""
+    destination among them); ``pos`` holds every node an edge names.
+
+    On the CPU one compiled pass over the edges (:func:`~dagr_lite.graph.compiled.neighbourhood_moments`,
+    about 25x faster than the tensor expressions at a training batch's 600k edges); on another device,
+    or where ``pos`` needs a gradient, :func:`neighbourhood_geometry_reference`. Both sum each node's
+    edges in their order: in float64 they agree to the bit."""
+    if pos.device.type != "cpu" or pos.requires_grad or pos.dtype not in (torch.float32, torch.float64):
+        return neighbourhood_geometry_reference(pos, edge_index, radius, max_neighbors, first)
+    pos_np = pos.detach().contiguous().numpy()
+    edges = edge_index.detach().to(torch.int64).contiguous().numpy()
+    out = np.zeros((len(pos_np) - first, GEOMETRY_FEATURES), dtype=pos_np.dtype)
+    neighbourhood_moments(pos_np, edges[0], edges[1], first, pos_np.dtype.type(radius),
+                          pos_np.dtype.type(max_neighbors), out)
+    return torch.from_numpy(out)
+
+
+def neighbourhood_geometry_reference(pos: torch.Tensor, edge_index: torch.Tensor, radius: float,
+                                     max_neighbors: int, first: int = 0) -> torch.Tensor:
+    """:func:`neighbourhood_geometry` by tensor expressions (any device; differentiable in ``pos``)."""
     n = len(pos) - first
     src, dst = edge_index[0], edge_index[1] - first
     d = (pos[src] - pos[edge_index[1]]) / radius  # (E, 3)

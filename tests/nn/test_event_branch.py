@@ -81,6 +81,32 @@ def test_neighbourhood_geometry_equals_a_loop_over_each_nodes_neighbours():
     torch.testing.assert_close(neighbourhood_geometry(pos, late, SPEC.radius, SPEC.max_neighbors, first=250), got[250:])
 
 
+def test_compiled_neighbourhood_geometry_equals_the_tensor_reference():
+    from dagr_lite.nn.event_branch import neighbourhood_geometry, neighbourhood_geometry_reference
+
+    events = torch.cat([events_of(700, 5), events_of(500, 6)]).double()
+    batch = torch.cat([torch.zeros(700, dtype=torch.long), torch.ones(500, dtype=torch.long)])
+    edges = SPEC.edges(events, batch)
+    pos = SPEC.positions(events)
+    assert edges.shape[1] > 1000
+    # float64: the same sums in the same order, to the bit; from `first` on too
+    assert torch.equal(neighbourhood_geometry(pos, edges, SPEC.radius, SPEC.max_neighbors),
+                       neighbourhood_geometry_reference(pos, edges, SPEC.radius, SPEC.max_neighbors))
+    late = edges[:, edges[1] >= 900]
+    assert torch.equal(neighbourhood_geometry(pos, late, SPEC.radius, SPEC.max_neighbors, first=900),
+                       neighbourhood_geometry_reference(pos, late, SPEC.radius, SPEC.max_neighbors, first=900))
+    # float32: the training precision, to its rounding
+    got = neighbourhood_geometry(pos.float(), edges, SPEC.radius, SPEC.max_neighbors)
+    assert got.dtype == torch.float32
+    torch.testing.assert_close(got, neighbourhood_geometry_reference(pos.float(), edges, SPEC.radius, SPEC.max_neighbors))
+    # no edges: zeros; a position that needs a gradient takes the differentiable reference
+    none = neighbourhood_geometry(pos, edges[:, :0], SPEC.radius, SPEC.max_neighbors)
+    assert none.shape == (1200, 10) and not none.any()
+    grad_pos = pos.clone().requires_grad_(True)
+    neighbourhood_geometry(grad_pos, edges, SPEC.radius, SPEC.max_neighbors).sum().backward()
+    assert grad_pos.grad is not None
+
+
 def test_a_branch_with_geometry_reads_the_neighbourhood_and_refuses_features_without_a_graph():
     import pytest
 
