@@ -141,6 +141,7 @@ _RULES = {
     "trainer.events_first": ("a number in [0, 1) (a fraction of the schedule)", lambda v: _number(v) and 0 <= v < 1),
     "trainer.image_first": ("a number in [0, 1) (a fraction of the schedule)", lambda v: _number(v) and 0 <= v < 1),
     "trainer.val_every": ("an integer >= 0 (0: every epoch)", lambda v: _integer(v) and v >= 0),
+    "trainer.val_samples": ("a positive integer or null (every sample)", lambda v: v is None or (_integer(v) and v > 0)),
     "trainer.log_every": ("a positive integer", lambda v: _integer(v) and v > 0),
     "trainer.image_every": ("an integer >= 0 (0: never)", lambda v: _integer(v) and v >= 0),
     "trainer.amp_dtype": ("one of auto, float16, bfloat16", lambda v: v in ("auto", "float16", "bfloat16")),
@@ -322,6 +323,7 @@ class TrainerSettings:
     events_first: float  # 0 for a model with one branch and for a run started from init_from
     image_first: float  # likewise
     val_every: int
+    val_samples: int | None
     log_every: int
     image_every: int
     checkpoint_every: int
@@ -350,7 +352,7 @@ class TrainerSettings:
 # The keys of conf/train.yaml's trainer section (the first phases besides): a key given with + that the
 # loop does not read is refused rather than ignored.
 FIRST_PHASES = ("events_first", "image_first")
-TRAINER_KEYS = ("max_steps", "max_epochs", "max_minutes", "schedule_by", "val_every", "log_every", "image_every",
+TRAINER_KEYS = ("max_steps", "max_epochs", "max_minutes", "schedule_by", "val_every", "val_samples", "log_every", "image_every",
                 "checkpoint_every", "checkpoint_minutes", "warmup_steps", "min_lr_ratio", "grad_clip", "ema_decay",
                 "ema_tau", "amp", "amp_dtype")
 

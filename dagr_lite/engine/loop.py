@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 from omegaconf import DictConfig
-from torch.utils.data import DataLoader
+from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
 from dagr_lite.errors import UserError
@@ -56,6 +56,14 @@ def validation_ages(cfg: DictConfig) -> list[int]:
     return sorted(ages)
 
 
+def spread_subset(dataset, count: int):
+    """``count`` samples of ``dataset`` spread evenly over it (samples ``i * len // count``), in
+    order; the dataset itself when it holds no more."""
+    if count >= len(dataset):
+        return dataset
+    return Subset(dataset, [i * len(dataset) // count for i in range(count)])
+
+
 def make_data(cfg: DictConfig, train_set: EventEgoHands, model, place: Distributed) -> TrainData:
     """The training loader (this rank's slice of each global batch), and one validation loader
     per validation age (this rank's shard)."""
@@ -72,6 +80,12 @@ def make_data(cfg: DictConfig, train_set: EventEgoHands, model, place: Distribut
     if place.is_main:
         for dataset in (train_set, *valid_sets.values()):
             print(describe_dataset(dataset), flush=True)
+    limit = cfg.trainer.get("val_samples")
+    if limit is not None:
+        valid_sets = {age: spread_subset(dataset, int(limit)) for age, dataset in valid_sets.items()}
+        if place.is_main:
+            print(f"validating on {len(next(iter(valid_sets.values())))} samples at each age (trainer.val_samples)",
+                  flush=True)
     batch_size, workers = cfg.loader.batch_size, cfg.loader.num_workers
     global_batch = batch_size * place.world_size
     if len(train_set) < global_batch:

@@ -53,7 +53,8 @@ def run_training(rank: int, world: int, port: int, run_dir: str, overrides: list
 def launch(tmp_path: Path, name: str, world: int, *overrides: str) -> list[dict]:
     run_dir = tmp_path / name
     common = [f"loader.batch_size={PER_RANK * 2 // world}", f"trainer.max_steps={STEPS}", "trainer.schedule_by=steps", "trainer.val_every=4",
-              "trainer.checkpoint_every=1", "model=events_only", "model.event_dense=0", "data.window_us=20000"]
+              "trainer.checkpoint_every=1", "model=events_only", "model.event_dense=0", "data.window_us=20000",
+              "trainer.val_samples=null"]  # every sample: sharded validation is compared with evaluate
     args = (world, free_port(), str(run_dir), [*common, *overrides], str(tmp_path / f"{name}.out"))
     if world == 1:
         run_training(0, *args)

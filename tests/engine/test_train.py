@@ -37,16 +37,17 @@ def config(name, *overrides):
 def small(run_dir, *overrides):
     """A tiny training config, on the CPU in float32: the exactness checks (resume, processes)
     hold there (CUDA's atomics and bfloat16 make runs differ in the last digits);
-    tests/engine/test_cuda.py trains on a GPU where there is one."""
+    tests/engine/test_cuda.py trains on a GPU where there is one. Validation reads 16 samples
+    spread over the valid split (``trainer.val_samples``)."""
     return config("train", f"run_dir={run_dir}", "device=cpu", "trainer.amp=false", "loader.batch_size=4", "loader.num_workers=0", "optim.lr=2e-3",
-                  "trainer.schedule_by=steps",
+                  "trainer.schedule_by=steps", "trainer.val_samples=16",
                   "trainer.warmup_steps=5", "trainer.log_every=1", "trainer.image_every=0", "data.window_us=20000",
                   *overrides)
 
 
 def test_smoke_training_lowers_the_loss_then_evaluate_scores_the_checkpoint(tmp_path):
     result = train(small(tmp_path / "run", "trainer.max_steps=40", "trainer.val_every=40",
-                         "trainer.image_every=20", "loader.num_workers=2"))
+                         "trainer.image_every=20", "loader.num_workers=2", "trainer.val_samples=null"))
     losses = result["losses"]
     assert len(losses) == 40 and sum(losses[-5:]) / 5 < 0.7 * sum(losses[:5]) / 5
     run = tmp_path / "run"
@@ -103,6 +104,20 @@ def pycocotools_metrics(detections: list[dict], split: str) -> dict:
     scoring = COCOeval(truth, found, "bbox")
     scoring.evaluate(), scoring.accumulate(), scoring.summarize()
     return {"mAP": scoring.stats[0], "AP50": scoring.stats[1], "AP75": scoring.stats[2]}
+
+
+def test_val_samples_validates_on_samples_spread_over_the_split(tmp_path, capsys):
+    from dagr_lite.engine.loop import spread_subset
+
+    assert spread_subset(list(range(10)), 4).indices == [0, 2, 5, 7]
+    whole = list(range(3))
+    assert spread_subset(whole, 3) is whole and spread_subset(whole, 8) is whole
+    result = train(small(tmp_path / "run", "trainer.max_steps=2", "trainer.val_every=2", "trainer.val_samples=6"))
+    assert result["metrics"]["num_images"] == 6
+    assert "validating on 6 samples at each age (trainer.val_samples)" in capsys.readouterr().out
+    with pytest.raises(ConfigError, match=r"trainer\.val_samples must be a positive integer or null"):
+        train(small(tmp_path / "bad", "trainer.val_samples=0"))
+    assert not (tmp_path / "bad").exists()
 
 
 def keep_last_copies(monkeypatch) -> dict:

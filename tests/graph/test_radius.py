@@ -15,12 +15,13 @@ def brute_force(pos, r, k, batch=None):
     diff = (pos[:, None, :] - pos[None, :, :]).numpy()
     # numpy's square root is correctly rounded; torch's vectorised CPU one may be an ulp off
     d = torch.from_numpy(np.sqrt(diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1] + diff[..., 2] * diff[..., 2]))
-    same = torch.ones(n, n, dtype=torch.bool) if batch is None else batch[:, None] == batch[None, :]
+    d = d.numpy()
+    same = np.ones((n, n), bool) if batch is None else (np.asarray(batch)[:, None] == np.asarray(batch)[None, :])
     edges = []
     for i in range(n):
-        js = [j for j in range(i) if d[i, j] <= r and same[i, j]]
-        js.sort(key=lambda j: (d[i, j].item(), j))
-        edges += [(j, i) for j in sorted(js[:k])]
+        js = np.flatnonzero((d[i, :i] <= r) & same[i, :i])  # earlier nodes within r, in index order
+        nearest = js[np.lexsort((js, d[i, js]))[:k]]  # by distance, ties by index
+        edges += [(j, i) for j in sorted(nearest.tolist())]
     return torch.tensor(edges, dtype=torch.int64).reshape(-1, 2).T
 
 
