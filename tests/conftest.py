@@ -105,6 +105,6 @@ def trained_checkpoints(tmp_path_factory) -> dict[str, Path]:
                                        "trainer.schedule_by=steps",
                                        "device=cpu", "trainer.amp=false", "loader.batch_size=4",
                                        "loader.num_workers=0", "trainer.image_every=0", "trainer.warmup_steps=1",
-                                       "optim.lr=3e-3"]))
+                                       "optim.lr=3e-3", "trainer.val_samples=8"]))
         paths[variant] = root / variant / "checkpoints" / "last.pt"
     return paths

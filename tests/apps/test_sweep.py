@@ -80,7 +80,7 @@ def test_the_sweep_writes_its_table_plot_and_rows(tmp_path, capsys, monkeypatch)
     for variant in ("image_only", "events_only"):
         train(compose_config("train", [f"run_dir={tmp_path / variant}", f"model={variant}", "trainer.max_steps=1", "trainer.schedule_by=steps",
                                        "loader.batch_size=4", "loader.num_workers=0", "data.window_us=15000",
-                                       "trainer.image_every=0"]))
+                                       "trainer.image_every=0", "trainer.val_samples=4"]))
         ckpts.append(str(tmp_path / variant / "checkpoints" / "last.pt"))
     out = tmp_path / "sweep"
     result = sweep(compose_config("sweep", [f"ckpt=[{ckpts[0]},{ckpts[1]}]", "split=valid", "ages=[1,4]",
