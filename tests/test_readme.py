@@ -77,16 +77,29 @@ def test_every_hydra_command_of_the_readme_composes_with_its_overrides(command):
             assert OmegaConf.select(cfg, key, default="<absent>") != "<absent>", override
 
 
-def help_of(program: str) -> str:
-    target = ["-m", program] if not program.endswith(".py") else [str(ROOT / program)]
-    done = subprocess.run([sys.executable, *target, "--help"], cwd=ROOT, capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stderr
-    return done.stdout
+OTHERS = sorted({program_and_arguments(c)[0] for c in commands()} - set(HYDRA))
 
 
-@pytest.mark.parametrize("program", sorted({program_and_arguments(c)[0] for c in commands()} - set(HYDRA)))
-def test_every_other_command_shows_the_options_the_readme_gives_it(program):
-    text = help_of(program)
+@pytest.fixture(scope="module")
+def helps() -> dict[str, tuple[int, str, str]]:
+    """``{program: (return code, stdout, stderr)}`` of every other program's ``--help``, the
+    processes run side by side (each spends its time importing)."""
+    running = {}
+    for program in OTHERS:
+        target = ["-m", program] if not program.endswith(".py") else [str(ROOT / program)]
+        running[program] = subprocess.Popen([sys.executable, *target, "--help"], cwd=ROOT, text=True,
+                                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    done = {}
+    for program, process in running.items():
+        out, err = process.communicate(timeout=300)
+        done[program] = (process.returncode, out, err)
+    return done
+
+
+@pytest.mark.parametrize("program", OTHERS)
+def test_every_other_command_shows_the_options_the_readme_gives_it(program, helps):
+    code, text, err = helps[program]
+    assert code == 0, err
     for command in commands():
         name, arguments = program_and_arguments(command)
         if name == program:
