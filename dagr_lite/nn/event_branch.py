@@ -49,7 +49,7 @@ def neighbourhood_geometry(pos: torch.Tensor, edge_index: torch.Tensor, radius: 
     destination among them); ``pos`` holds every node an edge names.
 
     On the CPU one compiled pass over the edges (:func:`~dagr_lite.graph.compiled.neighbourhood_moments`,
-    about 25x faster than the tensor expressions at a training batch's 600k edges); on another device,
+    5.6 ms against the tensor expressions' 38.5 ms at a training batch's 580k edges); on another device,
     or where ``pos`` needs a gradient, :func:`neighbourhood_geometry_reference`. Both sum each node's
     edges in their order: in float64 they agree to the bit."""
     if pos.device.type != "cpu" or pos.requires_grad or pos.dtype not in (torch.float32, torch.float64):
