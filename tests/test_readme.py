@@ -91,7 +91,7 @@ def helps() -> dict[str, tuple[int, str, str]]:
                                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     done = {}
     for program, process in running.items():
-        out, err = process.communicate(timeout=300)
+        out, err = process.communicate(timeout=120)
         done[program] = (process.returncode, out, err)
     return done
 

@@ -14,8 +14,7 @@ def brute_force(pos, r, k, batch=None):
         return torch.zeros((2, 0), dtype=torch.int64)
     diff = (pos[:, None, :] - pos[None, :, :]).numpy()
     # numpy's square root is correctly rounded; torch's vectorised CPU one may be an ulp off
-    d = torch.from_numpy(np.sqrt(diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1] + diff[..., 2] * diff[..., 2]))
-    d = d.numpy()
+    d = np.sqrt(diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1] + diff[..., 2] * diff[..., 2])
     same = np.ones((n, n), bool) if batch is None else (np.asarray(batch)[:, None] == np.asarray(batch)[None, :])
     edges = []
     for i in range(n):
