@@ -106,7 +106,8 @@ def streamed_detections(model: Detector, dataset: EventEgoHands, frames: list[tu
 
     For each label frame, a new :class:`StreamingDetector` with the dataset's horizon and context
     is fed the stream's events in ``chunk_us`` pieces from well before the image (``window_us +
-    graph_context_us + context_us + refractory_us`` before it), the image of frame ``k - age`` at its time, the
+    graph_context_us + context_us`` and the longer of the two
+    arrival filters' periods before it), the image of frame ``k - age`` at its time, the
     events up to the point's time, and then asked for detections at that time. Entries as
     :func:`~dagr_lite.eval.score.detections_of` gives them, in ``frames``' order.
     """
@@ -118,7 +119,7 @@ def streamed_detections(model: Detector, dataset: EventEgoHands, frames: list[tu
         t_image = dataset.frame_time_us(v, image_frame)
         stream = StreamingDetector(model, dataset.sample, OperatingPoint(score=conf_threshold, nms_iou=nms_threshold))
         t_begin = (min(t_image, t_end) - dataset.window_us - dataset.graph_context_us - dataset.context_us
-                   - dataset.refractory_us)
+                   - max(dataset.refractory_us, dataset.support_us))
         events = dataset.events_of(v, max(t_begin, 0), t_end)
         edges = sorted({*range(t_begin, t_end, chunk_us), t_image, t_end})
         cuts = np.searchsorted(events["t"], edges, side="left")

@@ -21,6 +21,7 @@ from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.errors import DatasetFormatError, Problem
 from dagr_lite.data.events import EventFile
+from dagr_lite.data.denoise import support_keep
 from dagr_lite.data.frames import frame_header_problems, list_frames, read_frame
 from dagr_lite.data.spec import SampleSpec, sample_start_us
 from dagr_lite.data.labels import box_problems, list_videos, read_labels
@@ -221,6 +222,9 @@ class EventEgoHands(Dataset):
         refractory_us: > 0: a pixel's event is dropped when the pixel had an event less than this
             long before it (:func:`refractory_keep`, decided on arrival, as the streaming detector
             does); 0: every event.
+        support_us: > 0: an event is kept only when one of its 8 neighbouring pixels had an event
+            less than this long before it (:func:`~dagr_lite.data.denoise.support_keep`, a
+            background-activity filter decided on arrival, as the streaming detector does); 0: none.
         max_events: a guard: a sample holding more events raises :class:`SampleTooLarge` (None: no
             guard). It never thins a sample, since the streaming detector could not follow.
         first_frame: the first label frame (default: the smallest image age), e.g. the largest
@@ -258,7 +262,7 @@ class EventEgoHands(Dataset):
                  transform: Callable[[Sample, np.random.Generator], Sample] | None = None,
                  clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0, age_power: float = 0.0,
                  graph_context_us: int, event_picture: bool = False, carry_picture: bool = False,
-                 carry_recent_us: int = 0, frames: bool = True):
+                 carry_recent_us: int = 0, frames: bool = True, support_us: int = 0):
         if split not in fmt.SPLITS:
             raise UserError(f"split must be one of {fmt.SPLITS}, got {split!r}")
         self.age_range = age_range(image_age)
@@ -284,6 +288,9 @@ class EventEgoHands(Dataset):
             raise UserError(f"context_us must be >= 0, got {context_us}")
         if refractory_us < 0:
             raise UserError(f"refractory_us must be >= 0, got {refractory_us}")
+        if support_us < 0:
+            raise UserError(f"support_us must be >= 0, got {support_us}")
+        self.support_us = int(support_us)
         if max_events is not None and max_events <= 0:
             raise UserError(f"max_events must be positive or None, got {max_events}")
         if graph_context_us < 0:
@@ -327,7 +334,7 @@ class EventEgoHands(Dataset):
         return SampleSpec(window_us=self.window_us, context_us=self.context_us, refractory_us=self.refractory_us,
                           max_events=self.max_events, event_picture=self.event_picture,
                           graph_context_us=self.graph_context_us, carry_picture=self.carry_picture,
-                          carry_recent_us=self.carry_recent_us)
+                          carry_recent_us=self.carry_recent_us, support_us=self.support_us)
 
     def _open_video(self, video: str, labels: dict[int, np.ndarray], clip_boxes: bool):
         frames_dir = fmt.frames_dir(self.root, self.split, video)
@@ -465,18 +472,24 @@ class EventEgoHands(Dataset):
         return sample
 
     def _kept_events(self, v: int, t_from: int, t_end: int) -> dict[str, np.ndarray]:
-        """Video ``v``'s events of ``[t_from, t_end)`` that the refractory period keeps (decided from
-        the events of one period before each), checked to lie in the frame."""
+        """Video ``v``'s events of ``[t_from, t_end)`` that the refractory period and the
+        background-activity filter keep (each decided from the events of its period before each
+        event), checked to lie in the frame."""
         height, width = self.image_size
-        raw = self.events_of(v, t_from - self.refractory_us, t_end)
+        lead = max(self.refractory_us, self.support_us)
+        raw = self.events_of(v, t_from - lead, t_end)
         x, y = raw["x"], raw["y"]
         if len(x) and (x.max() >= width or y.max() >= height):
-            raise DatasetFormatError.at(self._events[v].path, f"events of [{t_from - self.refractory_us}, {t_end}) us "
+            raise DatasetFormatError.at(self._events[v].path, f"events of [{t_from - lead}, {t_end}) us "
                                                               f"lie outside the {width}x{height} frame (x max "
                                                               f"{x.max()}, y max {y.max()})", key="events/x, events/y")
         first = int(np.searchsorted(raw["t"], t_from, side="left"))
-        if self.refractory_us:
-            keep = refractory_keep(x, y, raw["t"], self.refractory_us, width)
+        if self.refractory_us or self.support_us:
+            keep = np.ones(len(x), dtype=bool)
+            if self.refractory_us:
+                keep &= refractory_keep(x, y, raw["t"], self.refractory_us, width)
+            if self.support_us:
+                keep &= support_keep(x, y, raw["t"], self.support_us, width, height)
             keep[:first] = False
         else:
             keep = slice(first, None)

@@ -2,7 +2,8 @@
 
 A :class:`SampleSpec` says which events a model reads at a query time ``t`` (docs/design.md, "One
 sample"): those of the horizon ``[t - window_us, t)``, for a model with an image none from before
-``image time - context_us``, less the events a refractory period drops, with a guard on their
+``image time - context_us``, less the events a refractory period or a background-activity filter
+drops, with a guard on their
 count; with ``graph_context_us``, the graph's first stage also reads the events that long before
 the horizon, as neighbours only. A training run records it in its checkpoints; evaluation, the sweep, the streaming
 detector, detect and labelling read it from there (:class:`~dagr_lite.engine.checkpoint.Checkpoint`),
@@ -43,6 +44,9 @@ class SampleSpec:
         context_us: a model with an image reads none from before ``image time - context_us``.
         refractory_us: > 0: an event is dropped when its pixel had one (kept or not) less than
             this long before it, decided as it arrives; 0: every event is read.
+        support_us: > 0: an event is kept only when one of its 8 neighbouring pixels had one (kept
+            or not) less than this long before it (a background-activity filter,
+            :mod:`~dagr_lite.data.denoise`), decided as it arrives; 0: no such filter.
         max_events: a sample holding more events is refused (never thinned); None: no guard.
         event_picture: the image is a picture of the events (the dense peer), not a camera frame.
         carry_picture: the image gains three channels, a picture of the events since the image's
@@ -63,11 +67,13 @@ class SampleSpec:
     graph_context_us: int
     carry_picture: bool
     carry_recent_us: int
+    support_us: int = 0
 
     def __post_init__(self):
         checks = {"window_us": (_integer(self.window_us) and self.window_us > 0, "a positive integer"),
                   "context_us": (_integer(self.context_us) and self.context_us >= 0, "an integer >= 0"),
                   "refractory_us": (_integer(self.refractory_us) and self.refractory_us >= 0, "an integer >= 0"),
+                  "support_us": (_integer(self.support_us) and self.support_us >= 0, "an integer >= 0"),
                   "max_events": (self.max_events is None or (_integer(self.max_events) and self.max_events > 0),
                                  "a positive integer or None"),
                   "event_picture": (isinstance(self.event_picture, bool), "true or false"),
