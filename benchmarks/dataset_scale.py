@@ -100,7 +100,7 @@ def main() -> None:
     tracemalloc.start()
     started = time.perf_counter()
     dataset = EventEgoHands(root, "train", image_age=(1, 10), window_us=fmt.DEFAULT_WINDOW_US, context_us=10_000,
-                            refractory_us=0, max_events=None, graph_context_us=0)
+                            refractory_us=0, support_us=0, max_events=None, graph_context_us=0)
     opened = time.perf_counter() - started
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()

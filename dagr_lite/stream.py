@@ -8,7 +8,9 @@ run on the sample of that moment, the sample training and evaluation read
 - every model reads the events of ``[t - window_us, t]`` (a horizon);
 - a hybrid reads the latest image, and no event from before ``image time - context_us``;
 - with ``refractory_us`` > 0, an event whose pixel had one less than that long before it is
-  dropped on arrival (:func:`~dagr_lite.data.dataset.refractory_keep`).
+  dropped on arrival (:func:`~dagr_lite.data.dataset.refractory_keep`); with ``support_us`` > 0,
+  one whose 8 neighbouring pixels had none less than that long before it
+  (:func:`~dagr_lite.data.denoise.support_keep`).
 
 Work per update: new events get their incoming edges from the streaming graph builder, the
 first GCN stage computes the new nodes only (reading the cached features of older nodes; a
@@ -39,6 +41,7 @@ import torch
 
 from dagr_lite.errors import UserError
 from dagr_lite.data.dataset import add_to_picture, picture_channels, picture_of, refractory_keep, sample_start_us
+from dagr_lite.data.denoise import support_keep
 from dagr_lite.data.spec import SampleSpec
 from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.graph.pool import PooledGraph, recency_cells, recency_from_latest
@@ -190,7 +193,7 @@ class StreamingDetector:
             evaluation mode.
         sample: the events it reads (:class:`~dagr_lite.data.spec.SampleSpec`): those of the horizon
             ``[t - window_us, t]``, for a hybrid none from before ``image time - context_us``, less
-            those a refractory period drops, decided as they arrive.
+            those a refractory period or the background-activity filter drops, decided as they arrive.
         operating: the score threshold and NMS IoU of its answers
             (:class:`~dagr_lite.eval.operating.OperatingPoint`).
 
@@ -207,6 +210,7 @@ class StreamingDetector:
         self.hybrid = model.image is not None
         self.sample, self.operating = sample, operating
         self.context_us, self.window_us, self.refractory_us = sample.context_us, sample.window_us, sample.refractory_us
+        self.support_us = sample.support_us
         self.height, self.width = model.cfg.height, model.cfg.width
         self.map_sizes = [(math.ceil(self.height / s), math.ceil(self.width / s)) for s in model.strides]
         spec = model.graph_spec
@@ -257,6 +261,7 @@ class StreamingDetector:
         self._done = 0  # events of the log already in the segment
         self._last_t = -math.inf
         self._pixel_last = np.full(self.height * self.width, -math.inf) if self.refractory_us else None
+        self._support_last = np.full(self.height * self.width, -math.inf) if self.support_us else None
         self._kept_from = -math.inf  # the log holds every event since this time
         self._image = None  # (image maps, node maps) of the latest image
         self._t_image: float | None = None
@@ -335,8 +340,12 @@ class StreamingDetector:
             i = int(np.flatnonzero((p != 0) & (p != 1))[0])
             raise UserError(f"events p must be 0 or 1, got p[{i}]={p[i]:g}")
         last_t = float(t[-1])
-        if self._pixel_last is not None:
-            keep = refractory_keep(x, y, t, self.refractory_us, self.width, self._pixel_last)
+        if self._pixel_last is not None or self._support_last is not None:  # arrival filters: each sees every event
+            keep = np.ones(len(t), dtype=bool)
+            if self._pixel_last is not None:
+                keep &= refractory_keep(x, y, t, self.refractory_us, self.width, self._pixel_last)
+            if self._support_last is not None:
+                keep &= support_keep(x, y, t, self.support_us, self.width, self.height, self._support_last)
             x, y, t, p = x[keep], y[keep], t[keep], p[keep]
         for name, values in (("x", x), ("y", y), ("t", t), ("p", p)):
             self._log[name].extend(values)
@@ -451,7 +460,7 @@ class StreamingDetector:
         return torch.from_numpy(np.ascontiguousarray(array.transpose(2, 0, 1)))[None].to(self.device)
 
     def _add_to_carry(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> None:
-        """Adds the events since the image (kept by the refractory period) to the carry picture's state."""
+        """Adds the events since the image (kept by the arrival filters) to the carry picture's state."""
         if self._carry is None or not len(t):
             return
         since = int(np.searchsorted(t, self._t_image, side="left"))

@@ -14,7 +14,8 @@ EVAL = {"conf_threshold": float(_eval.conf_threshold), "nms_threshold": float(_e
 EVAL_ANSWER = {"score": EVAL["conf_threshold"], "nms_iou": EVAL["nms_threshold"]}  # the same, as an operating point
 # One sample: the image one frame old, the events of its horizon since the image, no filter, no guard;
 # a carry picture (where asked for) with conf/data's recent channel.
-SAMPLE = {"image_age": 1, "window_us": 33_333, "context_us": 0, "refractory_us": 0, "max_events": None,
+SAMPLE = {"image_age": 1, "window_us": 33_333, "context_us": 0, "refractory_us": 0, "support_us": 0,
+          "max_events": None,
           "graph_context_us": 0, "carry_recent_us": 33_333}
 # detect's settings (conf/detect.yaml): its video, its UDP receiver.
 _detect = OmegaConf.load(CONF / "detect.yaml")

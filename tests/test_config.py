@@ -242,7 +242,8 @@ def test_what_conf_sets_has_no_second_default_in_the_code():
     from dagr_lite.nn.head import postprocess
     from dagr_lite.stream import StreamingDetector
 
-    required = {EventEgoHands.__init__: ("image_age", "window_us", "context_us", "refractory_us", "max_events"),
+    required = {EventEgoHands.__init__: ("image_age", "window_us", "context_us", "refractory_us", "support_us",
+                                         "max_events"),
                 StreamingDetector.__init__: ("sample", "operating"),
                 validate: ("backend", "conf_threshold", "nms_threshold"),
                 validation_pass: ("backend", "conf_threshold", "nms_threshold"),

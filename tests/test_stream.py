@@ -10,6 +10,7 @@ import torch
 
 from dagr_lite.data.collate import collate
 from dagr_lite.data.dataset import Sample, event_picture, sample_start_us
+from dagr_lite.data.denoise import support_keep_reference
 from dagr_lite.data.spec import SampleSpec
 from dagr_lite.errors import UserError
 from dagr_lite.eval.operating import OperatingPoint
@@ -26,13 +27,14 @@ RECENT_US = 12_000  # a four-channel carry picture's recent window
 
 
 def streaming(model: Detector, *, refractory_us: int = 0, score: float = 0.0,
-              graph_context_us: int = 0) -> StreamingDetector:
+              graph_context_us: int = 0, support_us: int = 0) -> StreamingDetector:
     """The streaming detector on this module's sample, answering every box of ``score`` or more."""
     return StreamingDetector(model, SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=refractory_us,
                                                max_events=None, event_picture=False,
                                                graph_context_us=graph_context_us,
                                                carry_picture=model.carry is not None,
-                                               carry_recent_us=RECENT_US if model.cfg.carry_channels == 4 else 0),
+                                               carry_recent_us=RECENT_US if model.cfg.carry_channels == 4 else 0,
+                                               support_us=support_us),
                              OperatingPoint(score=score, nms_iou=EVAL["nms_threshold"]))
 
 
@@ -101,7 +103,9 @@ def check_against_batch(stream: StreamingDetector, model: Detector, events: dict
     kept = np.ones(upto, dtype=bool)
     if stream.refractory_us:  # brute force: each event against every earlier one at its pixel
         kept = brute_refractory(events, upto, stream.refractory_us)
-        keep &= kept
+    if stream.support_us:  # and against every earlier one at a neighbouring pixel
+        kept &= support_keep_reference(events["x"][:upto], events["y"][:upto], t, stream.support_us, W, H)
+    keep &= kept
     if model.carry is not None:  # the frame and the picture of every event (kept) since it
         since = kept & (t >= t_image)
         picture = event_picture(*(v[:upto][since] for v in events.values()), t_query, max(t_query - t_image, 1.0), H, W,
@@ -133,11 +137,11 @@ def brute_refractory(events: dict, upto: int, refractory_us: int) -> np.ndarray:
 
 def replay(model: Detector, events: dict, images: list, seed: int, *, detect_prob: float = 0.4,
            sizes=(0, 1, 1, 2, 5, 40, 300), refractory_us: int = 0,
-           graph_context_us: int = 0) -> tuple[int, int, StreamingDetector]:
+           graph_context_us: int = 0, support_us: int = 0) -> tuple[int, int, StreamingDetector]:
     """Push ``events`` in random sizes (0, 1 and more), images at their times, and check random
     detect calls (at the latest event or a little later) against the batch model."""
     rng = np.random.default_rng(seed)
-    stream = streaming(model, refractory_us=refractory_us, graph_context_us=graph_context_us)
+    stream = streaming(model, refractory_us=refractory_us, graph_context_us=graph_context_us, support_us=support_us)
     n, i, checks, largest = len(events["t"]), 0, 0, 0
     pending = sorted(images, key=lambda item: item[1])
     image, t_image = None, None
@@ -361,6 +365,22 @@ def test_streaming_with_a_refractory_period_equals_the_batch_model_on_the_filter
     assert checks >= 10 and 0 < largest < len(events["t"])
 
 
+@pytest.mark.parametrize("variant", ["hybrid", "events_only", "carry"])
+def test_streaming_with_the_background_activity_filter_equals_the_batch_model_on_the_filtered_sample(variant):
+    """Both arrival filters, decided chunk by chunk as events come; the carry picture reads the kept events."""
+    model = small_model("hybrid", seed=6, carry_width=4) if variant == "carry" else small_model(variant, seed=6)
+    rng = np.random.default_rng(22)
+    n = 1500
+    events = {"x": rng.integers(20, 30, n), "y": rng.integers(10, 16, n),
+              "t": np.sort(rng.integers(0, 120_000, n) // 40 * 40), "p": rng.integers(0, 2, n)}
+    images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (10_000, 70_000)]
+    checks, largest, stream = replay(model, events, images, seed=5, detect_prob=0.6, sizes=(1, 3, 20, 100),
+                                     refractory_us=200, support_us=600)
+    kept = support_keep_reference(events["x"], events["y"], events["t"], 600, W, H)
+    assert 0.2 < kept.mean() < 0.9  # the filter drops some events and keeps others
+    assert checks >= 10 and 0 < largest < len(events["t"])
+
+
 def test_events_only_window_empties_and_refills():
     model = small_model("events_only")
     stream = streaming(model)
@@ -513,7 +533,7 @@ def test_streaming_with_a_carry_branch_equals_the_batch_model(refractory_us, car
 def test_a_model_reading_a_picture_of_events_is_refused_by_its_key():
     model = small_model("hybrid")
     for key in ("event_picture", "carry_picture"):
-        spec = SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=0, max_events=None,
+        spec = SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=0, support_us=0, max_events=None,
                           graph_context_us=0, carry_recent_us=0,
                           **{"event_picture": False, "carry_picture": False, key: True})
         with pytest.raises(UserError, match=f"data.{key}"):
@@ -523,7 +543,7 @@ def test_a_model_reading_a_picture_of_events_is_refused_by_its_key():
 def test_a_carry_branch_is_refused_a_picture_of_other_channels():
     """A four-channel carry branch on a sample of three-channel pictures (no recent window)."""
     model = small_model("hybrid", carry_width=4, carry_channels=4)
-    spec = SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=0, max_events=None,
+    spec = SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=0, support_us=0, max_events=None,
                       graph_context_us=0, event_picture=False, carry_picture=True, carry_recent_us=0)
     with pytest.raises(UserError, match="reads pictures of 4 channels, but data.carry_recent_us=0 makes pictures of 3"):
         StreamingDetector(model, spec, OperatingPoint(score=0.0, nms_iou=EVAL["nms_threshold"]))

@@ -262,7 +262,7 @@ class EventEgoHands(Dataset):
                  transform: Callable[[Sample, np.random.Generator], Sample] | None = None,
                  clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0, age_power: float = 0.0,
                  graph_context_us: int, event_picture: bool = False, carry_picture: bool = False,
-                 carry_recent_us: int = 0, frames: bool = True, support_us: int = 0):
+                 carry_recent_us: int = 0, frames: bool = True, support_us: int):
         if split not in fmt.SPLITS:
             raise UserError(f"split must be one of {fmt.SPLITS}, got {split!r}")
         self.age_range = age_range(image_age)

@@ -67,7 +67,7 @@ class SampleSpec:
     graph_context_us: int
     carry_picture: bool
     carry_recent_us: int
-    support_us: int = 0
+    support_us: int
 
     def __post_init__(self):
         checks = {"window_us": (_integer(self.window_us) and self.window_us > 0, "a positive integer"),

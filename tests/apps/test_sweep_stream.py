@@ -27,12 +27,14 @@ def pair_detections(boxes: np.ndarray, scores: np.ndarray, other_boxes: np.ndarr
     return cols[np.argsort(rows)]
 
 
-@pytest.mark.parametrize("variant,refractory_us", [("hybrid", 0), ("events_only", 0), ("hybrid", 2_000)])
-def test_the_streaming_detector_answers_what_the_sweep_scores(trained_checkpoints, variant, refractory_us, tmp_path):
+@pytest.mark.parametrize("variant,refractory_us,support_us", [("hybrid", 0, 0), ("events_only", 0, 0),
+                                                              ("hybrid", 2_000, 0), ("events_only", 500, 5_000)])
+def test_the_streaming_detector_answers_what_the_sweep_scores(trained_checkpoints, variant, refractory_us, support_us,
+                                                              tmp_path):
     checkpoints = trained_checkpoints
     checkpoint = load_checkpoint(checkpoints[variant])
     detector = checkpoint.detector
-    data = {**checkpoint.sample_settings, "refractory_us": refractory_us}
+    data = {**checkpoint.sample_settings, "refractory_us": refractory_us, "support_us": support_us}
     cfg = OmegaConf.merge(compose_config("sweep", [f"ckpt=[{checkpoints[variant]}]", f"out={tmp_path}",
                                                    "split=valid", "loader.num_workers=0"]), {"data": data})
     dataset = build_dataset(cfg, "valid", train=False, with_image=detector.use_image, image_age=max(AGES),
@@ -41,7 +43,7 @@ def test_the_streaming_detector_answers_what_the_sweep_scores(trained_checkpoint
     assert next(model.parameters()).dtype == torch.float32
     frames = sweep_frames(dataset, max(AGES), between=0)
     frames = [frames[i] for i in (0, 41, len(frames) - 1)]  # both videos, early and late frames
-    assert dataset.refractory_us == refractory_us
+    assert dataset.refractory_us == refractory_us and dataset.support_us == support_us
     # A model a few steps old scores near its prior (objectness 0.01 x class 0.01): a threshold below
     # it compares many boxes, where the sweep's 0.001 would compare none.
     thresholds = {"conf_threshold": 1e-6, "nms_threshold": cfg.eval.nms_threshold}

@@ -9,6 +9,7 @@ from torch.utils.data import DataLoader
 from dagr_lite.data import format as fmt
 from dagr_lite.data.collate import collate
 from dagr_lite.data.dataset import SampleTooLarge, draw_age, refractory_keep, sample_start_us
+from dagr_lite.data.denoise import support_keep_reference
 from dagr_lite.data.errors import DatasetFormatError
 from dagr_lite.data.frames import read_frame
 from dagr_lite.data.writer import write_frame
@@ -111,12 +112,20 @@ def test_the_refractory_filter_matches_brute_force_whole_and_in_chunks():
 
 
 @pytest.mark.parametrize("age", [1, 4])
-def test_a_refractory_sample_is_the_filtered_stream_in_its_horizon(tmp_path, age):
+@pytest.mark.parametrize(("refractory_us", "support_us"), [(2_000, 0), (500, 3_000)])
+def test_a_filtered_sample_is_the_filtered_stream_in_its_horizon(tmp_path, age, refractory_us, support_us):
+    """The arrival filters (the refractory period; with it the background-activity filter) each decide
+    on every event of the stream, and a sample holds the events they keep in its horizon (read
+    from the longer period before it)."""
     written = make_dataset(tmp_path, videos={"v": "train"}, events_per_video=20_000, compression=None)
     raw = written.events["v"]
-    whole = brute_refractory(raw["x"], raw["y"], raw["t"], 2_000)  # the filter over the whole stream
+    whole = brute_refractory(raw["x"], raw["y"], raw["t"], refractory_us)  # the filters over the whole stream
+    if support_us:
+        whole &= support_keep_reference(raw["x"], raw["y"], raw["t"], support_us, 64, 48)  # the written frames' size
     assert 0 < whole.sum() < len(whole)
-    ds = sample_set(tmp_path, "train", image_age=age, refractory_us=2_000, context_us=5_000)
+    ds = sample_set(tmp_path, "train", image_age=age, refractory_us=refractory_us, support_us=support_us,
+                    context_us=5_000)
+    assert ds.sample.support_us == support_us
     for index in range(len(ds)):
         sample = ds[index]
         _, k = ds.sample_name(index)
@@ -124,8 +133,9 @@ def test_a_refractory_sample_is_the_filtered_stream_in_its_horizon(tmp_path, age
         mask = whole & (raw["t"] >= sample_start_us(t_end, 33_333, t_image, 5_000)) & (raw["t"] < t_end)
         expected = np.stack([raw["x"][mask], raw["y"][mask], raw["t"][mask] - t_image, raw["p"][mask]], 1)
         np.testing.assert_array_equal(sample.events.numpy(), expected.astype(np.float32))
-    with pytest.raises(ValueError, match="refractory_us must be >= 0"):
-        sample_set(tmp_path, "train", refractory_us=-1)
+    for key in ("refractory_us", "support_us"):
+        with pytest.raises(ValueError, match=f"{key} must be >= 0"):
+            sample_set(tmp_path, "train", **{key: -1})
 
 
 def test_the_sample_start_by_hand():

@@ -4,7 +4,8 @@ from dagr_lite.data.spec import SampleSpec
 from dagr_lite.errors import UserError
 
 SAMPLE = {"window_us": 33_333, "context_us": 10_000, "refractory_us": 0, "max_events": 100_000,
-          "event_picture": False, "graph_context_us": 0, "carry_picture": False, "carry_recent_us": 0}
+          "event_picture": False, "graph_context_us": 0, "carry_picture": False, "carry_recent_us": 0,
+          "support_us": 0}
 
 
 def test_a_sample_spec_round_trips_and_ignores_other_data_keys():
@@ -18,7 +19,8 @@ def test_a_sample_spec_round_trips_and_ignores_other_data_keys():
                                                         ("refractory_us", 2.5, "an integer >= 0"),
                                                         ("max_events", 0, "a positive integer or None"),
                                                         ("event_picture", "no", "true or false"),
-                                                        ("carry_recent_us", -5, "an integer >= 0")])
+                                                        ("carry_recent_us", -5, "an integer >= 0"),
+                                                        ("support_us", -1, "an integer >= 0")])
 def test_a_bad_value_is_named(key, value, expected):
     with pytest.raises(UserError, match=f"sample {key} must be {expected}, got {value!r}"):
         SampleSpec(**{**SAMPLE, key: value})
