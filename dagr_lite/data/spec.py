@@ -3,9 +3,8 @@
 A :class:`SampleSpec` says which events a model reads at a query time ``t`` (docs/design.md, "One
 sample"): those of the horizon ``[t - window_us, t)``, for a model with an image none from before
 ``image time - context_us``, less the events a refractory period or a background-activity filter
-drops, with a guard on their
-count; with ``graph_context_us``, the graph's first stage also reads the events that long before
-the horizon, as neighbours only. A training run records it in its checkpoints; evaluation, the sweep, the streaming
+drops, with a guard on their count; with ``graph_context_us``, the graph's first stage also reads
+the events that long before the horizon, as neighbours only. A training run records it in its checkpoints; evaluation, the sweep, the streaming
 detector, detect and labelling read it from there (:class:`~dagr_lite.engine.checkpoint.Checkpoint`),
 so a model is always run on the sample it was trained on unless an override says otherwise.
 """
