@@ -127,7 +127,7 @@ def frame_at(rec: Recording, t_us: float) -> int:
 
 def stream_run(model: Detector, rec: Recording, update_us: float, t0: float, t1: float, *, sample: SampleSpec) -> dict:
     """Updates of ``update_us`` over ``[t0, t1)``: latencies, the time spent per part, GCN multiply-adds."""
-    stream = StreamingDetector(model, dataclasses.replace(sample, refractory_us=0, max_events=None),
+    stream = StreamingDetector(model, dataclasses.replace(sample, refractory_us=0, support_us=0, max_events=None),
                                OperatingPoint(score=0.25, nms_iou=0.65))
     t, ev = rec.events["t"], rec.events
     k = frame_at(rec, t0)

@@ -445,7 +445,7 @@ class EventEgoHands(Dataset):
             raise SampleTooLarge(f"{events_file.path}: the sample of frame {k} (image frame {image_frame}) holds "
                                  f"{len(raw['t'])} events in [{t_graph}, {t_end}) us, more than max_events="
                                  f"{self.max_events}; shorten the horizon (data.window_us), thin it on arrival "
-                                 f"(data.refractory_us) or raise the guard (data.max_events, null: none)")
+                                 f"(data.refractory_us, data.support_us) or raise the guard (data.max_events, null: none)")
         events = np.stack([raw["x"].astype(np.float32), raw["y"].astype(np.float32),
                            (raw["t"] - t_image).astype(np.float32),
                            raw["p"].astype(np.float32)], axis=1).reshape(-1, 4)  # (N, 4)
