@@ -8,9 +8,8 @@ run on the sample of that moment, the sample training and evaluation read
 - every model reads the events of ``[t - window_us, t]`` (a horizon);
 - a hybrid reads the latest image, and no event from before ``image time - context_us``;
 - with ``refractory_us`` > 0, an event whose pixel had one less than that long before it is
-  dropped on arrival (:func:`~dagr_lite.data.dataset.refractory_keep`); with ``support_us`` > 0,
-  one whose 8 neighbouring pixels had none less than that long before it
-  (:func:`~dagr_lite.data.denoise.support_keep`).
+  dropped on arrival; with ``support_us`` > 0, one whose 8 neighbouring pixels had none less than
+  that long before it (:func:`~dagr_lite.data.dataset.arrival_keep`).
 
 Work per update: new events get their incoming edges from the streaming graph builder, the
 first GCN stage computes the new nodes only (reading the cached features of older nodes; a
@@ -40,8 +39,7 @@ import numpy as np
 import torch
 
 from dagr_lite.errors import UserError
-from dagr_lite.data.dataset import add_to_picture, picture_channels, picture_of, refractory_keep, sample_start_us
-from dagr_lite.data.denoise import support_keep
+from dagr_lite.data.dataset import add_to_picture, arrival_keep, picture_channels, picture_of, sample_start_us
 from dagr_lite.data.spec import SampleSpec
 from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.graph.pool import PooledGraph, recency_cells, recency_from_latest
@@ -340,12 +338,10 @@ class StreamingDetector:
             i = int(np.flatnonzero((p != 0) & (p != 1))[0])
             raise UserError(f"events p must be 0 or 1, got p[{i}]={p[i]:g}")
         last_t = float(t[-1])
-        if self._pixel_last is not None or self._support_last is not None:  # arrival filters: each sees every event
-            keep = np.ones(len(t), dtype=bool)
-            if self._pixel_last is not None:
-                keep &= refractory_keep(x, y, t, self.refractory_us, self.width, self._pixel_last)
-            if self._support_last is not None:
-                keep &= support_keep(x, y, t, self.support_us, self.width, self.height, self._support_last)
+        if self.sample.filter_lead_us:
+            keep = arrival_keep(x, y, t, refractory_us=self.refractory_us, support_us=self.support_us,
+                                width=self.width, height=self.height, pixel_last=self._pixel_last,
+                                support_last=self._support_last)
             x, y, t, p = x[keep], y[keep], t[keep], p[keep]
         for name, values in (("x", x), ("y", y), ("t", t), ("p", p)):
             self._log[name].extend(values)

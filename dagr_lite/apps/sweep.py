@@ -119,7 +119,7 @@ def streamed_detections(model: Detector, dataset: EventEgoHands, frames: list[tu
         t_image = dataset.frame_time_us(v, image_frame)
         stream = StreamingDetector(model, dataset.sample, OperatingPoint(score=conf_threshold, nms_iou=nms_threshold))
         t_begin = (min(t_image, t_end) - dataset.window_us - dataset.graph_context_us - dataset.context_us
-                   - max(dataset.refractory_us, dataset.support_us))
+                   - dataset.sample.filter_lead_us)
         events = dataset.events_of(v, max(t_begin, 0), t_end)
         edges = sorted({*range(t_begin, t_end, chunk_us), t_image, t_end})
         cuts = np.searchsorted(events["t"], edges, side="left")

@@ -118,6 +118,23 @@ def refractory_keep(x: np.ndarray, y: np.ndarray, t: np.ndarray, refractory_us: 
     return keep
 
 
+def arrival_keep(x: np.ndarray, y: np.ndarray, t: np.ndarray, *, refractory_us: int, support_us: int, width: int,
+                 height: int, pixel_last: np.ndarray | None = None,
+                 support_last: np.ndarray | None = None) -> np.ndarray:
+    """Which events the arrival filters keep, decided on arrival: the refractory period
+    (:func:`refractory_keep`) and the background-activity filter
+    (:func:`~dagr_lite.data.denoise.support_keep`), each of a period > 0, each deciding on every
+    event (kept by the other or not). ``pixel_last``, ``support_last``: their per-pixel states (a
+    stream's), updated in place; None: no earlier events (a sample read
+    :attr:`~dagr_lite.data.spec.SampleSpec.filter_lead_us` before its start)."""
+    keep = np.ones(len(t), dtype=bool)
+    if refractory_us:
+        keep &= refractory_keep(x, y, t, refractory_us, width, pixel_last)
+    if support_us:
+        keep &= support_keep(x, y, t, support_us, width, height, support_last)
+    return keep
+
+
 class SampleTooLarge(ValueError):
     """A sample holds more events than ``max_events`` allows (a guard, never a thinning)."""
 
@@ -476,7 +493,7 @@ class EventEgoHands(Dataset):
         background-activity filter keep (each decided from the events of its period before each
         event), checked to lie in the frame."""
         height, width = self.image_size
-        lead = max(self.refractory_us, self.support_us)
+        lead = self.sample.filter_lead_us
         raw = self.events_of(v, t_from - lead, t_end)
         x, y = raw["x"], raw["y"]
         if len(x) and (x.max() >= width or y.max() >= height):
@@ -484,12 +501,9 @@ class EventEgoHands(Dataset):
                                                               f"lie outside the {width}x{height} frame (x max "
                                                               f"{x.max()}, y max {y.max()})", key="events/x, events/y")
         first = int(np.searchsorted(raw["t"], t_from, side="left"))
-        if self.refractory_us or self.support_us:
-            keep = np.ones(len(x), dtype=bool)
-            if self.refractory_us:
-                keep &= refractory_keep(x, y, raw["t"], self.refractory_us, width)
-            if self.support_us:
-                keep &= support_keep(x, y, raw["t"], self.support_us, width, height)
+        if lead:
+            keep = arrival_keep(x, y, raw["t"], refractory_us=self.refractory_us, support_us=self.support_us,
+                                width=width, height=height)
             keep[:first] = False
         else:
             keep = slice(first, None)

@@ -90,6 +90,12 @@ class SampleSpec:
         moved back by ``graph_context_us``, for a model with an image not before ``image time - context_us``."""
         return sample_start_us(t_query_us, self.window_us + self.graph_context_us, t_image_us, self.context_us)
 
+    @property
+    def filter_lead_us(self) -> int:
+        """How long before a sample's first event the arrival filters (refractory period,
+        background-activity filter) read the stream to decide on it: the longer of their periods."""
+        return max(self.refractory_us, self.support_us)
+
     def as_dict(self) -> dict:
         return asdict(self)
 
