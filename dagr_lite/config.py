@@ -19,7 +19,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
-from dagr_lite.data.augment import TrainAugment
+from dagr_lite.data.augment import TrainAugment, crop_size
 from dagr_lite.data.dataset import RGB_CHANNELS, EventEgoHands, picture_channels
 from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.detector import IMAGE_STEMS, Detector, DetectorConfig
@@ -114,6 +114,8 @@ _RULES = {
                              and 0 <= v[0] <= v[1]),
     "data.train_image_age_power": ("a number >= 0 (0: ages drawn uniformly)", lambda v: _number(v) and v >= 0),
     "data.context_us": ("an integer >= 0 (microseconds)", lambda v: _integer(v) and v >= 0),
+    "data.augment.crop": ("a number in (0, 1] (a fraction of each side of the frame; 1: the whole frame)",
+                          lambda v: _number(v) and 0 < v <= 1),
     "model.event_head_weight": ("a number >= 0 (0: no event head)", lambda v: _number(v) and v >= 0),
     "model.late_query": ("true or false", lambda v: isinstance(v, bool)),
     "model.carry_width": ("an integer >= 0 (0: no carry branch)", lambda v: _integer(v) and v >= 0),
@@ -237,7 +239,8 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
         transform = TrainAugment(flip_prob=augment.flip_prob, zoom=tuple(augment.zoom),
                                  translate=augment.translate, min_box_size=augment.min_box_size,
                                  image_dropout=augment.image_dropout if hybrid else 0.0,
-                                 event_drop=augment.event_drop)
+                                 event_drop=augment.event_drop, crop=training_crop(cfg),
+                                 crop_multiple=max(cfg.model.strides))
     image_size = (dataset.height, dataset.width) if dataset.height is not None else None
     picture = bool(data.get("event_picture", False))
     built = EventEgoHands(dataset_root(dataset), split, image_age=image_age,
@@ -258,6 +261,22 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
                           f"{min(lengths)} to {max(lengths)} frames (a sample needs the image age's frames before "
                           "its label frame)")
     return built
+
+
+def training_crop(cfg: DictConfig) -> float:
+    """``data.augment.crop``: the fraction of each side of the frame a training sample is cut to
+    (1 when augmentation is off or the key is absent, as in configs saved before it)."""
+    augment = cfg.data.get("augment")
+    if augment is None or not augment.enabled:
+        return 1.0
+    return float(augment.get("crop", 1.0))
+
+
+def training_size(cfg: DictConfig, image_size: tuple[int, int]) -> tuple[int, int]:
+    """``(height, width)`` the model trains at on ``image_size`` frames: the frame's, or with
+    ``data.augment.crop < 1`` the crop's (a multiple of the head's largest stride,
+    :func:`~dagr_lite.data.augment.crop_size`). Validation, evaluation and checkpoints use the frame's."""
+    return crop_size(int(image_size[0]), int(image_size[1]), training_crop(cfg), max(cfg.model.strides))
 
 
 def graph_spec(model: DictConfig) -> EventGraphSpec | None:

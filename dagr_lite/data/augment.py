@@ -5,9 +5,12 @@ Coordinates are continuous with pixel ``i`` covering ``[i, i + 1)``: an event at
 ``W - u``; a zoom ``s`` with translation ``(tx, ty)`` maps ``u`` to ``s * u + tx``. Events keep
 fractional pixel coordinates after a zoom; events whose pixel centre leaves the image are
 dropped (the rest stay within ``[0, W - 1] x [0, H - 1]``), boxes are clipped to the image and dropped when thinner than ``min_box_size``.
+A crop (:func:`crop`) cuts a smaller frame out at whole-pixel offsets: the model then trains at the
+crop's size (its weights do not depend on the frame's size) and is validated at the frame's.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,6 +64,42 @@ def zoom_translate(sample: Sample, scale: float, tx: float, ty: float, *, min_bo
     return sample.replace(events=events, image=image, boxes=boxes[keep], labels=sample.labels[keep])
 
 
+def crop(sample: Sample, x0: int, y0: int, width: int, height: int, *, min_box_size: float = 2.0) -> Sample:
+    """The part ``[x0, x0 + width) x [y0, y0 + height)`` of the sample as a frame of its own.
+
+    Whole-pixel offsets: the image is sliced, events whose pixel centre falls inside are kept and
+    moved by ``(-x0, -y0)`` (within ``[0, width - 1] x [0, height - 1]``), boxes are moved,
+    clipped to the crop and dropped when thinner than ``min_box_size`` pixels.
+    """
+    if not (0 <= x0 and 0 <= y0 and width > 0 and height > 0 and x0 + width <= sample.width
+            and y0 + height <= sample.height):
+        raise ValueError(f"a crop of {width}x{height} at ({x0}, {y0}) must lie inside the "
+                         f"{sample.width}x{sample.height} frame")
+    events = sample.events  # (N, 4)
+    inside = ((events[:, 0] >= x0 - 0.5) & (events[:, 0] < x0 + width - 0.5)
+              & (events[:, 1] >= y0 - 0.5) & (events[:, 1] < y0 + height - 0.5))
+    events = events[inside].clone()
+    events[:, 0] = (events[:, 0] - x0).clamp_(0, width - 1)
+    events[:, 1] = (events[:, 1] - y0).clamp_(0, height - 1)
+    image = sample.image[:, y0:y0 + height, x0:x0 + width]
+    boxes = sample.boxes - torch.tensor([x0, y0, x0, y0], dtype=sample.boxes.dtype)  # (M, 4)
+    boxes[:, [0, 2]] = boxes[:, [0, 2]].clamp(0, width)
+    boxes[:, [1, 3]] = boxes[:, [1, 3]].clamp(0, height)
+    keep = ((boxes[:, 2] - boxes[:, 0]) >= min_box_size) & ((boxes[:, 3] - boxes[:, 1]) >= min_box_size)
+    return sample.replace(events=events, image=image, boxes=boxes[keep], labels=sample.labels[keep])
+
+
+def crop_size(height: int, width: int, fraction: float, multiple: int) -> tuple[int, int]:
+    """``(height, width)`` of a training crop: ``fraction`` of each side of a ``height x width`` frame,
+    rounded up to a multiple of ``multiple`` pixels (the head's largest stride, so its maps tile the
+    crop) and never larger than the frame; the frame's own size when ``fraction`` is 1."""
+    if not 0 < fraction <= 1:
+        raise ValueError(f"the crop fraction must be in (0, 1], got {fraction}")
+    if fraction == 1:
+        return height, width
+    return tuple(min(side, multiple * math.ceil(fraction * side / multiple)) for side in (height, width))
+
+
 @dataclass
 class TrainAugment:
     """Random horizontal flip, zoom/crop and translation, drawn from the generator it is given.
@@ -78,6 +117,10 @@ class TrainAugment:
             ``[0, event_drop]`` (each event independently; drawn after the rest), so the event
             branch meets sparser and denser scenes than the data holds; 0: none. A picture of
             the events since the image (``carry_picture``, made before augmentation) keeps them.
+        crop: < 1: each sample is cut to a part of this fraction of each side, :func:`crop_size`
+            with ``crop_multiple`` (the head's largest stride), at a uniformly drawn place (after
+            the flip, zoom and translation; :func:`crop`), and the model trains at that size; 1:
+            the whole frame.
     """
 
     flip_prob: float
@@ -86,6 +129,8 @@ class TrainAugment:
     min_box_size: float
     image_dropout: float
     event_drop: float
+    crop: float = 1.0
+    crop_multiple: int = 1
 
     def __post_init__(self):
         low, high = self.zoom
@@ -99,9 +144,16 @@ class TrainAugment:
             raise ValueError(f"image_dropout must be in [0, 1], got {self.image_dropout}")
         if not 0 <= self.event_drop < 1:
             raise ValueError(f"event_drop must be in [0, 1), got {self.event_drop}")
+        if not 0 < self.crop <= 1:
+            raise ValueError(f"crop must be a fraction in (0, 1], got {self.crop}")
 
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
         sample = self._geometry(sample, rng)
+        if self.crop < 1:
+            height, width = crop_size(sample.height, sample.width, self.crop, self.crop_multiple)
+            x0, y0 = (int(rng.integers(0, size - part + 1)) for size, part in ((sample.width, width),
+                                                                            (sample.height, height)))
+            sample = crop(sample, x0, y0, width, height, min_box_size=self.min_box_size)
         if self.image_dropout and rng.random() < self.image_dropout:
             sample = sample.blank_frame()
         if self.event_drop:

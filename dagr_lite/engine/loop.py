@@ -284,7 +284,7 @@ class TrainLoop:
             self.writer.add_image("train/sample", render_sample(batch, 0, detections[0]), step, dataformats="HWC")
 
     def checkpoint(self) -> dict:
-        return {**self.state.state_dict(), "detector": self.state.model.cfg.as_dict(), "config": self.config,
+        return {**self.state.state_dict(), "detector": self.state.detector_cfg.as_dict(), "config": self.config,
                 "operating": None if self.operating is None else self.operating.as_dict(),
                 "world_size": self.place.world_size, "global_batch_size": self.data.global_batch_size,
                 "position": {"epoch": self.epoch, "offset": self.offset, **self.clock.position()}}

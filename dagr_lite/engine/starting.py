@@ -27,7 +27,7 @@ def resume(state: TrainState, path: str | Path, checkpoints: Path, place: Distri
     rank 0), so the new run holds its best weights even when it never beats them. Returns the
     checkpoint (its ``position`` says where in the data it stopped)."""
     saved = load_checkpoint(path)
-    ours, theirs = state.model.cfg.as_dict(), saved.detector.as_dict()
+    ours, theirs = state.detector_cfg.as_dict(), saved.detector.as_dict()
     if theirs != ours:
         differ = ", ".join(f"{key}: {theirs[key]!r} in the checkpoint, {ours[key]!r} here"
                            for key in ours if theirs[key] != ours[key])

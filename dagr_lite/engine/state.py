@@ -19,7 +19,7 @@ from dagr_lite.data.collate import Batch
 from dagr_lite.engine.schedule import ModelEMA, warmup_cosine
 from dagr_lite.eval.operating import CANDIDATE_SCORE, NMS_IOUS
 from dagr_lite.eval.score import detection_sets, score_entries
-from dagr_lite.nn.detector import Detector
+from dagr_lite.nn.detector import Detector, DetectorConfig
 
 STATE_KEYS = ("model", "ema", "optimizer", "scheduler", "scaler", "step", "best_metric")
 
@@ -33,6 +33,9 @@ class TrainState:
         optimizer, scheduler, scaler: the optimiser, its learning-rate schedule, the AMP scaler.
         grad_clip: the gradient-norm bound of each step.
         step: optimiser steps taken; best_metric: the best validation mAP so far.
+        frame_cfg: when the model trains on crops of the frame (``data.augment.crop``), the same
+            detector at the frame's size: validation runs it (:meth:`frame_ema`) and checkpoints
+            record it (the weights do not depend on the size); None: the model's own.
     """
 
     model: Detector
@@ -45,11 +48,13 @@ class TrainState:
     best_metric: float = -math.inf
     forward: nn.Module | None = None  # what a training step calls instead of ``model`` (its DDP wrapper)
     amp_dtype: torch.dtype | None = None  # mixed precision: float16 (with the scaler) or bfloat16; None: off
+    frame_cfg: DetectorConfig | None = None
 
     @classmethod
     def create(cls, model: Detector, optimizer: torch.optim.Optimizer, *, total_steps: int, warmup_steps: int,
                min_lr_ratio: float, ema_decay: float, ema_tau: float, grad_clip: float,
-               amp: bool | torch.dtype, progress: Callable[[], float] | None = None) -> "TrainState":
+               amp: bool | torch.dtype, progress: Callable[[], float] | None = None,
+               frame_cfg: DetectorConfig | None = None) -> "TrainState":
         """A fresh state: warm-up cosine schedule over ``total_steps`` (or, after the warm-up, over
         what ``progress()`` says is spent of a time budget), EMA, and mixed precision when ``amp``
         is a dtype (``True``: float16): float16 runs with a gradient scaler, bfloat16 without."""
@@ -62,11 +67,26 @@ class TrainState:
             raise ValueError(f"mixed precision runs in float16 or bfloat16, got {amp_dtype}")
         return cls(model=model, ema=ModelEMA(model, ema_decay, ema_tau), optimizer=optimizer, scheduler=schedule,
                    scaler=torch.amp.GradScaler(device.type, enabled=amp_dtype == torch.float16), grad_clip=grad_clip,
-                   amp_dtype=amp_dtype)
+                   amp_dtype=amp_dtype, frame_cfg=None if frame_cfg == model.cfg else frame_cfg)
 
     @property
     def device(self) -> torch.device:
         return next(self.model.parameters()).device
+
+    @property
+    def detector_cfg(self) -> DetectorConfig:
+        """The detector a checkpoint records: at the frame's size (:attr:`frame_cfg`, when training on
+        crops), else the model's."""
+        return self.frame_cfg or self.model.cfg
+
+    def frame_ema(self) -> Detector:
+        """The EMA weights in the detector of :attr:`detector_cfg`: the EMA itself, or a copy of it
+        at the frame's size when the model trains on crops."""
+        if self.frame_cfg is None:
+            return self.ema.module
+        module = Detector(self.frame_cfg).to(self.device)
+        module.load_state_dict(self.ema.module.state_dict())
+        return module.eval()
 
     @property
     def amp(self) -> bool:
@@ -153,7 +173,7 @@ def validation_pass(state: TrainState, loader: DataLoader, *, backend: str, conf
     point: ``{NMS IoU: entries}`` for each IoU of :data:`~dagr_lite.eval.operating.NMS_IOUS`, boxes
     of :data:`~dagr_lite.eval.operating.CANDIDATE_SCORE` or more."""
     settings = {"coco": (conf_threshold, nms_threshold), **{iou: (CANDIDATE_SCORE, iou) for iou in NMS_IOUS}}
-    sets = detection_sets(state.ema.module, loader, state.device, settings, progress=progress,
+    sets = detection_sets(state.frame_ema(), loader, state.device, settings, progress=progress,
                           desc=f"validating at step {state.step}")
     if gather is not None:
         sets = {key: gather(entries) for key, entries in sets.items()}

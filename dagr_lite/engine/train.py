@@ -16,7 +16,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.tensorboard import SummaryWriter
 
 from dagr_lite.config import (TrainerSettings, build_dataset, build_model, build_optimizer, check_values,
-                              resolve_config, trainer_settings)
+                              detector_config, resolve_config, trainer_settings, training_size)
 from dagr_lite.engine.clock import TrainingClock, make_clock
 from dagr_lite.engine.distributed import Distributed, cleanup, global_normaliser, setup, synchronise_batch_norm
 from dagr_lite.engine.loop import NullWriter, TrainLoop, make_data
@@ -25,15 +25,16 @@ from dagr_lite.engine.runs import resolve_device, seed_everything, write_run_fil
 from dagr_lite.engine.starting import resume, resumed_config, shared_run_folder, start_from, start_weights
 from dagr_lite.engine.state import TrainState
 from dagr_lite.eval.coco import METRIC_KEYS, format_metrics
+from dagr_lite.nn.detector import DetectorConfig
 
 
 def make_state(trainer: TrainerSettings, model, optimizer: torch.optim.Optimizer, steps_per_epoch: int,
-               device: torch.device, clock: TrainingClock) -> TrainState:
+               device: torch.device, clock: TrainingClock, frame_cfg: DetectorConfig | None = None) -> TrainState:
     return TrainState.create(model, optimizer, total_steps=trainer.total_steps(steps_per_epoch),
                              warmup_steps=trainer.warmup_steps, min_lr_ratio=trainer.min_lr_ratio,
                              ema_decay=trainer.ema_decay, ema_tau=trainer.ema_tau, grad_clip=trainer.grad_clip,
                              amp=amp_dtype(trainer, device),
-                             progress=clock.progress if clock.by_time else None)
+                             progress=clock.progress if clock.by_time else None, frame_cfg=frame_cfg)
 
 
 def train(cfg: DictConfig) -> dict:
@@ -57,7 +58,8 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
     run_dir, resume_from = shared_run_folder(cfg, place)
     seed_everything(cfg.seed)
     train_set = build_dataset(cfg, "train", train=True, with_image=cfg.model.use_image)
-    model = build_model(cfg, height=train_set.image_size[0], width=train_set.image_size[1]).to(device)
+    height, width = training_size(cfg, train_set.image_size)  # a crop's with data.augment.crop < 1
+    model = build_model(cfg, height=height, width=width).to(device)
     init_from = start_weights(cfg, resume_from)
     if init_from is not None:
         start_from(model, init_from, verbose=place.is_main)
@@ -71,7 +73,9 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
         model.loss_normaliser = global_normaliser(place)
     data = make_data(cfg, train_set, model, place)
     clock = make_clock(trainer)
-    state = make_state(trainer, model, build_optimizer(cfg, model.parameters()), data.steps_per_epoch, device, clock)
+    frame_cfg = detector_config(cfg, height=train_set.image_size[0], width=train_set.image_size[1])
+    state = make_state(trainer, model, build_optimizer(cfg, model.parameters()), data.steps_per_epoch, device, clock,
+                       frame_cfg)
     if place.is_main:
         precision = "float32" if state.amp_dtype is None else f"mixed precision {str(state.amp_dtype).split('.')[-1]}"
         print(f"training on {device} in {precision}", flush=True)
