@@ -116,6 +116,7 @@ _RULES = {
     "data.context_us": ("an integer >= 0 (microseconds)", lambda v: _integer(v) and v >= 0),
     "data.augment.crop": ("a number in (0, 1] (a fraction of each side of the frame; 1: the whole frame)",
                           lambda v: _number(v) and 0 < v <= 1),
+    "data.augment.crop_boxes": ("a number in [0, 1] (a probability)", lambda v: _number(v) and 0 <= v <= 1),
     "model.event_head_weight": ("a number >= 0 (0: no event head)", lambda v: _number(v) and v >= 0),
     "model.late_query": ("true or false", lambda v: isinstance(v, bool)),
     "model.carry_width": ("an integer >= 0 (0: no carry branch)", lambda v: _integer(v) and v >= 0),
@@ -240,7 +241,7 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
                                  translate=augment.translate, min_box_size=augment.min_box_size,
                                  image_dropout=augment.image_dropout if hybrid else 0.0,
                                  event_drop=augment.event_drop, crop=training_crop(cfg),
-                                 crop_multiple=max(cfg.model.strides))
+                                 crop_multiple=max(cfg.model.strides), crop_boxes=float(augment.get("crop_boxes", 0.0)))
     image_size = (dataset.height, dataset.width) if dataset.height is not None else None
     picture = bool(data.get("event_picture", False))
     built = EventEgoHands(dataset_root(dataset), split, image_age=image_age,

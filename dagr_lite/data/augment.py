@@ -121,6 +121,9 @@ class TrainAugment:
             with ``crop_multiple`` (the head's largest stride), at a uniformly drawn place (after
             the flip, zoom and translation; :func:`crop`), and the model trains at that size; 1:
             the whole frame.
+        crop_boxes: the probability that a crop is placed around a box: among the places whose
+            crop holds the centre of one of the sample's boxes, drawn uniformly (a sample without
+            boxes is cropped anywhere), so more of the crops hold a hand.
     """
 
     flip_prob: float
@@ -131,6 +134,7 @@ class TrainAugment:
     event_drop: float
     crop: float = 1.0
     crop_multiple: int = 1
+    crop_boxes: float = 0.0
 
     def __post_init__(self):
         low, high = self.zoom
@@ -146,14 +150,13 @@ class TrainAugment:
             raise ValueError(f"event_drop must be in [0, 1), got {self.event_drop}")
         if not 0 < self.crop <= 1:
             raise ValueError(f"crop must be a fraction in (0, 1], got {self.crop}")
+        if not 0 <= self.crop_boxes <= 1:
+            raise ValueError(f"crop_boxes must be in [0, 1], got {self.crop_boxes}")
 
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
         sample = self._geometry(sample, rng)
         if self.crop < 1:
-            height, width = crop_size(sample.height, sample.width, self.crop, self.crop_multiple)
-            x0, y0 = (int(rng.integers(0, size - part + 1)) for size, part in ((sample.width, width),
-                                                                            (sample.height, height)))
-            sample = crop(sample, x0, y0, width, height, min_box_size=self.min_box_size)
+            sample = self._crop(sample, rng)
         if self.image_dropout and rng.random() < self.image_dropout:
             sample = sample.blank_frame()
         if self.event_drop:
@@ -161,6 +164,19 @@ class TrainAugment:
             keep = torch.from_numpy(rng.random(len(sample.events)) >= fraction)
             sample = sample.replace(events=sample.events[keep])
         return sample
+
+    def _crop(self, sample: Sample, rng: np.random.Generator) -> Sample:
+        height, width = crop_size(sample.height, sample.width, self.crop, self.crop_multiple)
+        around = rng.random() < self.crop_boxes and len(sample.boxes)
+        centre = sample.boxes[int(rng.integers(len(sample.boxes)))].view(2, 2).mean(0).tolist() if around else None
+        origin = []
+        for axis, (size, part) in enumerate(((sample.width, width), (sample.height, height))):
+            low, high = 0, size - part
+            if centre is not None:  # the places whose crop holds the box's centre
+                at = min(math.floor(centre[axis]), size - 1)
+                low, high = max(low, at - part + 1), min(high, at)
+            origin.append(int(rng.integers(low, high + 1)))
+        return crop(sample, origin[0], origin[1], width, height, min_box_size=self.min_box_size)
 
     def _geometry(self, sample: Sample, rng: np.random.Generator) -> Sample:
         if rng.random() < self.flip_prob:

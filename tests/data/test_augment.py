@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from dagr_lite.data.augment import TrainAugment, hflip, zoom_translate
+from dagr_lite.data.augment import TrainAugment, crop, crop_size, hflip, zoom_translate
 from dagr_lite.data.dataset import Sample
 from tests.settings import AUGMENT
 
@@ -153,3 +153,77 @@ def test_a_frameless_sample_moves_its_events_and_boxes_as_one_with_a_frame():
         a, b = augment(sample, np.random.default_rng(seed)), augment(frameless, np.random.default_rng(seed))
         assert b.image.shape == (0, H, W)
         assert torch.equal(a.events, b.events) and torch.equal(a.boxes, b.boxes) and torch.equal(a.labels, b.labels)
+
+
+def test_a_crop_cuts_image_events_and_boxes_at_whole_pixels():
+    sample = make_sample((10.0, 8.0, 30.0, 20.0))
+    sample = sample.replace(boxes=torch.tensor([[10.0, 8.0, 30.0, 20.0], [40.0, 30.0, 50.0, 38.0]]),
+                            labels=torch.tensor([0, 0]))
+    out = crop(sample, 20, 5, 24, 16)  # columns 20-43, rows 5-20
+    assert out.image.shape == (3, 16, 24) and torch.equal(out.image, sample.image[:, 5:21, 20:44])
+    # The first box keeps [20, 30) x [8, 20), moved by (-20, -5); the second lies outside and goes.
+    np.testing.assert_allclose(out.boxes.numpy(), [[0.0, 3.0, 10.0, 15.0]])
+    assert out.labels.tolist() == [0]
+    # The events of columns 20-29, rows 8-19, moved with it, in their order.
+    inside = (sample.events[:, 0] >= 20) & (sample.events[:, 1] <= 20)
+    expected = sample.events[inside] - torch.tensor([20.0, 5.0, 0.0, 0.0])
+    assert len(expected) == 10 * 12 and torch.equal(out.events, expected)
+    # A box left thinner than min_box_size is dropped; a fractional event is kept by its pixel centre.
+    assert crop(sample, 29, 0, 20, 20, min_box_size=2.0).boxes.shape == (0, 4)
+    moved = sample.replace(events=torch.tensor([[19.4, 9.0, 0.0, 1.0], [19.6, 9.0, 1.0, 1.0], [43.4, 9.0, 2.0, 0.0],
+                                                [43.6, 9.0, 3.0, 0.0]]))
+    kept = crop(moved, 20, 5, 24, 16).events
+    np.testing.assert_allclose(kept.numpy(), [[0.0, 4.0, 1.0, 1.0], [23.0, 4.0, 2.0, 0.0]], atol=1e-5)
+    with pytest.raises(ValueError, match="must lie inside the 60x40 frame"):
+        crop(sample, 40, 0, 24, 16)
+
+
+def test_crop_size_rounds_up_to_the_stride_within_the_frame():
+    assert crop_size(180, 320, 0.5, 32) == (96, 160)
+    assert crop_size(180, 320, 1.0, 32) == (180, 320)
+    assert crop_size(180, 320, 0.9, 32) == (180, 288)  # 162 rounds up to 192, beyond the frame
+    assert crop_size(40, 60, 0.1, 8) == (8, 8)
+    with pytest.raises(ValueError, match="crop fraction"):
+        crop_size(180, 320, 0.0, 32)
+
+
+def test_train_augment_crops_each_sample_at_a_drawn_place_after_its_geometry():
+    plain = {**AUGMENT, "flip_prob": 0.0, "zoom": (1.0, 1.0), "translate": 0.0}
+    sample = make_sample((5.0, 12.0, 20.0, 28.0))
+    cropping = TrainAugment(**plain, crop=0.5, crop_multiple=8)  # 20x30 of 40x60, rounded up to 24x32
+    places = set()
+    for seed in range(30):
+        out = cropping(sample, np.random.default_rng(seed))
+        rng = np.random.default_rng(seed)
+        rng.random(), rng.uniform(1.0, 1.0), rng.uniform(0, 0), rng.uniform(0, 0), rng.uniform(0, 0), rng.uniform(0, 0)
+        rng.random()  # whether it is placed around a box (never, by default)
+        x0, y0 = int(rng.integers(0, 60 - 32 + 1)), int(rng.integers(0, 40 - 24 + 1))
+        expected = crop(sample, x0, y0, 32, 24)
+        assert torch.equal(out.image, expected.image) and torch.equal(out.events, expected.events)
+        assert torch.equal(out.boxes, expected.boxes)
+        places.add((x0, y0))
+    assert len(places) > 20  # drawn, not fixed
+    whole = TrainAugment(**plain, crop=1.0)(sample, np.random.default_rng(3))
+    assert whole.image.shape == (3, H, W)
+    with pytest.raises(ValueError, match="crop"):
+        TrainAugment(**plain, crop=1.5)
+    with pytest.raises(ValueError, match="crop_boxes"):
+        TrainAugment(**plain, crop=0.5, crop_boxes=2.0)
+
+
+def test_crops_placed_around_boxes_hold_a_box_centre_and_the_rest_are_anywhere():
+    plain = {**AUGMENT, "flip_prob": 0.0, "zoom": (1.0, 1.0), "translate": 0.0}
+    sample = make_sample((44.0, 30.0, 58.0, 39.0))  # a box in the bottom right corner, centre (51, 34.5)
+    around = TrainAugment(**plain, crop=0.25, crop_multiple=4, crop_boxes=1.0)  # 12x16 crops of 40x60
+    anywhere = TrainAugment(**plain, crop=0.25, crop_multiple=4, crop_boxes=0.0)
+    held = [around(sample, np.random.default_rng(seed)) for seed in range(40)]
+    assert all(len(out.boxes) == 1 for out in held)
+    for out in held:  # the box's centre, moved with the crop, lies inside it
+        x1, y1, x2, y2 = out.boxes[0].tolist()
+        assert x1 < 16 and y1 < 12 and x2 > 0 and y2 > 0
+    assert len({tuple(out.boxes[0].tolist()) for out in held}) > 10  # the place is drawn among those
+    with_box = sum(len(anywhere(sample, np.random.default_rng(seed)).boxes) for seed in range(200))
+    assert with_box < 100  # anywhere, most 16x12 crops miss a 14x9 box in a corner
+    # A sample without boxes is cropped anywhere.
+    empty = sample.replace(boxes=sample.boxes[:0], labels=sample.labels[:0])
+    assert around(empty, np.random.default_rng(1)).image.shape == (3, 12, 16)

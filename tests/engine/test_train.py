@@ -165,6 +165,37 @@ def test_resume_continues_exactly_across_epoch_ends(tmp_path, monkeypatch):
         assert torch.allclose(torch.tensor(resumed["losses"]), torch.tensor(whole["losses"][start:]), rtol=1e-4)
 
 
+def test_a_run_on_crops_trains_at_the_crop_and_validates_and_saves_at_the_frame(tmp_path, monkeypatch):
+    """``data.augment.crop=0.5``: the stub's 320x180 frames are cut to 160x96 for training; the
+    checkpoints record the 320x180 detector, validation scores the EMA weights at that size (as
+    evaluate does from the saved checkpoint), and a resumed run continues exactly."""
+    saved = keep_last_copies(monkeypatch)
+    sizes, original = [], loop_module.train_step
+
+    def recording_step(state, batch, **kwargs):
+        sizes.append(tuple(batch.images.shape[-2:]))
+        assert (state.model.cfg.height, state.model.cfg.width) == (96, 160)
+        return original(state, batch, **kwargs)
+
+    monkeypatch.setattr(loop_module, "train_step", recording_step)
+    overrides = ("trainer.max_steps=4", "trainer.val_every=2", "data.augment.crop=0.5", "trainer.val_samples=null")
+    whole = train(small(tmp_path / "a", *overrides))
+    assert sizes == [(96, 160)] * 4
+    last = tmp_path / "a" / "checkpoints" / "last.pt"
+    detector = load_checkpoint(last).detector
+    assert (detector.height, detector.width) == (180, 320)
+    evaluated = evaluate(config("evaluate", f"ckpt={last}", f"run_dir={tmp_path / 'e'}", "loader.num_workers=0",
+                                "split=valid"))
+    assert evaluated["metrics"]["num_images"] == whole["metrics"]["num_images"] == 118
+    for key in ("mAP", "AP50", "AP75"):
+        assert abs(evaluated["metrics"][key] - whole["metrics"][key]) < 1e-9, key
+    resumed = train(small(tmp_path / "b", *overrides, f"resume={saved[2]}"))
+    assert resumed["step"] == 4 and sizes[4:] == [(96, 160)] * 2
+    assert torch.allclose(torch.tensor(resumed["losses"]), torch.tensor(whole["losses"][2:]), rtol=1e-4)
+    with pytest.raises(ConfigError, match=r"data\.augment\.crop must be a number in \(0, 1\]"):
+        train(small(tmp_path / "bad", "data.augment.crop=0"))
+
+
 def six_seconds_a_step(monkeypatch) -> list[float]:
     """A training clock that advances 6 s at each reading (one when it is made, one at the loop's
     start, then one after each step; only differences count); returns the learning rate each
