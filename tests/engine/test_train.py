@@ -178,9 +178,10 @@ def test_a_run_on_crops_trains_at_the_crop_and_validates_and_saves_at_the_frame(
         return original(state, batch, **kwargs)
 
     monkeypatch.setattr(loop_module, "train_step", recording_step)
-    overrides = ("trainer.max_steps=4", "trainer.val_every=2", "data.augment.crop=0.5", "trainer.val_samples=null")
+    overrides = ("trainer.max_steps=3", "trainer.val_every=3", "trainer.checkpoint_every=1", "data.augment.crop=0.5",
+                 "trainer.val_samples=null", "data.train_image_age=[1,1]")  # validation at age 1 alone
     whole = train(small(tmp_path / "a", *overrides))
-    assert sizes == [(96, 160)] * 4
+    assert sizes == [(96, 160)] * 3
     last = tmp_path / "a" / "checkpoints" / "last.pt"
     detector = load_checkpoint(last).detector
     assert (detector.height, detector.width) == (180, 320)
@@ -190,7 +191,7 @@ def test_a_run_on_crops_trains_at_the_crop_and_validates_and_saves_at_the_frame(
     for key in ("mAP", "AP50", "AP75"):
         assert abs(evaluated["metrics"][key] - whole["metrics"][key]) < 1e-9, key
     resumed = train(small(tmp_path / "b", *overrides, f"resume={saved[2]}"))
-    assert resumed["step"] == 4 and sizes[4:] == [(96, 160)] * 2
+    assert resumed["step"] == 3 and sizes[3:] == [(96, 160)]
     assert torch.allclose(torch.tensor(resumed["losses"]), torch.tensor(whole["losses"][2:]), rtol=1e-4)
     with pytest.raises(ConfigError, match=r"data\.augment\.crop must be a number in \(0, 1\]"):
         train(small(tmp_path / "bad", "data.augment.crop=0"))
