@@ -53,6 +53,7 @@ def test_built_in_datasets_train_with_the_quick_recipe():
         # the same recipe; the ego dataset's busier samples have a larger wall-clock cap
         budget = {"max_minutes": 13.0} if name == "ego" else {}
         assert cfg.trainer == {**quick.trainer, **budget}
+        assert cfg.data.augment == quick.data.augment and quick.data.augment.crop == 0.5
     assert quick.trainer.max_minutes == 9.0
 
 
