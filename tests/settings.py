@@ -24,7 +24,7 @@ UDP = {"fmt": _detect.udp.format, "idle_s": float(_detect.udp.idle_s), "wait_fir
        "max_backlog_bytes": int(_detect.udp.max_backlog_mb * 2 ** 20)}
 # TrainAugment without the hybrid's grey images.
 AUGMENT = {"flip_prob": 0.5, "zoom": (1.0, 1.5), "translate": 0.1, "min_box_size": 2.0, "image_dropout": 0.0,
-           "event_drop": 0.0}
+           "event_drop": 0.0, "crop": 1.0, "crop_multiple": 1, "crop_boxes": 0.0}
 
 
 def sample_set(root, split: str, **settings) -> EventEgoHands:

@@ -131,7 +131,12 @@ def test_train_and_evaluate_share_the_data_loader_and_eval_groups(tmp_path):
     train = resolve_config(compose_cfg("train"))
     evaluate = resolve_config(compose_cfg("evaluate", [f"ckpt={tmp_path / 'x.pt'}"]))
     assert train.loader == evaluate.loader and train.eval == evaluate.eval
-    assert set(train.data) == set(evaluate.data) and train.data.augment == evaluate.data.augment
+    assert set(train.data) == set(evaluate.data) and set(train.data.augment) == set(evaluate.data.augment)
+    from omegaconf import OmegaConf
+    recipe = OmegaConf.load(CONF / "recipe" / "quick.yaml").data.augment  # the stub's recipe sets these for training
+    assert {k: v for k, v in train.data.augment.items() if k not in recipe} == \
+        {k: v for k, v in evaluate.data.augment.items() if k not in recipe}
+    assert all(train.data.augment[k] == v for k, v in recipe.items())
     # evaluation takes what defines a sample from the checkpoint unless a value is given
     assert evaluate.data.window_us is None and evaluate.data.image_age is None and evaluate.graph.radius is None
 

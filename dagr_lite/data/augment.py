@@ -132,9 +132,9 @@ class TrainAugment:
     min_box_size: float
     image_dropout: float
     event_drop: float
-    crop: float = 1.0
-    crop_multiple: int = 1
-    crop_boxes: float = 0.0
+    crop: float
+    crop_multiple: int
+    crop_boxes: float
 
     def __post_init__(self):
         low, high = self.zoom

@@ -190,7 +190,7 @@ def test_crop_size_rounds_up_to_the_stride_within_the_frame():
 def test_train_augment_crops_each_sample_at_a_drawn_place_after_its_geometry():
     plain = {**AUGMENT, "flip_prob": 0.0, "zoom": (1.0, 1.0), "translate": 0.0}
     sample = make_sample((5.0, 12.0, 20.0, 28.0))
-    cropping = TrainAugment(**plain, crop=0.5, crop_multiple=8)  # 20x30 of 40x60, rounded up to 24x32
+    cropping = TrainAugment(**{**plain, "crop": 0.5, "crop_multiple": 8})  # 20x30 of 40x60, rounded up to 24x32
     places = set()
     for seed in range(30):
         out = cropping(sample, np.random.default_rng(seed))
@@ -203,19 +203,19 @@ def test_train_augment_crops_each_sample_at_a_drawn_place_after_its_geometry():
         assert torch.equal(out.boxes, expected.boxes)
         places.add((x0, y0))
     assert len(places) > 20  # drawn, not fixed
-    whole = TrainAugment(**plain, crop=1.0)(sample, np.random.default_rng(3))
+    whole = TrainAugment(**plain)(sample, np.random.default_rng(3))
     assert whole.image.shape == (3, H, W)
     with pytest.raises(ValueError, match="crop"):
-        TrainAugment(**plain, crop=1.5)
+        TrainAugment(**{**plain, "crop": 1.5})
     with pytest.raises(ValueError, match="crop_boxes"):
-        TrainAugment(**plain, crop=0.5, crop_boxes=2.0)
+        TrainAugment(**{**plain, "crop": 0.5, "crop_boxes": 2.0})
 
 
 def test_crops_placed_around_boxes_hold_a_box_centre_and_the_rest_are_anywhere():
     plain = {**AUGMENT, "flip_prob": 0.0, "zoom": (1.0, 1.0), "translate": 0.0}
     sample = make_sample((44.0, 30.0, 58.0, 39.0))  # a box in the bottom right corner, centre (51, 34.5)
-    around = TrainAugment(**plain, crop=0.25, crop_multiple=4, crop_boxes=1.0)  # 12x16 crops of 40x60
-    anywhere = TrainAugment(**plain, crop=0.25, crop_multiple=4, crop_boxes=0.0)
+    around = TrainAugment(**{**plain, "crop": 0.25, "crop_multiple": 4, "crop_boxes": 1.0})  # 12x16 crops of 40x60
+    anywhere = TrainAugment(**{**plain, "crop": 0.25, "crop_multiple": 4})
     held = [around(sample, np.random.default_rng(seed)) for seed in range(40)]
     assert all(len(out.boxes) == 1 for out in held)
     for out in held:  # the box's centre, moved with the crop, lies inside it
