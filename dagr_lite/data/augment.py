@@ -50,18 +50,24 @@ def zoom_translate(sample: Sample, scale: float, tx: float, ty: float, *, min_bo
     events = sample.events.clone()  # (N, 4)
     events[:, 0] = scale * (events[:, 0] + 0.5) + tx - 0.5
     events[:, 1] = scale * (events[:, 1] + 0.5) + ty - 0.5
-    # Keep events whose pixel centre stays inside the image, at pixel coordinates in [0, W - 1].
+    boxes = sample.boxes * scale + torch.tensor([tx, ty, tx, ty], dtype=torch.float32)  # (M, 4)
+    return _inside(sample.replace(image=image), events, boxes, width, height, min_box_size)
+
+
+def _inside(sample: Sample, events: torch.Tensor, boxes: torch.Tensor, width: int, height: int,
+            min_box_size: float) -> Sample:
+    """``sample`` with moved ``events (N, 4)`` and ``boxes (M, 4)`` kept to a ``width x height``
+    frame: events whose pixel centre lies inside, at pixel coordinates in ``[0, W - 1]``; boxes
+    clipped to it and dropped when thinner than ``min_box_size``."""
     inside = ((events[:, 0] >= -0.5) & (events[:, 0] < width - 0.5)
               & (events[:, 1] >= -0.5) & (events[:, 1] < height - 0.5))
     events = events[inside]
     events[:, 0].clamp_(0, width - 1)
     events[:, 1].clamp_(0, height - 1)
-
-    boxes = sample.boxes * scale + torch.tensor([tx, ty, tx, ty], dtype=torch.float32)  # (M, 4)
     boxes[:, [0, 2]] = boxes[:, [0, 2]].clamp(0, width)
     boxes[:, [1, 3]] = boxes[:, [1, 3]].clamp(0, height)
     keep = ((boxes[:, 2] - boxes[:, 0]) >= min_box_size) & ((boxes[:, 3] - boxes[:, 1]) >= min_box_size)
-    return sample.replace(events=events, image=image, boxes=boxes[keep], labels=sample.labels[keep])
+    return sample.replace(events=events, boxes=boxes[keep], labels=sample.labels[keep])
 
 
 def crop(sample: Sample, x0: int, y0: int, width: int, height: int, *, min_box_size: float = 2.0) -> Sample:
@@ -75,18 +81,10 @@ def crop(sample: Sample, x0: int, y0: int, width: int, height: int, *, min_box_s
             and y0 + height <= sample.height):
         raise ValueError(f"a crop of {width}x{height} at ({x0}, {y0}) must lie inside the "
                          f"{sample.width}x{sample.height} frame")
-    events = sample.events  # (N, 4)
-    inside = ((events[:, 0] >= x0 - 0.5) & (events[:, 0] < x0 + width - 0.5)
-              & (events[:, 1] >= y0 - 0.5) & (events[:, 1] < y0 + height - 0.5))
-    events = events[inside].clone()
-    events[:, 0] = (events[:, 0] - x0).clamp_(0, width - 1)
-    events[:, 1] = (events[:, 1] - y0).clamp_(0, height - 1)
-    image = sample.image[:, y0:y0 + height, x0:x0 + width]
+    events = sample.events - torch.tensor([x0, y0, 0, 0], dtype=sample.events.dtype)  # (N, 4), whole pixels: exact
     boxes = sample.boxes - torch.tensor([x0, y0, x0, y0], dtype=sample.boxes.dtype)  # (M, 4)
-    boxes[:, [0, 2]] = boxes[:, [0, 2]].clamp(0, width)
-    boxes[:, [1, 3]] = boxes[:, [1, 3]].clamp(0, height)
-    keep = ((boxes[:, 2] - boxes[:, 0]) >= min_box_size) & ((boxes[:, 3] - boxes[:, 1]) >= min_box_size)
-    return sample.replace(events=events, image=image, boxes=boxes[keep], labels=sample.labels[keep])
+    image = sample.image[:, y0:y0 + height, x0:x0 + width]
+    return _inside(sample.replace(image=image), events, boxes, width, height, min_box_size)
 
 
 def crop_size(height: int, width: int, fraction: float, multiple: int) -> tuple[int, int]:
