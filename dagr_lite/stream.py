@@ -372,7 +372,7 @@ class StreamingDetector:
         with torch.no_grad():
             raw, shapes = self._head_outputs(t_us)
         with torch.no_grad(), self._part("decode + NMS"):
-            result = postprocess(raw, shapes, self.model.strides, conf_threshold=self.operating.score,
+            result = postprocess(raw, shapes, self.model.answer_strides(shapes), conf_threshold=self.operating.score,
                                  nms_threshold=self.operating.nms_iou, image_size=(self.height, self.width))[0]
         return {"boxes": result["boxes"].cpu().numpy(), "scores": result["scores"].cpu().numpy(),
                 "labels": result["labels"].cpu().numpy(), "t_us": t_us}
@@ -435,7 +435,8 @@ class StreamingDetector:
                     picture = np.concatenate([self._frame, picture], axis=2)
                 carry_maps = model.picture_maps(self._pixels(picture))
         with self._part("recency + fusion + head"):
-            return model.head(*model.combine(image_maps, event_maps, recency, age, carry_maps))
+            event_inputs = model.event_head_inputs(event_maps, recency) if model.cfg.event_answers else None
+            return model.answer_outputs(*model.combine(image_maps, event_maps, recency, age, carry_maps), event_inputs)
 
     # ---------------------------------------------------------------- internals
     @contextmanager

@@ -115,11 +115,11 @@ def check_against_batch(stream: StreamingDetector, model: Detector, events: dict
     sample = sample_of(image, tuple(v[:upto][keep] for v in events.values()), origin, t_query, math.ceil(start))
     with torch.no_grad():
         raw, shapes = stream.head_outputs(t_query)
-        expected_raw, _ = model.head(*model.features(collate([sample])))
-    assert raw.dtype == torch.float64
+        expected_raw, expected_shapes, _ = model.outputs(collate([sample]))  # the answer: with event_answers, both heads
+    assert raw.dtype == torch.float64 and shapes == expected_shapes
     torch.testing.assert_close(raw, expected_raw, rtol=0, atol=1e-9)
     answer = stream.detect(t_query)
-    expected = postprocess(expected_raw, shapes, model.strides, conf_threshold=stream.operating.score,
+    expected = postprocess(expected_raw, shapes, model.answer_strides(shapes), conf_threshold=stream.operating.score,
                            nms_threshold=stream.operating.nms_iou, image_size=(H, W))[0]
     assert answer["t_us"] == t_query
     np.testing.assert_allclose(answer["boxes"], expected["boxes"].numpy(), rtol=0, atol=1e-9)
@@ -179,6 +179,21 @@ def test_streaming_equals_the_batch_model_at_any_moment(variant, weights, late_q
     images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 96_000, 190_000)]
     checks, largest, _ = replay(model, events, images, seed=7)
     assert checks >= 20 and largest >= 300  # many answers, some over large samples
+
+
+@pytest.mark.parametrize("carry_width", [0, 4])
+def test_streaming_with_the_event_heads_answers_equals_the_batch_model(carry_width):
+    """``event_answers``: the event head's anchors join every answer, in the stream as in the batch model."""
+    model = small_model("hybrid", seed=9, event_head_weight=1.0, event_answers=True, carry_width=carry_width)
+    if not carry_width:  # (the random training samples hold no carry picture)
+        model = trained(model)
+    rng = np.random.default_rng(23)
+    events = random_stream(rng, 2500, 250_000)
+    images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 190_000)]
+    checks, largest, stream = replay(model, events, images, seed=11, detect_prob=0.6)
+    raw, shapes = stream.head_outputs(stream.last_event_us)
+    assert len(shapes) == 2 * len(model.strides) and raw.shape[1] == 2 * sum(h * w for h, w in shapes[:len(model.strides)])
+    assert checks >= 10 and largest >= 300
 
 
 @pytest.mark.parametrize("variant", ["hybrid", "events_only"])

@@ -181,7 +181,11 @@ class DetectorConfig:
         event_head_weight: in a hybrid, > 0 adds a second head that reads the event branch and
             the recency maps alone (as an events-only model's head does, at half its width); in training its loss,
             times this weight, joins the fused head's, so the events learn to detect by
-            themselves. Detection always reads the fused head. 0: no such head.
+            themselves. 0: no such head.
+        event_answers: with an event head, its boxes join the fused head's in every answer (its
+            anchors beside the fused head's, before one NMS): the events' own detections, which
+            find hands that moved since the image where the fused head still trusts the image.
+            False: detection reads the fused head alone (the event head trains only).
         image_stem: the image branch's stride-4 stem, ``"patch"`` or ``"conv"`` (see :class:`ImageBranch`).
         late_query: the recency maps and the image's age enter the head after its towers, and a
             hybrid's head has image towers gated by the age (true), so that a streaming answer
@@ -232,6 +236,7 @@ class DetectorConfig:
     recency_us: tuple[float, ...]
     late_query: bool
     event_head_weight: float = 0.0
+    event_answers: bool = False
     image_stem: str = "patch"
     geometry: bool = False
     directional: bool = False
@@ -247,6 +252,10 @@ class DetectorConfig:
             raise ValueError("a detector needs at least one branch: use_events or use_image")
         if not (math.isfinite(self.event_head_weight) and self.event_head_weight >= 0):
             raise ValueError(f"event_head_weight must be a number >= 0, got {self.event_head_weight!r}")
+        if self.event_answers and not (self.use_image and self.use_events and self.event_head_weight > 0
+                                       and not self.late_query):
+            raise ValueError("event_answers needs a hybrid with an event head (event_head_weight > 0) whose query maps "
+                             "join at the fusion (late_query false)")
         if self.use_events and self.graph is None:
             raise ValueError("a detector with an event branch needs an event-graph spec (graph)")
         if not (isinstance(self.image_channels, int) and self.image_channels >= 1):
@@ -362,7 +371,8 @@ class Detector(nn.Module):
 
     def features(self, batch: Batch) -> tuple[list[torch.Tensor], list[torch.Tensor] | None,
                                               list[torch.Tensor] | None]:
-        """The head's inputs (:meth:`combine`): ``model.head(*model.features(batch))`` gives the raw output."""
+        """The head's inputs (:meth:`combine`): ``model.head(*model.features(batch))`` gives the fused head's
+        raw output (with ``event_answers`` an answer also holds the event head's: :meth:`outputs`)."""
         maps, query, image, _ = self._features(batch)
         return maps, query, image
 
@@ -401,10 +411,15 @@ class Detector(nn.Module):
         maps, query, image_inputs = self.combine(image_maps, event_maps, recency, batch.age_us,
                                                  self.carry_maps(images))
         event_inputs = None
-        if self.event_head is not None and self.training:
-            event_inputs = ((event_maps, recency) if self.cfg.late_query else
-                            ([torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)], None))
+        if self.event_head is not None and (self.training or self.cfg.event_answers):
+            event_inputs = self.event_head_inputs(event_maps, recency)
         return maps, query, image_inputs, event_inputs
+
+    def event_head_inputs(self, event_maps: list[torch.Tensor], recency: list[torch.Tensor]) -> tuple:
+        """The event head's inputs: the event maps and the recency maps (joined, or apart with ``late_query``)."""
+        if self.cfg.late_query:
+            return event_maps, recency
+        return [torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)], None
 
     def _image_features(self, batch: Batch):
         """:meth:`_features` of a hybrid whose event maps and recency maps are all zero, the event
@@ -630,11 +645,30 @@ class Detector(nn.Module):
                 ) -> tuple[torch.Tensor, list[tuple[int, int]], tuple]:
         """The head's raw output ``(B, A, 5 + classes)``, its map shapes, and the event head's inputs."""
         maps, query, image_inputs, event_inputs = self._features(batch, image=image, events=events)
-        raw, shapes = self.head(maps, query, image_inputs)
+        if self.training:
+            raw, shapes = self.head(maps, query, image_inputs)
+        else:
+            raw, shapes = self.answer_outputs(maps, query, image_inputs, event_inputs)
         return raw, shapes, event_inputs
+
+    def answer_outputs(self, maps: list[torch.Tensor], query, image_inputs, event_inputs
+                       ) -> tuple[torch.Tensor, list[tuple[int, int]]]:
+        """What an answer decodes: the fused head's raw output ``(B, A, 5 + C)`` and map shapes,
+        with ``event_answers`` the event head's anchors behind them (its shapes after the fused
+        head's; :meth:`answer_strides` gives the stride of each)."""
+        raw, shapes = self.head(maps, query, image_inputs)
+        if self.cfg.event_answers and event_inputs is not None:
+            event_raw, event_shapes = self.event_head(*event_inputs)
+            raw, shapes = torch.cat([raw, event_raw], dim=1), shapes + event_shapes
+        return raw, shapes
+
+    def answer_strides(self, shapes: list[tuple[int, int]]) -> list[int]:
+        """The stride of each map of an answer's ``shapes`` (:meth:`answer_outputs`)."""
+        return list(self.strides) * (len(shapes) // len(self.strides))
 
     def detections(self, raw: torch.Tensor, shapes: list[tuple[int, int]], *, conf_threshold: float,
                    nms_threshold: float) -> list[dict]:
         """The boxes of :meth:`outputs` of ``conf_threshold`` or more, after NMS at ``nms_threshold``."""
-        return postprocess(raw, shapes, self.strides, conf_threshold=conf_threshold, nms_threshold=nms_threshold,
+        return postprocess(raw, shapes, self.answer_strides(shapes), conf_threshold=conf_threshold,
+                           nms_threshold=nms_threshold,
                            image_size=(self.cfg.height, self.cfg.width))

@@ -4,7 +4,7 @@ import torch
 from dagr_lite.data.collate import collate
 from dagr_lite.engine.checkpoint import upgraded_detector
 from dagr_lite.nn.detector import CarryAttention, Detector, DetectorConfig
-from dagr_lite.nn.head import box_iou
+from dagr_lite.nn.head import box_iou, postprocess
 from dagr_lite.synth.stub import stub_root
 from tests.models import small_detector_config
 from tests.settings import sample_set
@@ -73,6 +73,66 @@ def test_the_event_head_adds_its_weighted_loss_in_training_and_leaves_detection_
                 torch.testing.assert_close(a[key], b[key], rtol=0, atol=0)
     for variant in ("events_only", "image_only"):  # only a hybrid has a second head to train
         assert Detector(small_detector_config(variant=variant, **sizes, event_head_weight=1.0)).event_head is None
+
+
+def test_event_answers_add_the_event_heads_boxes_to_the_fused_heads_before_one_nms():
+    """With ``event_answers`` an answer holds the boxes each head decodes on its own, suppressed
+    together; training and its losses are the event head's model's, unchanged."""
+    dataset = sample_set(stub_root(), "valid", window_us=10_000, carry_picture=True)
+    batch = collate([dataset[i] for i in (0, 40, 80)])
+    torch.manual_seed(0)
+    sizes = dict(image_width=8, event_channels=(8, 8, 8, 8), head_hidden=16, event_head_weight=0.5)
+    answering = Detector(small_detector_config(**sizes, event_answers=True))
+    training_only = Detector(small_detector_config(**sizes))
+    training_only.load_state_dict(answering.state_dict())
+    torch.testing.assert_close(answering(batch)["loss"], training_only(batch)["loss"], rtol=0, atol=0)
+    answering.eval(), training_only.eval()
+    iou = 0.5
+
+    def scores(raw, shift=0.0):
+        return (torch.sigmoid(raw[..., 4] + shift) * torch.sigmoid(raw[..., 5])).flatten()
+    with torch.no_grad():
+        maps, query, image_inputs, event_inputs = answering._features(batch)
+        fused_raw, shapes = answering.head(maps, query, image_inputs)
+        event_raw, _ = answering.event_head(*event_inputs)
+        score = float(scores(fused_raw).sort().values[-30])  # 30 of the fused head's boxes pass
+        low, high = -30.0, 30.0  # and about 20 of the event head's, its objectness shifted to make it so
+        for _ in range(50):
+            low, high = ((low + high) / 2, high) if int((scores(event_raw, (low + high) / 2) >= score).sum()) < 20 \
+                else (low, (low + high) / 2)
+        for pred in answering.event_head.obj_preds:
+            pred.bias += high
+        training_only.load_state_dict(answering.state_dict())
+        event_raw, _ = answering.event_head(*event_inputs)
+        answers = answering(batch, conf_threshold=score, nms_threshold=iou)  # (50 boxes or so: none cut)
+        strides = list(answering.strides)
+        alone = [postprocess(raw, shapes, strides, conf_threshold=score, nms_threshold=1.0, image_size=(180, 320))
+                 for raw in (fused_raw, event_raw)]  # each head's boxes, none suppressed
+        fused_only = training_only(batch, conf_threshold=score, nms_threshold=iou)
+    from_events = from_fused = 0
+    for b, answer in enumerate(answers):
+        boxes = torch.cat([alone[0][b]["boxes"], alone[1][b]["boxes"]])
+        scores = torch.cat([alone[0][b]["scores"], alone[1][b]["scores"]])
+        keep = greedy_nms(boxes, scores, iou)
+        torch.testing.assert_close(answer["boxes"], boxes[keep], rtol=0, atol=1e-5)
+        torch.testing.assert_close(answer["scores"], scores[keep], rtol=0, atol=0)
+        from_events += int((torch.as_tensor(keep) >= len(alone[0][b]["boxes"])).sum())
+        from_fused += int((torch.as_tensor(keep) < len(alone[0][b]["boxes"])).sum())
+    assert from_events > 0 and from_fused > 0  # answers of both heads
+    assert sum(len(a["boxes"]) for a in answers) > sum(len(a["boxes"]) for a in fused_only)
+    with pytest.raises(ValueError, match="event_answers needs a hybrid with an event head"):
+        small_detector_config(**{**sizes, "event_head_weight": 0.0}, event_answers=True)
+
+
+def greedy_nms(boxes: torch.Tensor, scores: torch.Tensor, iou: float) -> list[int]:
+    """Greedy suppression, one box at a time: the highest remaining score stays, and every box
+    overlapping it by more than ``iou`` goes."""
+    order = sorted(range(len(scores)), key=lambda i: (-float(scores[i]), i))
+    kept: list[int] = []
+    for i in order:
+        if all(float(box_iou(boxes[i:i + 1], boxes[j:j + 1])[0, 0]) <= iou for j in kept):
+            kept.append(i)
+    return kept
 
 
 @pytest.mark.parametrize(("late_query", "carry_attend"), [(False, 0), (True, 0), (False, 2)])
