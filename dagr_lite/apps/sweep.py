@@ -189,10 +189,13 @@ def sweep_points(ages: list[int], between: int) -> list[tuple[int, float]]:
 
 
 def score_point(cfg: DictConfig, model, dataset: EventEgoHands, frames: list[tuple[int, int]], age: int,
-                fraction: float, device: torch.device, score: float) -> dict[str, float]:
+                fraction: float, device: torch.device, score: float, entries_out: dict | None = None
+                ) -> dict[str, float]:
     """COCO metrics of ``model`` at one sweep point: of the batch model, or with ``cfg.stream`` of
     what the streaming detector answers (:func:`streamed_detections`); and :func:`moved_recall`
-    of its detections of ``score`` or more (the checkpoint's operating point)."""
+    of its detections of ``score`` or more (the checkpoint's operating point). ``entries_out``:
+    a dict that receives the point's detections (:func:`~dagr_lite.eval.score.detections_of`'s
+    entries) under ``(age, fraction)``."""
     desc = f"age {age + fraction:g} frames"
     if cfg.stream:
         entries = streamed_detections(model, dataset, frames, age, fraction, conf_threshold=cfg.eval.conf_threshold,
@@ -203,6 +206,8 @@ def score_point(cfg: DictConfig, model, dataset: EventEgoHands, frames: list[tup
                              graph=model.graph_spec, worker_nice=cfg.loader.worker_nice)
         entries = detections_of(model, loader, device, conf_threshold=cfg.eval.conf_threshold,
                                 nms_threshold=cfg.eval.nms_threshold, desc=desc)
+    if entries_out is not None:
+        entries_out[(age, fraction)] = entries
     metrics, evaluator = score_entries(entries, backend=cfg.eval.backend)
     image_boxes = [dataset.boxes_of(v, k - age) for v, k in frames]
     return {"mAP": metrics["mAP"], "AP50": metrics["AP50"], "AP75": metrics["AP75"],
@@ -214,10 +219,12 @@ OVERRIDABLE = SampleSpec.keys()
 
 
 def sweep_checkpoint(cfg: DictConfig, checkpoint: Checkpoint, frames: list[tuple[int, int]] | None,
-                     device: torch.device) -> tuple[list[dict], list[tuple[int, int]], dict]:
+                     device: torch.device, entries_out: dict | None = None
+                     ) -> tuple[list[dict], list[tuple[int, int]], dict]:
     """The rows of one checkpoint at every sweep point, with its own data settings (image age
     aside) unless ``data.*`` overrides them; the frames are found on first use and shared by
-    every later checkpoint. Also returns the overrides (``{"data.key": {"checkpoint", "used"}}``)."""
+    every later checkpoint. Also returns the overrides (``{"data.key": {"checkpoint", "used"}}``).
+    ``entries_out``: see :func:`score_point`."""
     detector, path = checkpoint.detector, str(checkpoint.path)
     overrides: dict = {}
     data = checkpoint.sample_settings
@@ -241,7 +248,8 @@ def sweep_checkpoint(cfg: DictConfig, checkpoint: Checkpoint, frames: list[tuple
     print(f"{path}: {name}, {len(frames)} label frames of {cfg.split}{changed}", flush=True)
     rows = [{"ckpt": str(path), "model": name, "age_frames": age + fraction,
              "age_ms": 1000 * (age + fraction) / cfg.dataset.fps,
-             **score_point(run_cfg, model, dataset, frames, age, fraction, device, checkpoint.operating.score)}
+             **score_point(run_cfg, model, dataset, frames, age, fraction, device, checkpoint.operating.score,
+                           entries_out)}
             for age, fraction in sweep_points(list(cfg.ages), cfg.between)]
     return rows, frames, overrides
 
