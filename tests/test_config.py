@@ -184,6 +184,14 @@ def test_model_defaults_come_from_conf_and_variants_inherit_them():
     assert (early.carry_width, early.image_channels) == (0, 7)
     with pytest.raises(ConfigError, match=r"model\.carry_width=8 .* needs data\.carry_picture=true"):
         detector_config(resolve_config(compose_cfg("train", ["data.carry_picture=false"])), height=180, width=320)
+    # The event head's answers: a hybrid's, with its event head; a single-branch model has no second head to answer.
+    assert hybrid.event_answers is False
+    answering = ["model.event_head_weight=1.0", "model.event_answers=true"]
+    assert detector_config(resolve_config(compose_cfg("train", answering)), height=180, width=320).event_answers
+    assert not detector_config(resolve_config(compose_cfg("train", ["model=events_only", *answering])),
+                               height=180, width=320).event_answers
+    with pytest.raises(ConfigError, match=r"model: event_answers needs a hybrid with an event head"):
+        build_model(resolve_config(compose_cfg("train", ["model.event_answers=true"])), height=180, width=320)
 
 
 @pytest.mark.parametrize("override,match", [
@@ -196,6 +204,7 @@ def test_model_defaults_come_from_conf_and_variants_inherit_them():
     ("trainer.ema_decay=1.5", r"trainer\.ema_decay must be a number in \[0, 1\)"),
     ("data.train_image_age_power=-0.5", r"data\.train_image_age_power must be a number >= 0 \(0: ages drawn uniformly\), got -0\.5"),
     ("model.event_head_weight=-1", r"model\.event_head_weight must be a number >= 0 \(0: no event head\), got -1"),
+    ("model.event_answers=2", r"model\.event_answers must be true or false, got 2"),
     ("model.image_stem=vit", r"model\.image_stem must be one of patch, conv, got 'vit'"),
     ("loader.worker_nice=25", r"loader\.worker_nice must be an integer from 0 to 19 \(a Unix nice increment\), got 25"),
 ])
