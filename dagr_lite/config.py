@@ -309,7 +309,8 @@ def detector_config(cfg: DictConfig, *, height: int, width: int) -> DetectorConf
                           head_hidden=size.head_hidden, num_classes=model.num_classes,
                           strides=tuple(model.strides), graph=graph_spec(model), time_scale_us=model.time_scale_us,
                           recency_us=tuple(model.recency_us), event_head_weight=float(model.event_head_weight),
-                          event_answers=bool(model.get("event_answers", False)) and model.use_image and model.use_events,
+                          event_answers=(bool(model.get("event_answers", False)) and model.use_image
+                                         and model.use_events),
                           image_stem=model.image_stem, late_query=bool(model.late_query),
                           geometry=bool(model.geometry), directional=bool(model.directional),
                           image_channels=RGB_CHANNELS + (channels if picture and not carry else 0),

@@ -192,7 +192,8 @@ def test_streaming_with_the_event_heads_answers_equals_the_batch_model(carry_wid
     images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 190_000)]
     checks, largest, stream = replay(model, events, images, seed=11, detect_prob=0.6)
     raw, shapes = stream.head_outputs(stream.last_event_us)
-    assert len(shapes) == 2 * len(model.strides) and raw.shape[1] == 2 * sum(h * w for h, w in shapes[:len(model.strides)])
+    fused = sum(h * w for h, w in shapes[:len(model.strides)])  # the fused head's anchors, then the event head's
+    assert len(shapes) == 2 * len(model.strides) and raw.shape[1] == 2 * fused
     assert checks >= 10 and largest >= 300
 
 

@@ -72,8 +72,8 @@ def load_checkpoint(path: Path | str) -> "Checkpoint":
 
 # Keys newer than some checkpoints of this format, with the values that give those checkpoints'
 # models and samples: an older checkpoint is read as what it was trained as.
-DETECTOR_ADDED_LATER = {"event_head_weight": 0.0, "event_answers": False, "image_stem": "conv", "late_query": False, "geometry": False,
-                        "directional": False, "image_channels": 3,
+DETECTOR_ADDED_LATER = {"event_head_weight": 0.0, "event_answers": False, "image_stem": "conv", "late_query": False,
+                        "geometry": False, "directional": False, "image_channels": 3,
                         "carry_width": 0, "carry_channels": 3,
                         "carry_frame": False, "carry_attend": 0, "event_dense": 0}
 SAMPLE_ADDED_LATER = {"refractory_us": 0, "event_picture": False, "graph_context_us": 0, "carry_picture": False,
