@@ -1,14 +1,17 @@
 """A hybrid's boxes joined with an events-only model's: what the events' own detections add.
 
     python benchmarks/late_fusion.py --hybrid HYBRID.pt --events EVENTS_ONLY.pt --dataset ego [--ages 1 5 10]
+    python benchmarks/late_fusion.py --hybrid HYBRID.pt --grey --dataset ego     # the hybrid with a grey frame
 
 Both checkpoints are scored by the sweep (the same label frames at every image age, each model with
 its own sample settings); then, per frame, the two models' boxes are pooled, the events-only
 model's scores times ``--weight``, and one NMS at the hybrid's ``eval.nms_threshold`` runs over
 them, as an answer of a detector holding both would. Prints AP50 of the hybrid, of the events-only
 model and of the pooled boxes at each age, and the hybrid's and the pooled 167 / 33 ms ratio (the
-issue's target: at least 0.85). A measurement of a design, not a detector a command runs: the
-pair is two models, each trained in its own run.
+issue's target: at least 0.85). With ``--grey`` the second set of boxes is a checkpoint's answers
+with its camera frame mid-grey (the sweep's ``blank_image``; the hybrid's own when ``--events`` is
+not given): what the hybrid makes of its events alone, pooled with what it makes of them with the
+image. A measurement of a design, not a detector a command runs.
 """
 from __future__ import annotations
 
@@ -48,13 +51,19 @@ def pooled_entries(first: list[tuple], second: list[tuple], *, iou: float, weigh
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--hybrid", type=Path, required=True, help="a hybrid checkpoint")
-    parser.add_argument("--events", type=Path, required=True, help="an events-only checkpoint")
+    parser.add_argument("--events", type=Path, help="an events-only checkpoint (with --grey: any; default the hybrid)")
+    parser.add_argument("--grey", action="store_true",
+                        help="score the second checkpoint with its camera frame mid-grey (blank_image)")
     parser.add_argument("--dataset", default="stub", help="a dataset of conf/dataset")
     parser.add_argument("--split", default="test")
     parser.add_argument("--ages", type=int, nargs="+", default=[1, 5, 10], help="image ages in frames (1 first)")
     parser.add_argument("--weight", type=float, nargs="+", default=[1.0],
                         help="factors on the events-only model's scores (one row each)")
     args = parser.parse_args(argv)
+    if args.events is None:
+        if not args.grey:
+            parser.error("--events is needed (or --grey, to pool the hybrid's answers with a grey frame)")
+        args.events = args.hybrid
     for path in (args.hybrid, args.events):
         if not path.is_file():
             print(f"{path}: checkpoint file is missing", file=sys.stderr)
@@ -62,21 +71,24 @@ def main(argv=None) -> int:
     cfg = resolve_config(compose_config("sweep", [f"ckpt=[{args.hybrid},{args.events}]", f"dataset={args.dataset}",
                                                   f"split={args.split}", f"ages=[{','.join(map(str, args.ages))}]"]))
     device = resolve_device(cfg.device)
+    grey_cfg = cfg.copy()
+    grey_cfg.blank_image = True
     entries, rows, frames = [{}, {}], [], None
-    for path, kept in zip((args.hybrid, args.events), entries):
-        checkpoint_rows, frames, _ = sweep_checkpoint(cfg, load_checkpoint(path), frames, device, entries_out=kept)
+    for path, kept, run_cfg in zip((args.hybrid, args.events), entries, (cfg, grey_cfg if args.grey else cfg)):
+        checkpoint_rows, frames, _ = sweep_checkpoint(run_cfg, load_checkpoint(path), frames, device, entries_out=kept)
         rows.append({row["age_frames"]: row["AP50"] for row in checkpoint_rows})
     iou = float(cfg.eval.nms_threshold)
     print(f"\n{args.dataset}, {args.split} split, {len(frames)} label frames; AP50 at image ages (frames) "
           f"{' '.join(map(str, args.ages))}:")
-    table = {"hybrid": [rows[0][a] for a in args.ages], "events_only": [rows[1][a] for a in args.ages]}
+    second = "grey frame" if args.grey else "events_only"
+    table = {"hybrid": [rows[0][a] for a in args.ages], second: [rows[1][a] for a in args.ages]}
     for weight in args.weight:
-        table[f"pooled, events x {weight:g}"] = [
+        table[f"pooled, {second} x {weight:g}"] = [
             score_entries(pooled_entries(entries[0][(a, 0.0)], entries[1][(a, 0.0)], iou=iou, weight=weight),
                           backend=cfg.eval.backend)[0]["AP50"] for a in args.ages]
     for name, values in table.items():
         ratio = f"  {values[args.ages.index(5)] / values[0]:.2f} at 5 / 1" if 5 in args.ages and values[0] else ""
-        print(f"  {name:<24} {' '.join(f'{v:.3f}' for v in values)}{ratio}")
+        print(f"  {name:<28} {' '.join(f'{v:.3f}' for v in values)}{ratio}")
     return 0
 
 
