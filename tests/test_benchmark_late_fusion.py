@@ -38,3 +38,13 @@ def test_pooled_boxes_keep_the_higher_of_two_overlapping_and_every_separate_one(
     assert len(apart[0][4]) == 3
     with pytest.raises(ValueError, match="different frames"):
         bench.pooled_entries(hybrid, events[::-1], iou=0.65)
+
+
+def test_the_second_checkpoint_is_needed_unless_the_hybrid_answers_again_on_a_grey_frame(tmp_path, capsys):
+    """Without --events only --grey has a second set of boxes (the hybrid's own); a missing file is named."""
+    bench = load()
+    with pytest.raises(SystemExit):
+        bench.main(["--hybrid", str(tmp_path / "h.pt")])
+    assert "--events is needed" in capsys.readouterr().err
+    assert bench.main(["--hybrid", str(tmp_path / "h.pt"), "--grey"]) == 1
+    assert f"{tmp_path / 'h.pt'}: checkpoint file is missing" in capsys.readouterr().err
