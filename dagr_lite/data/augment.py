@@ -30,28 +30,43 @@ def hflip(sample: Sample) -> Sample:
     return sample.replace(events=events, image=sample.image.flip(-1), boxes=boxes)
 
 
-def zoom_translate(sample: Sample, scale: float, tx: float, ty: float, *, min_box_size: float = 2.0) -> Sample:
+def zoom_translate(sample: Sample, scale: float, tx: float, ty: float, *, min_box_size: float = 2.0,
+                   image: bool = True) -> Sample:
     """Map ``u -> scale * u + (tx, ty)`` at unchanged image size (``scale > 1`` zooms in).
 
-    The image is resampled bilinearly (zeros outside the source), events are moved and those
-    leaving the frame dropped, boxes are moved, clipped and dropped when thinner than
-    ``min_box_size`` pixels.
+    The image is resampled bilinearly (zeros outside the source, :func:`warp_image`), events are
+    moved and those leaving the frame dropped, boxes are moved, clipped and dropped when thinner
+    than ``min_box_size`` pixels. ``image=False`` leaves the image as it was (for a caller that
+    resamples only the part it keeps: :class:`TrainAugment` with a crop).
     """
     height, width = sample.height, sample.width
-    image = sample.image  # a frame of no channels (a frameless sample) stays as it is
-    if len(image):  # output pixel centre u' samples the source at (u' - t) / scale
-        us = (torch.arange(width, dtype=torch.float32) + 0.5 - tx) / scale  # (W,)
-        vs = (torch.arange(height, dtype=torch.float32) + 0.5 - ty) / scale  # (H,)
-        grid = torch.stack(torch.meshgrid(2 * us / width - 1, 2 * vs / height - 1, indexing="xy"), dim=-1)  # (H, W, 2)
-        image = F.grid_sample(image[None].float(), grid[None], mode="bilinear", padding_mode="zeros",
-                              align_corners=False)[0]  # (C, H, W)
-        image = image.round().clamp(0, 255).to(torch.uint8)
-
+    if image:
+        sample = sample.replace(image=warp_image(sample.image, scale, tx, ty))
     events = sample.events.clone()  # (N, 4)
     events[:, 0] = scale * (events[:, 0] + 0.5) + tx - 0.5
     events[:, 1] = scale * (events[:, 1] + 0.5) + ty - 0.5
     boxes = sample.boxes * scale + torch.tensor([tx, ty, tx, ty], dtype=torch.float32)  # (M, 4)
-    return _inside(sample.replace(image=image), events, boxes, width, height, min_box_size)
+    return _inside(sample, events, boxes, width, height, min_box_size)
+
+
+def warp_image(image: torch.Tensor, scale: float, tx: float, ty: float,
+               window: tuple[int, int, int, int] | None = None) -> torch.Tensor:
+    """``(C, H, W)`` uint8 ``image`` resampled bilinearly by ``u -> scale * u + (tx, ty)`` (zeros outside
+    the source). ``window = (x0, y0, width, height)``: only those output pixels, ``(C, height, width)``,
+    each the same to the bit as in the whole warped image (its sampling position is computed from
+    the same frame-wide coordinates). An image of no channels (a frameless sample) comes back cut alone."""
+    _, height, width = image.shape
+    x0, y0, w, h = window if window is not None else (0, 0, width, height)
+    if not len(image):
+        return image[:, y0:y0 + h, x0:x0 + w]
+    # Output pixel centre u' samples the source at (u' - t) / scale.
+    us = (torch.arange(width, dtype=torch.float32) + 0.5 - tx) / scale  # (W,)
+    vs = (torch.arange(height, dtype=torch.float32) + 0.5 - ty) / scale  # (H,)
+    gx, gy = (2 * us / width - 1)[x0:x0 + w], (2 * vs / height - 1)[y0:y0 + h]
+    grid = torch.stack(torch.meshgrid(gx, gy, indexing="xy"), dim=-1)  # (h, w, 2)
+    out = F.grid_sample(image[None].float(), grid[None], mode="bilinear", padding_mode="zeros",
+                        align_corners=False)[0]  # (C, h, w)
+    return out.round().clamp(0, 255).to(torch.uint8)
 
 
 def _inside(sample: Sample, events: torch.Tensor, boxes: torch.Tensor, width: int, height: int,
@@ -70,12 +85,14 @@ def _inside(sample: Sample, events: torch.Tensor, boxes: torch.Tensor, width: in
     return sample.replace(events=events, boxes=boxes[keep], labels=sample.labels[keep])
 
 
-def crop(sample: Sample, x0: int, y0: int, width: int, height: int, *, min_box_size: float = 2.0) -> Sample:
+def crop(sample: Sample, x0: int, y0: int, width: int, height: int, *, min_box_size: float = 2.0,
+         image: torch.Tensor | None = None) -> Sample:
     """The part ``[x0, x0 + width) x [y0, y0 + height)`` of the sample as a frame of its own.
 
     Whole-pixel offsets: the image is sliced, events whose pixel centre falls inside are kept and
     moved by ``(-x0, -y0)`` (within ``[0, width - 1] x [0, height - 1]``), boxes are moved,
-    clipped to the crop and dropped when thinner than ``min_box_size`` pixels.
+    clipped to the crop and dropped when thinner than ``min_box_size`` pixels. ``image``: that part
+    of the image, made by the caller (``(C, height, width)``), in place of the slice.
     """
     if not (0 <= x0 and 0 <= y0 and width > 0 and height > 0 and x0 + width <= sample.width
             and y0 + height <= sample.height):
@@ -83,7 +100,10 @@ def crop(sample: Sample, x0: int, y0: int, width: int, height: int, *, min_box_s
                          f"{sample.width}x{sample.height} frame")
     events = sample.events - torch.tensor([x0, y0, 0, 0], dtype=sample.events.dtype)  # (N, 4), whole pixels: exact
     boxes = sample.boxes - torch.tensor([x0, y0, x0, y0], dtype=sample.boxes.dtype)  # (M, 4)
-    image = sample.image[:, y0:y0 + height, x0:x0 + width]
+    if image is None:
+        image = sample.image[:, y0:y0 + height, x0:x0 + width]
+    elif tuple(image.shape) != (len(sample.image), height, width):
+        raise ValueError(f"the crop's image must be ({len(sample.image)}, {height}, {width}), got {tuple(image.shape)}")
     return _inside(sample.replace(image=image), events, boxes, width, height, min_box_size)
 
 
@@ -152,9 +172,17 @@ class TrainAugment:
             raise ValueError(f"crop_boxes must be in [0, 1], got {self.crop_boxes}")
 
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
-        sample = self._geometry(sample, rng)
-        if self.crop < 1:
-            sample = self._crop(sample, rng)
+        flip, warp = self._draw_geometry(sample, rng)
+        if flip:
+            sample = hflip(sample)
+        if self.crop < 1:  # the zoom resamples only the crop's pixels: the same sample, a quarter of the work
+            moved = sample if warp is None else zoom_translate(sample, *warp, min_box_size=self.min_box_size,
+                                                               image=False)  # its image not yet warped
+            x0, y0, width, height = self._crop_place(moved, rng)
+            part = None if warp is None else warp_image(sample.image, *warp, window=(x0, y0, width, height))
+            sample = crop(moved, x0, y0, width, height, min_box_size=self.min_box_size, image=part)
+        elif warp is not None:
+            sample = zoom_translate(sample, *warp, min_box_size=self.min_box_size)
         if self.image_dropout and rng.random() < self.image_dropout:
             sample = sample.blank_frame()
         if self.event_drop:
@@ -163,7 +191,8 @@ class TrainAugment:
             sample = sample.replace(events=sample.events[keep])
         return sample
 
-    def _crop(self, sample: Sample, rng: np.random.Generator) -> Sample:
+    def _crop_place(self, sample: Sample, rng: np.random.Generator) -> tuple[int, int, int, int]:
+        """``(x0, y0, width, height)`` of the sample's crop (its boxes where the crop is placed around one)."""
         height, width = crop_size(sample.height, sample.width, self.crop, self.crop_multiple)
         around = rng.random() < self.crop_boxes and len(sample.boxes)
         centre = sample.boxes[int(rng.integers(len(sample.boxes)))].view(2, 2).mean(0).tolist() if around else None
@@ -174,16 +203,16 @@ class TrainAugment:
                 at = min(math.floor(centre[axis]), size - 1)
                 low, high = max(low, at - part + 1), min(high, at)
             origin.append(int(rng.integers(low, high + 1)))
-        return crop(sample, origin[0], origin[1], width, height, min_box_size=self.min_box_size)
+        return origin[0], origin[1], width, height
 
-    def _geometry(self, sample: Sample, rng: np.random.Generator) -> Sample:
-        if rng.random() < self.flip_prob:
-            sample = hflip(sample)
+    def _draw_geometry(self, sample: Sample, rng: np.random.Generator) -> tuple[bool, tuple[float, float, float] | None]:
+        """Whether to flip, and the zoom's ``(scale, tx, ty)`` (None: the identity)."""
+        flip = rng.random() < self.flip_prob
         scale = float(rng.uniform(*self.zoom))
         offsets = []
         for size in (sample.width, sample.height):
             crop = rng.uniform(min(0.0, size * (1 - scale)), max(0.0, size * (1 - scale)))  # keep the crop inside
             offsets.append(crop + rng.uniform(-self.translate, self.translate) * size)
         if scale == 1.0 and offsets == [0.0, 0.0]:
-            return sample
-        return zoom_translate(sample, scale, offsets[0], offsets[1], min_box_size=self.min_box_size)
+            return flip, None
+        return flip, (scale, offsets[0], offsets[1])

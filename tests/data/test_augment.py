@@ -227,3 +227,49 @@ def test_crops_placed_around_boxes_hold_a_box_centre_and_the_rest_are_anywhere()
     # A sample without boxes is cropped anywhere.
     empty = sample.replace(boxes=sample.boxes[:0], labels=sample.labels[:0])
     assert around(empty, np.random.default_rng(1)).image.shape == (3, 12, 16)
+
+
+def textured_sample(rng, channels=7, height=72, width=128, n=3000, boxes=4):
+    """Random pixels in every channel (a frame and a carry picture), random events and boxes."""
+    image = torch.from_numpy(rng.integers(0, 256, (channels, height, width), dtype=np.uint8))
+    events = torch.from_numpy(np.stack([rng.integers(0, width, n), rng.integers(0, height, n), np.sort(rng.random(n)),
+                                        rng.integers(0, 2, n)], 1).astype(np.float32))
+    corner = rng.uniform([0, 0], [width - 20, height - 20], (boxes, 2))
+    box = np.concatenate([corner, corner + rng.uniform(4, 20, (boxes, 2))], 1).astype(np.float32)
+    return Sample(events=events, image=image, boxes=torch.from_numpy(box), labels=torch.zeros(boxes, dtype=torch.int64),
+                  video="v", frame=1, image_frame=0, t_start_us=0, t_end_us=33333, t_image_us=0)
+
+
+def test_a_warped_window_is_the_same_part_of_the_whole_warped_image_to_the_bit():
+    from dagr_lite.data.augment import warp_image
+    rng = np.random.default_rng(3)
+    image = textured_sample(rng).image
+    for scale, tx, ty in ((1.0, 0.0, 0.0), (1.37, -20.3, -7.9), (1.0, 5.5, -3.25), (1.5, -64.0, -36.0)):
+        whole = warp_image(image, scale, tx, ty)
+        for x0, y0, w, h in ((0, 0, 128, 72), (32, 8, 64, 32), (97, 40, 31, 32), (5, 0, 1, 1)):
+            assert torch.equal(warp_image(image, scale, tx, ty, window=(x0, y0, w, h)), whole[:, y0:y0 + h, x0:x0 + w])
+    frameless = image[:0]
+    assert warp_image(frameless, 1.2, 3.0, 1.0, window=(4, 2, 10, 6)).shape == (0, 6, 10)
+
+
+def test_a_crop_after_the_zoom_is_the_whole_zoomed_sample_cut_to_the_bit():
+    """The augmentation resamples only the crop's pixels; the reference warps the whole frame,
+    then slices it (the order of the draws is the same)."""
+    settings = dict(flip_prob=0.5, zoom=(1.0, 1.5), translate=0.1, min_box_size=2.0, image_dropout=0.0,
+                    event_drop=0.0, crop=0.5, crop_multiple=32, crop_boxes=0.75)
+    aug = TrainAugment(**settings)
+    for seed in range(24):
+        sample = textured_sample(np.random.default_rng(seed), channels=(7, 3, 0)[seed % 3])
+        fast = aug(sample, np.random.default_rng([seed, 9]))
+        rng = np.random.default_rng([seed, 9])  # the reference, drawing as the augmentation does
+        ref = hflip(sample) if rng.random() < settings["flip_prob"] else sample
+        scale = float(rng.uniform(1.0, 1.5))
+        offsets = [rng.uniform(min(0.0, s * (1 - scale)), max(0.0, s * (1 - scale))) + rng.uniform(-0.1, 0.1) * s
+                   for s in (ref.width, ref.height)]
+        ref = zoom_translate(ref, scale, offsets[0], offsets[1], min_box_size=2.0)
+        x0, y0, w, h = aug._crop_place(ref, rng)
+        ref = crop(ref, x0, y0, w, h, min_box_size=2.0)
+        assert fast.image.shape == ref.image.shape == (len(sample.image), *crop_size(72, 128, 0.5, 32))
+        assert torch.equal(fast.image, ref.image)
+        assert torch.equal(fast.events, ref.events) and torch.equal(fast.boxes, ref.boxes)
+        assert torch.equal(fast.labels, ref.labels)
