@@ -71,10 +71,10 @@ def main(argv=None) -> int:
     cfg = resolve_config(compose_config("sweep", [f"ckpt=[{args.hybrid},{args.events}]", f"dataset={args.dataset}",
                                                   f"split={args.split}", f"ages=[{','.join(map(str, args.ages))}]"]))
     device = resolve_device(cfg.device)
-    grey_cfg = cfg.copy()
-    grey_cfg.blank_image = True
+    second_cfg = cfg.copy()  # the second checkpoint's sweep: with --grey, on a mid-grey frame
+    second_cfg.blank_image = args.grey
     entries, rows, frames = [{}, {}], [], None
-    for path, kept, run_cfg in zip((args.hybrid, args.events), entries, (cfg, grey_cfg if args.grey else cfg)):
+    for path, kept, run_cfg in zip((args.hybrid, args.events), entries, (cfg, second_cfg)):
         checkpoint_rows, frames, _ = sweep_checkpoint(run_cfg, load_checkpoint(path), frames, device, entries_out=kept)
         rows.append({row["age_frames"]: row["AP50"] for row in checkpoint_rows})
     iou = float(cfg.eval.nms_threshold)

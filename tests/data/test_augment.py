@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from dagr_lite.data.augment import TrainAugment, crop, crop_size, hflip, zoom_translate
+from dagr_lite.data.augment import TrainAugment, crop, crop_size, hflip, warp_image, zoom_translate
 from dagr_lite.data.dataset import Sample
 from tests.settings import AUGMENT
 
@@ -241,7 +241,6 @@ def textured_sample(rng, channels=7, height=72, width=128, n=3000, boxes=4):
 
 
 def test_a_warped_window_is_the_same_part_of_the_whole_warped_image_to_the_bit():
-    from dagr_lite.data.augment import warp_image
     rng = np.random.default_rng(3)
     image = textured_sample(rng).image
     for scale, tx, ty in ((1.0, 0.0, 0.0), (1.37, -20.3, -7.9), (1.0, 5.5, -3.25), (1.5, -64.0, -36.0)):
