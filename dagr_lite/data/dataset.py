@@ -67,8 +67,7 @@ def add_to_picture(counts: np.ndarray, last: np.ndarray, x: np.ndarray, y: np.nd
     Adding events in any pieces gives the state of adding them at once (a stream's picture)."""
     if not len(t):
         return
-    pixel = np.asarray(y, np.int64) * width + np.asarray(x, np.int64)
-    add_events(counts, last, pixel, np.asarray(t, np.float64), np.asarray(p, np.int64))
+    add_events(counts, last, np.asarray(x), np.asarray(y), np.asarray(t), np.asarray(p), int(width))
 
 
 def picture_of(counts: np.ndarray, last: np.ndarray, t_end_us: float, window_us: float, height: int,

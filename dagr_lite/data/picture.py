@@ -13,17 +13,20 @@ from dagr_lite.graph.compiled import KERNEL  # the project's kernel options: cac
 
 
 @numba.njit(**KERNEL)
-def add_events(counts, last, pixel, t, p):  # pragma: no cover - compiled
-    """In place: ``counts[0, pixel]`` += 1 for ON events (``p == 1``), ``counts[1, pixel]`` for OFF
-    (``p == 0``); ``last[pixel] = max(last[pixel], t)`` for every event."""
-    for i in range(len(pixel)):
-        j = pixel[i]
+def add_events(counts, last, x, y, t, p, width):  # pragma: no cover - compiled
+    """In place, for the events ``x, y, t, p`` as stored (any integer or float types; a pixel is
+    ``int(y) * width + int(x)``, a time ``float(t)``): ``counts[0, pixel]`` += 1 for ON events
+    (``p == 1``), ``counts[1, pixel]`` for OFF (``p == 0``); ``last[pixel] = max(last[pixel], t)``
+    for every event. Reading the stored types saves the copies a cast of each column would make."""
+    for i in range(len(t)):
+        j = np.int64(y[i]) * width + np.int64(x[i])
         if p[i] == 1:
             counts[0, j] += 1
         elif p[i] == 0:
             counts[1, j] += 1
-        if t[i] > last[j]:
-            last[j] = t[i]
+        ti = np.float64(t[i])
+        if ti > last[j]:
+            last[j] = ti
 
 
 @numba.njit(**KERNEL)

@@ -251,24 +251,32 @@ def test_a_warped_window_is_the_same_part_of_the_whole_warped_image_to_the_bit()
     assert warp_image(frameless, 1.2, 3.0, 1.0, window=(4, 2, 10, 6)).shape == (0, 6, 10)
 
 
-def test_a_crop_after_the_zoom_is_the_whole_zoomed_sample_cut_to_the_bit():
-    """The augmentation resamples only the crop's pixels; the reference warps the whole frame,
-    then slices it (the order of the draws is the same)."""
-    settings = dict(flip_prob=0.5, zoom=(1.0, 1.5), translate=0.1, min_box_size=2.0, image_dropout=0.0,
+@pytest.mark.parametrize("zoom, translate", [((1.0, 1.5), 0.1), ((1.0, 1.0), 0.0)])  # the second: no warp
+def test_a_crop_after_the_zoom_is_the_whole_zoomed_sample_cut_to_the_bit(zoom, translate):
+    """The augmentation resamples only the crop's pixels and moves the events in one pass; the
+    reference flips, warps the whole frame, then slices it, one function after the other (the order
+    of the draws is the same)."""
+    settings = dict(flip_prob=0.5, zoom=zoom, translate=translate, min_box_size=2.0, image_dropout=0.0,
                     event_drop=0.0, crop=0.5, crop_multiple=32, crop_boxes=0.75)
     aug = TrainAugment(**settings)
+    flips = 0
     for seed in range(24):
         sample = textured_sample(np.random.default_rng(seed), channels=(7, 3, 0)[seed % 3])
         fast = aug(sample, np.random.default_rng([seed, 9]))
         rng = np.random.default_rng([seed, 9])  # the reference, drawing as the augmentation does
-        ref = hflip(sample) if rng.random() < settings["flip_prob"] else sample
-        scale = float(rng.uniform(1.0, 1.5))
-        offsets = [rng.uniform(min(0.0, s * (1 - scale)), max(0.0, s * (1 - scale))) + rng.uniform(-0.1, 0.1) * s
-                   for s in (ref.width, ref.height)]
-        ref = zoom_translate(ref, scale, offsets[0], offsets[1], min_box_size=2.0)
+        flip = rng.random() < settings["flip_prob"]
+        flips += flip
+        ref = hflip(sample) if flip else sample
+        scale = float(rng.uniform(*zoom))
+        offsets = [rng.uniform(min(0.0, s * (1 - scale)), max(0.0, s * (1 - scale)))
+                   + rng.uniform(-translate, translate) * s for s in (ref.width, ref.height)]
+        if scale != 1.0 or offsets != [0.0, 0.0]:
+            ref = zoom_translate(ref, scale, offsets[0], offsets[1], min_box_size=2.0)
         x0, y0, w, h = aug._crop_place(ref, rng)
         ref = crop(ref, x0, y0, w, h, min_box_size=2.0)
         assert fast.image.shape == ref.image.shape == (len(sample.image), *crop_size(72, 128, 0.5, 32))
         assert torch.equal(fast.image, ref.image)
         assert torch.equal(fast.events, ref.events) and torch.equal(fast.boxes, ref.boxes)
         assert torch.equal(fast.labels, ref.labels)
+        assert 0 < len(fast.events) < len(sample.events)
+    assert 0 < flips < 24
