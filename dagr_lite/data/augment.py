@@ -107,30 +107,6 @@ def crop(sample: Sample, x0: int, y0: int, width: int, height: int, *, min_box_s
     return _inside(sample.replace(image=image), events, boxes, width, height, min_box_size)
 
 
-def moved_events(events: torch.Tensor, width: int, height: int, flip: bool,
-                 warp: tuple[float, float, float] | None, window: tuple[int, int, int, int]) -> torch.Tensor:
-    """The ``(N, 4)`` events of a ``width x height`` frame as :func:`hflip` (``flip``), :func:`zoom_translate`
-    (``warp = (scale, tx, ty)``, None: none) and :func:`crop` (``window = (x0, y0, w, h)``) leave them in
-    turn, the same to the bit: each step's arithmetic on the x and y columns alone, the events kept by
-    every step gathered once at the end."""
-    x, y = events[:, 0], events[:, 1]
-    keep = None
-    if flip:
-        x = (width - 1) - x
-    if warp is not None:
-        scale, tx, ty = warp
-        x, y = scale * (x + 0.5) + tx - 0.5, scale * (y + 0.5) + ty - 0.5
-        keep = (x >= -0.5) & (x < width - 0.5) & (y >= -0.5) & (y < height - 0.5)
-        x, y = x.clamp(0, width - 1), y.clamp(0, height - 1)
-    x0, y0, w, h = window
-    x, y = x - x0, y - y0
-    inside = (x >= -0.5) & (x < w - 0.5) & (y >= -0.5) & (y < h - 0.5)
-    keep = inside if keep is None else keep & inside
-    out = events[keep]  # (N', 4), a copy
-    out[:, 0], out[:, 1] = x[keep].clamp(0, w - 1), y[keep].clamp(0, h - 1)
-    return out
-
-
 def crop_size(height: int, width: int, fraction: float, multiple: int) -> tuple[int, int]:
     """``(height, width)`` of a training crop: ``fraction`` of each side of a ``height x width`` frame,
     rounded up to a multiple of ``multiple`` pixels (the head's largest stride, so its maps tile the
@@ -197,22 +173,16 @@ class TrainAugment:
 
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
         flip, warp = self._draw_geometry(sample, rng)
-        if self.crop < 1:  # the zoom resamples only the crop's pixels, and the events move in one pass:
-            events = sample.events  # the same sample as flip, zoom and crop in turn, a fraction of the work
-            shell = sample.replace(events=events[:0])  # the image and boxes go the functions' way
-            if flip:
-                shell = hflip(shell)
-            moved = shell if warp is None else zoom_translate(shell, *warp, min_box_size=self.min_box_size,
-                                                              image=False)  # its image not yet warped
-            window = self._crop_place(moved, rng)
-            part = None if warp is None else warp_image(shell.image, *warp, window=window)
-            sample = crop(moved, *window, min_box_size=self.min_box_size, image=part)
-            sample = sample.replace(events=moved_events(events, shell.width, shell.height, flip, warp, window))
-        else:
-            if flip:
-                sample = hflip(sample)
-            if warp is not None:
-                sample = zoom_translate(sample, *warp, min_box_size=self.min_box_size)
+        if flip:
+            sample = hflip(sample)
+        if self.crop < 1:  # the zoom resamples only the crop's pixels: the same sample, a quarter of the work
+            moved = sample if warp is None else zoom_translate(sample, *warp, min_box_size=self.min_box_size,
+                                                               image=False)  # its image not yet warped
+            x0, y0, width, height = self._crop_place(moved, rng)
+            part = None if warp is None else warp_image(sample.image, *warp, window=(x0, y0, width, height))
+            sample = crop(moved, x0, y0, width, height, min_box_size=self.min_box_size, image=part)
+        elif warp is not None:
+            sample = zoom_translate(sample, *warp, min_box_size=self.min_box_size)
         if self.image_dropout and rng.random() < self.image_dropout:
             sample = sample.blank_frame()
         if self.event_drop:

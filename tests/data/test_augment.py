@@ -253,9 +253,8 @@ def test_a_warped_window_is_the_same_part_of_the_whole_warped_image_to_the_bit()
 
 @pytest.mark.parametrize("zoom, translate", [((1.0, 1.5), 0.1), ((1.0, 1.0), 0.0)])  # the second: no warp
 def test_a_crop_after_the_zoom_is_the_whole_zoomed_sample_cut_to_the_bit(zoom, translate):
-    """The augmentation resamples only the crop's pixels and moves the events in one pass; the
-    reference flips, warps the whole frame, then slices it, one function after the other (the order
-    of the draws is the same)."""
+    """The augmentation resamples only the crop's pixels; the reference warps the whole frame, then
+    slices it (the order of the draws is the same)."""
     settings = dict(flip_prob=0.5, zoom=zoom, translate=translate, min_box_size=2.0, image_dropout=0.0,
                     event_drop=0.0, crop=0.5, crop_multiple=32, crop_boxes=0.75)
     aug = TrainAugment(**settings)
