@@ -25,6 +25,7 @@ import torch
 from dagr_lite.config import build_dataset, compose_config, graph_spec, resolve_config
 from dagr_lite.data import dataset as dataset_module
 from dagr_lite.data.collate import GraphCollate
+from dagr_lite.data.dataset import picture_state
 from dagr_lite.data.picture import add_events
 
 
@@ -52,7 +53,7 @@ def picture_kernel_ratio(dataset, rng: np.random.Generator, rounds: int = 60) ->
         events = dataset.events_of(v, dataset.frame_time_us(v, max(k - 5, 0)), dataset.frame_time_us(v, k))
         x, y, t, p = (events[key] for key in "xytp")
         for arm, out in ((0, stored), (1, cast)):
-            counts, last = np.zeros((2, height * width), np.int64), np.full(height * width, -np.inf)
+            counts, last = picture_state(height, width)
             start = time.perf_counter()
             if arm:
                 add_events(counts, last, x.astype(np.int64), y.astype(np.int64), t.astype(np.float64),

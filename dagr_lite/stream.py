@@ -39,7 +39,8 @@ import numpy as np
 import torch
 
 from dagr_lite.errors import UserError
-from dagr_lite.data.dataset import add_to_picture, arrival_keep, picture_channels, picture_of, sample_start_us
+from dagr_lite.data.dataset import (add_to_picture, arrival_keep, picture_channels, picture_of, picture_state,
+                                    sample_start_us)
 from dagr_lite.data.spec import SampleSpec
 from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.graph.pool import PooledGraph, recency_cells, recency_from_latest
@@ -301,8 +302,7 @@ class StreamingDetector:
             self._image = (image_maps, self.model.node_maps(image_maps))
         self._t_image, self._frame = t_us, image
         if self.model.carry is not None:  # the picture restarts from the logged events since the image
-            self._carry = (np.zeros((2, self.height * self.width), np.int64),
-                           np.full(self.height * self.width, -math.inf))
+            self._carry = picture_state(self.height, self.width)
             self._add_to_carry(*(self._log[key].view for key in ("x", "y", "t", "p")))
         # Events older than the horizon of the earliest answer left to give are not read.
         self._start_segment(t_us, needed_from)

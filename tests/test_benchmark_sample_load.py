@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dagr_lite.data.dataset import picture_state
 from dagr_lite.data.picture import add_events
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -19,7 +20,7 @@ def test_the_picture_kernel_on_stored_columns_equals_it_on_cast_columns():
     t, p = np.sort(rng.integers(0, 10**9, n)).astype(np.int64), rng.integers(0, 2, n).astype(np.uint8)
     states = []
     for columns in ((x, y, t, p), (x.astype(np.int64), y.astype(np.int64), t.astype(np.float64), p.astype(np.int64))):
-        counts, last = np.zeros((2, height * width), np.int64), np.full(height * width, -np.inf)
+        counts, last = picture_state(height, width)
         add_events(counts, last, *columns, width)
         states.append((counts, last))
     np.testing.assert_array_equal(states[0][0], states[1][0])

@@ -55,9 +55,15 @@ def event_picture(x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray, t_
 
     The dense peer the event branch is measured against reads this picture of the events-only
     sample in place of the camera frame (``data.event_picture``)."""
-    counts, last = np.zeros((2, height * width), np.int64), np.full(height * width, -np.inf)
+    counts, last = picture_state(height, width)
     add_to_picture(counts, last, x, y, t, p, width)
     return picture_of(counts, last, t_end_us, window_us, height, width, recent_us)
+
+
+def picture_state(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """An empty picture's per-pixel state for :func:`add_to_picture`: ``counts (2, H * W)`` int64
+    zeros and ``last (H * W,)`` all -inf (no event yet)."""
+    return np.zeros((2, height * width), np.int64), np.full(height * width, -np.inf)
 
 
 def add_to_picture(counts: np.ndarray, last: np.ndarray, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray,

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from dagr_lite.data.dataset import PICTURE_COUNT_FULL, add_to_picture, event_picture, picture_of
+from dagr_lite.data.dataset import PICTURE_COUNT_FULL, add_to_picture, event_picture, picture_of, picture_state
 from dagr_lite.synth.stub import stub_root
 from tests.settings import sample_set
 
@@ -41,7 +41,7 @@ def test_a_large_picture_in_pieces_equals_the_loop_ties_rounded_to_even():
     height, width, n = 30, 40, 6000
     x, y = rng.integers(0, width, n).astype(np.uint16), rng.integers(0, height, n).astype(np.uint16)
     t, p = np.sort(rng.integers(0, 90_000, n)), rng.integers(0, 2, n).astype(np.uint8)
-    counts, last = np.zeros((2, height * width), np.int64), np.full(height * width, -np.inf)
+    counts, last = picture_state(height, width)
     for piece in np.array_split(np.arange(n), 7):  # a stream's pieces
         add_to_picture(counts, last, x[piece], y[piece], t[piece], p[piece], width)
     got = picture_of(counts, last, 90_000, 90_000, height, width, 20_000)
