@@ -11,7 +11,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
+
+from dagr_lite.graph.sparse import compiled_for, unique_inverse, unique_pairs
 
 
 @dataclass
@@ -54,7 +57,13 @@ def voxel_max_pool(x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge
     width = int(col.max()) + 1 if len(x) else 1
     height = int(row.max()) + 1 if len(x) else 1
     key = (batch.to(torch.int64) * height + row) * width + col  # (N,)
-    unique, cluster = torch.unique(key, sorted=True, return_inverse=True)  # (C,), (N,)
+    batch_size = int(batch.max()) + 1 if len(x) else 1
+    on_cpu = compiled_for(key)
+    found = unique_inverse(key.contiguous().numpy(), batch_size * height * width) if on_cpu else None
+    if found is not None:  # a table of every cell instead of a sort: the same cells (graph/sparse.py)
+        unique, cluster = (torch.from_numpy(a) for a in found)
+    else:
+        unique, cluster = torch.unique(key, sorted=True, return_inverse=True)  # (C,), (N,)
     num_cells = len(unique)
     index = cluster[:, None].expand(-1, x.shape[1])
     pooled = torch.zeros((num_cells, x.shape[1]), dtype=x.dtype, device=device)
@@ -68,6 +77,10 @@ def voxel_max_pool(x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge
         return PooledGraph(x=pooled, pos=pos_c, batch=batch_c, cell=cell,
                            edge_index=torch.zeros((2, 0), dtype=torch.int64, device=device), cluster=cluster)
     edges = cluster[edge_index]  # (2, E)
+    if on_cpu:  # grouped by destination cell in one pass instead of a sort: the same edges (graph/sparse.py)
+        src, dst = unique_pairs(edges[0].contiguous().numpy(), edges[1].contiguous().numpy(), max(num_cells, 1))
+        return PooledGraph(x=pooled, pos=pos_c, batch=batch_c, cell=cell,
+                           edge_index=torch.from_numpy(np.stack([src, dst])), cluster=cluster)
     edge_key = edges[1] * max(num_cells, 1) + edges[0]  # (E,)
     if len(edge_key) > 1:  # neighbouring edges often map to the same cell pair: drop those repeats first
         edge_key = edge_key[torch.cat([edge_key.new_ones(1, dtype=torch.bool), edge_key[1:] != edge_key[:-1]])]

@@ -13,6 +13,8 @@ import warnings
 import torch
 from torch import nn
 
+from dagr_lite.graph.sparse import causal_triplets, compiled_for, transpose_triplets
+
 
 def gcn_norm(edge_index: torch.Tensor, num_nodes: int, *, in_degree: torch.Tensor | None = None,
              rows: torch.Tensor | None = None):
@@ -72,6 +74,9 @@ def _norm_sorted_causal(src: torch.Tensor, dst: torch.Tensor, num_nodes: int, in
     device = src.device
     counts = torch.bincount(dst, minlength=num_nodes)  # (N,)
     deg_inv_sqrt = (1.0 + (counts if in_degree is None else in_degree).to(torch.float64)).rsqrt()
+    if compiled_for(src):  # one compiled pass, the same triplets (graph/sparse.py)
+        return tuple(torch.from_numpy(a) for a in causal_triplets(src.contiguous().numpy(), dst.contiguous().numpy(),
+                                                                  deg_inv_sqrt.numpy()))
     total = len(src) + num_nodes
     row = torch.empty(total, dtype=torch.int64, device=device)
     col = torch.empty(total, dtype=torch.int64, device=device)
@@ -87,6 +92,10 @@ def _csr(row: torch.Tensor, col: torch.Tensor, value: torch.Tensor, shape: tuple
     """CSR matrix from triplets sorted by (row, col)."""
     crow = torch.zeros(shape[0] + 1, dtype=torch.int64, device=row.device)
     crow[1:] = torch.cumsum(torch.bincount(row, minlength=shape[0]), 0)
+    return _csr_tensor(crow, col, value, shape)
+
+
+def _csr_tensor(crow: torch.Tensor, col: torch.Tensor, value: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
         return torch.sparse_csr_tensor(crow, col, value, shape, check_invariants=False)
@@ -149,11 +158,17 @@ class GraphOperator:
                 self._adj_t[dtype, k] = _with_values(base, self._values(k)[self._order].to(dtype))
             else:
                 row, col, value = self._triplets
-                if self._order is None:
-                    self._order = torch.argsort(col, stable=True)  # rows ascend within each column
-                order = self._order
-                self._adj_t[dtype, 0] = _csr(col[order], row[order], value[order].to(dtype),
-                                             (self.num_nodes, self.num_out))
+                shape = (self.num_nodes, self.num_out)
+                if compiled_for(col):  # one counting pass, the same matrix (graph/sparse.py)
+                    crow, rows, values, order = (torch.from_numpy(a) for a in transpose_triplets(
+                        row.contiguous().numpy(), col.contiguous().numpy(), value.contiguous().numpy(), self.num_nodes))
+                    self._order = order
+                    self._adj_t[dtype, 0] = _csr_tensor(crow, rows, values.to(dtype), shape)
+                else:
+                    if self._order is None:
+                        self._order = torch.argsort(col, stable=True)  # rows ascend within each column
+                    order = self._order
+                    self._adj_t[dtype, 0] = _csr(col[order], row[order], value[order].to(dtype), shape)
         return self._adj_t[dtype, k]
 
     def propagate(self, x: torch.Tensor) -> torch.Tensor:
@@ -172,10 +187,7 @@ class GraphOperator:
 
 def _with_values(base: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
     """A CSR matrix with ``base``'s index structure and other ``values``."""
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
-        return torch.sparse_csr_tensor(base.crow_indices(), base.col_indices(), values, base.shape,
-                                       check_invariants=False)
+    return _csr_tensor(base.crow_indices(), base.col_indices(), values, tuple(base.shape))
 
 
 def _compute_dtype(dtype: torch.dtype) -> torch.dtype:
