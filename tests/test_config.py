@@ -157,9 +157,13 @@ def test_model_defaults_come_from_conf_and_variants_inherit_them():
     assert hybrid.strides == (8, 16, 32) and hybrid.event_channels == (16, 32, 48, 64) and hybrid.time_scale_us == 1e5
     assert hybrid.event_dense == 0  # GCN blocks over the pooled graphs
     assert hybrid.graph.as_dict() == {"radius": 5.0, "beta": 5e-4, "max_neighbors": 16}
-    events = detector_config(resolve_config(compose_cfg("train", ["model=events_only", "model.graph.radius=3"])),
-                             height=180, width=320)
-    assert not events.use_image and events.use_events and events.graph.radius == 3.0
+    events = detector_config(resolve_config(compose_cfg("train", ["model=events_only"])), height=180, width=320)
+    assert not events.use_image and events.use_events
+    # a smaller graph than the hybrid's; beta is the hybrid's, and any key can still be overridden
+    assert events.graph.as_dict() == {"radius": 3.0, "beta": 5e-4, "max_neighbors": 8}
+    wider = detector_config(resolve_config(compose_cfg("train", ["model=events_only", "model.graph.radius=4"])),
+                            height=180, width=320)
+    assert wider.graph.radius == 4.0 and wider.graph.max_neighbors == 8
     # the events-only model reads its nodes as a CNN reads a picture, as wide as the image CNN
     assert events.event_channels == (16, 64, 128, 256) and events.event_dense == 4
     assert (events.image_width, events.head_hidden) == (hybrid.image_width, hybrid.head_hidden)
