@@ -139,4 +139,20 @@ def start_from(model, path: str | Path, *, verbose: bool = True) -> dict:
     if verbose:
         print(f"init_from {path}: {len(report['copied'])} tensors copied, {len(report['widened'])} widened "
               f"with zeros, {len(report['kept'])} at their own initialisation", flush=True)
+        note = graph_note(saved.detector.graph, model.graph_spec)
+        if note:
+            print(f"init_from {path}: {note}", flush=True)
     return report
+
+
+def graph_note(theirs, ours) -> str | None:
+    """What a run started from a checkpoint reads differently, when the checkpoint's event graph
+    (an ``EventGraphSpec``) is not this model's (the events-only model's default graph is smaller
+    than the hybrid's): its weights then read another graph than they were trained on. None when
+    both are the same or either model has no event branch."""
+    if theirs is None or ours is None or theirs == ours:
+        return None
+    return (f"the checkpoint's event graph (radius {theirs.radius:g} px, {theirs.max_neighbors} neighbours, beta "
+            f"{theirs.beta:g}) is not this run's (radius {ours.radius:g}, {ours.max_neighbors}, beta {ours.beta:g}): "
+            f"its weights read this run's graph; model.graph.radius={theirs.radius:g} "
+            f"model.graph.max_neighbors={theirs.max_neighbors} model.graph.beta={theirs.beta:g} keep its own")

@@ -7,7 +7,7 @@ from omegaconf import OmegaConf
 from dagr_lite.config import ConfigError, check_values, compose_config
 from dagr_lite.data.collate import collate
 from dagr_lite.engine.checkpoint import CHECKPOINT_FORMAT
-from dagr_lite.engine.starting import start_from, start_weights
+from dagr_lite.engine.starting import graph_note, start_from, start_weights
 from dagr_lite.engine.train import train
 from dagr_lite.nn.detector import Detector
 from dagr_lite.nn.warm_start import warm_start, widen
@@ -37,7 +37,8 @@ def test_an_events_only_branch_started_in_a_hybrid_computes_the_same_maps_whatev
     torch.manual_seed(0)
     sizes = dict(SIZES, directional=directional, event_dense=event_dense)
     events_only = Detector(small_detector_config(variant="events_only", **sizes)).eval()
-    hybrid = Detector(small_detector_config(**sizes)).eval()
+    # the same maps need the same graph (the events-only model's default is smaller than the hybrid's)
+    hybrid = Detector(small_detector_config(graph=events_only.cfg.graph, **sizes)).eval()
     report = warm_start(hybrid, events_only.state_dict())
     # every first block of a GCN stage reads the node's time (stage 0) and image channels besides the source's
     # inputs (there, with as many channels in as out, the source's skip is the identity: widened from it); a
@@ -112,6 +113,19 @@ def test_start_from_reads_a_checkpoint_and_refuses_what_cannot_start_a_run(tmp_p
         start_from(hybrid, tmp_path / "unfit.pt")
     with pytest.raises(FileNotFoundError, match="missing.pt"):
         start_from(hybrid, tmp_path / "missing.pt")
+
+
+def test_a_start_from_another_graph_says_so_and_how_to_keep_the_checkpoints(tmp_path, capsys):
+    events_only = Detector(small_detector_config(variant="events_only", **GRAPH))
+    _save(tmp_path / "ev.pt", events_only)
+    start_from(Detector(small_detector_config(**GRAPH)), tmp_path / "ev.pt")
+    said = capsys.readouterr().out
+    assert ("the checkpoint's event graph (radius 3 px, 8 neighbours, beta 0.0005) is not this run's (radius 5, 16, "
+            "beta 0.0005)") in said
+    assert "model.graph.radius=3 model.graph.max_neighbors=8 model.graph.beta=0.0005 keep its own" in said
+    start_from(Detector(small_detector_config(graph=events_only.cfg.graph, **GRAPH)), tmp_path / "ev.pt")
+    assert "event graph" not in capsys.readouterr().out  # the same graph: nothing to say
+    assert graph_note(None, events_only.cfg.graph) is None and graph_note(events_only.cfg.graph, None) is None
 
 
 def test_init_from_starts_a_new_run_only():
