@@ -113,6 +113,8 @@ _RULES = {
                              lambda v: isinstance(v, ListConfig) and len(v) == 2 and all(_integer(a) for a in v)
                              and 0 <= v[0] <= v[1]),
     "data.train_image_age_power": ("a number >= 0 (0: ages drawn uniformly)", lambda v: _number(v) and v >= 0),
+    "data.train_image_age_ramp": ("an integer >= 0 (frames an epoch; 0: the whole range from the start)",
+                                  lambda v: _integer(v) and v >= 0),
     "data.context_us": ("an integer >= 0 (microseconds)", lambda v: _integer(v) and v >= 0),
     "data.augment.crop": ("a number in (0, 1] (a fraction of each side of the frame; 1: the whole frame)",
                           lambda v: _number(v) and 0 < v <= 1),
@@ -254,6 +256,7 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
                           fps=dataset.fps, image_size=image_size, transform=transform,
                           clip_boxes=data.clip_boxes, labelled_only=bool(data.get("labelled_only", False)),
                           seed=cfg.seed, age_power=data.train_image_age_power if train else 0.0,
+                          age_ramp=int(data.get("train_image_age_ramp", 0)) if train else 0,
                           event_picture=picture, carry_picture=bool(data.get("carry_picture", False)),
                           carry_recent_us=int(data.get("carry_recent_us", 0)),
                           frames=with_image or not train)  # a frameless model's training skips the frames

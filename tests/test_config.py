@@ -207,6 +207,7 @@ def test_model_defaults_come_from_conf_and_variants_inherit_them():
     ("data.max_events=0", r"data\.max_events must be a positive integer or null, got 0"),
     ("trainer.ema_decay=1.5", r"trainer\.ema_decay must be a number in \[0, 1\)"),
     ("data.train_image_age_power=-0.5", r"data\.train_image_age_power must be a number >= 0 \(0: ages drawn uniformly\), got -0\.5"),
+    ("data.train_image_age_ramp=1.5", r"data\.train_image_age_ramp must be an integer >= 0 \(frames an epoch; 0: the whole range from the start\), got 1\.5"),
     ("model.event_head_weight=-1", r"model\.event_head_weight must be a number >= 0 \(0: no event head\), got -1"),
     ("model.event_answers=2", r"model\.event_answers must be true or false, got 2"),
     ("model.image_stem=vit", r"model\.image_stem must be one of patch, conv, got 'vit'"),

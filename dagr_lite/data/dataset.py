@@ -158,6 +158,12 @@ def draw_age(rng: np.random.Generator, low: int, high: int, power: float = 0.0) 
     return int(ages[np.searchsorted(np.cumsum(weights), rng.random() * weights.sum(), side="right")])
 
 
+def ramped_high(low: int, high: int, ramp: int, epoch: int) -> int:
+    """The longest image age drawn in ``epoch`` (from 0) under a ramp of ``ramp`` frames an epoch:
+    ``min(high, low + ramp * (epoch + 1))``, or ``high`` without a ramp (``ramp`` 0)."""
+    return high if ramp <= 0 else min(high, low + ramp * (int(epoch) + 1))
+
+
 def age_range(image_age: int | Sequence[int]) -> tuple[int, int]:
     """``(low, high)`` frames of an image age given as an int or an inclusive ``[low, high]`` range."""
     ages = list(image_age) if isinstance(image_age, Sequence) else [image_age] * 2
@@ -236,6 +242,9 @@ class EventEgoHands(Dataset):
             (training; a label frame ``k`` draws from ``[low, min(high, k)]``, see :func:`draw_age`).
         age_power: how a range is drawn: age ``a`` with probability proportional to
             ``(a - low + 1) ** age_power`` (0: uniform; 1: ten frames ten times as often as one).
+        age_ramp: > 0: a curriculum of image ages: in epoch ``e`` (from 0) a range draws from
+            ``[low, min(high, low + age_ramp * (e + 1))]``, so the longest ages join a few epochs in
+            (:func:`ramped_high`); 0: the whole range from the start.
         event_span: ``"image"``: the events of ``[max(t(k - a) - context_us, t(k) - window_us), t(k))``
             (a model with an image); ``"window"``: ``[t(k) - window_us, t(k))`` (a model without one).
             See :func:`~dagr_lite.data.spec.sample_start_us`.
@@ -283,6 +292,7 @@ class EventEgoHands(Dataset):
                  image_size: Sequence[int] | None = None, videos: Sequence[str] | None = None,
                  transform: Callable[[Sample, np.random.Generator], Sample] | None = None,
                  clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0, age_power: float = 0.0,
+                 age_ramp: int = 0,
                  graph_context_us: int, event_picture: bool = False, carry_picture: bool = False,
                  carry_recent_us: int = 0, frames: bool = True, support_us: int):
         if split not in fmt.SPLITS:
@@ -291,6 +301,9 @@ class EventEgoHands(Dataset):
         if not (np.isfinite(age_power) and age_power >= 0):
             raise UserError(f"age_power must be a number >= 0, got {age_power!r}")
         self.age_power = float(age_power)
+        if isinstance(age_ramp, bool) or not isinstance(age_ramp, (int, np.integer)) or age_ramp < 0:
+            raise UserError(f"age_ramp must be an integer >= 0 (frames an epoch; 0: no ramp), got {age_ramp!r}")
+        self.age_ramp = int(age_ramp)
         if event_span not in EVENT_SPANS:
             raise UserError(f"event_span must be one of {EVENT_SPANS}, got {event_span!r}")
         if window_us <= 0:
@@ -425,6 +438,7 @@ class EventEgoHands(Dataset):
         v, k = int(self._sample_video[index]), int(self._sample_frame[index])
         rng = np.random.default_rng([self.seed, int(epoch), index])
         low, high = self.age_range
+        high = ramped_high(low, high, self.age_ramp, epoch)
         age = draw_age(rng, low, min(high, k), self.age_power)
         t_end = self.frame_time_us(v, k)
         return self.sample_at(v, k, k - age, t_end, self.boxes_of(v, k), rng)

@@ -200,12 +200,13 @@ def at_model_size(model_size: str, detector: DetectorConfig, image_size: tuple[i
 def describe_dataset(dataset: EventEgoHands) -> str:
     height, width = dataset.image_size
     return (f"{dataset.root} [{dataset.split}]: {len(dataset.videos)} videos, {len(dataset)} samples, "
-            f"{width}x{height} px, image age {describe_age(dataset.age_range, dataset.age_power)} frames, events "
+            f"{width}x{height} px, image age {describe_age(dataset.age_range, dataset.age_power, dataset.age_ramp)} frames, events "
             f"of the last {dataset.window_us} us"
             + (f" (none from before the image - {dataset.context_us} us)" if dataset.event_span == "image" else ""))
 
 
-def describe_age(ages: tuple[int, int], power: float = 0.0) -> str:
+def describe_age(ages: tuple[int, int], power: float = 0.0, ramp: int = 0) -> str:
     if ages[0] == ages[1]:
         return str(ages[0])
-    return f"{ages[0]}-{ages[1]}" + (f" (weights (a - {ages[0] - 1})^{power:g})" if power else "")
+    return (f"{ages[0]}-{ages[1]}" + (f" (weights (a - {ages[0] - 1})^{power:g})" if power else "")
+            + (f" (the longest growing {ramp} an epoch)" if ramp else ""))

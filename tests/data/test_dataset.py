@@ -8,7 +8,7 @@ from torch.utils.data import DataLoader
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.collate import collate
-from dagr_lite.data.dataset import SampleTooLarge, draw_age, refractory_keep, sample_start_us
+from dagr_lite.data.dataset import SampleTooLarge, draw_age, ramped_high, refractory_keep, sample_start_us
 from dagr_lite.data.denoise import support_keep_reference
 from dagr_lite.data.errors import DatasetFormatError
 from dagr_lite.data.frames import read_frame
@@ -398,6 +398,21 @@ def test_unweighted_ages_are_the_uniform_draws(dataset):
     assert ages[0] != ages[1] and all(1 <= a <= 6 for a in ages[1])
     with pytest.raises(ValueError, match="age_power must be a number >= 0, got -1"):
         sample_set(dataset.root, "train", image_age=(1, 6), age_power=-1)
+
+
+def test_an_age_ramp_lets_the_long_ages_in_epoch_by_epoch(dataset):
+    assert [ramped_high(1, 6, 2, e) for e in range(4)] == [3, 5, 6, 6]  # hand-computed
+    assert ramped_high(1, 6, 0, 0) == 6 and ramped_high(2, 2, 3, 0) == 2
+    ramped = sample_set(dataset.root, "train", image_age=(1, 6), age_ramp=2)
+    plain = sample_set(dataset.root, "train", image_age=(1, 6))
+    for epoch, top in enumerate([3, 5, 6]):
+        ages = [ramped[(epoch, i)].frame - ramped[(epoch, i)].image_frame for i in range(len(ramped))]
+        assert 1 <= min(ages) and max(ages) == top  # every age of the epoch's range is drawn, none above it
+    # once the ramp is over, the ramped set draws exactly what the plain one draws
+    assert ([ramped[(2, i)].image_frame for i in range(len(ramped))]
+            == [plain[(2, i)].image_frame for i in range(len(plain))])
+    with pytest.raises(ValueError, match=r"age_ramp must be an integer >= 0 \(frames an epoch; 0: no ramp\), got -1"):
+        sample_set(dataset.root, "train", image_age=(1, 6), age_ramp=-1)
 
 
 @pytest.mark.parametrize("image_age", [-1, (3, 1), (1, 2, 3), 1.5])
