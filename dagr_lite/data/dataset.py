@@ -158,6 +158,11 @@ def draw_age(rng: np.random.Generator, low: int, high: int, power: float = 0.0) 
     return int(ages[np.searchsorted(np.cumsum(weights), rng.random() * weights.sum(), side="right")])
 
 
+def is_integer(value) -> bool:
+    """Whether ``value`` is a Python or numpy integer (not a bool)."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
 def ramped_high(low: int, high: int, ramp: int, epoch: int) -> int:
     """The longest image age drawn in ``epoch`` (from 0) under a ramp of ``ramp`` frames an epoch:
     ``min(high, low + ramp * (epoch + 1))``, or ``high`` without a ramp (``ramp`` 0)."""
@@ -167,7 +172,7 @@ def ramped_high(low: int, high: int, ramp: int, epoch: int) -> int:
 def age_range(image_age: int | Sequence[int]) -> tuple[int, int]:
     """``(low, high)`` frames of an image age given as an int or an inclusive ``[low, high]`` range."""
     ages = list(image_age) if isinstance(image_age, Sequence) else [image_age] * 2
-    integers = all(isinstance(a, (int, np.integer)) and not isinstance(a, bool) for a in ages)
+    integers = all(is_integer(a) for a in ages)
     if len(ages) != 2 or not integers or not 0 <= ages[0] <= ages[1]:
         raise UserError(f"image_age must be an integer >= 0 or a range [low, high] with 0 <= low <= high "
                          f"(frames; the image is never from the future), got {image_age!r}")
@@ -301,7 +306,7 @@ class EventEgoHands(Dataset):
         if not (np.isfinite(age_power) and age_power >= 0):
             raise UserError(f"age_power must be a number >= 0, got {age_power!r}")
         self.age_power = float(age_power)
-        if isinstance(age_ramp, bool) or not isinstance(age_ramp, (int, np.integer)) or age_ramp < 0:
+        if not is_integer(age_ramp) or age_ramp < 0:
             raise UserError(f"age_ramp must be an integer >= 0 (frames an epoch; 0: no ramp), got {age_ramp!r}")
         self.age_ramp = int(age_ramp)
         if event_span not in EVENT_SPANS:

@@ -200,8 +200,8 @@ def at_model_size(model_size: str, detector: DetectorConfig, image_size: tuple[i
 def describe_dataset(dataset: EventEgoHands) -> str:
     height, width = dataset.image_size
     return (f"{dataset.root} [{dataset.split}]: {len(dataset.videos)} videos, {len(dataset)} samples, "
-            f"{width}x{height} px, image age {describe_age(dataset.age_range, dataset.age_power, dataset.age_ramp)} frames, events "
-            f"of the last {dataset.window_us} us"
+            f"{width}x{height} px, image age {describe_age(dataset.age_range, dataset.age_power, dataset.age_ramp)} "
+            f"frames, events of the last {dataset.window_us} us"
             + (f" (none from before the image - {dataset.context_us} us)" if dataset.event_span == "image" else ""))
 
 

@@ -407,7 +407,7 @@ def test_an_age_ramp_lets_the_long_ages_in_epoch_by_epoch(dataset):
     plain = sample_set(dataset.root, "train", image_age=(1, 6))
     for epoch, top in enumerate([3, 5, 6]):
         ages = [ramped[(epoch, i)].frame - ramped[(epoch, i)].image_frame for i in range(len(ramped))]
-        assert 1 <= min(ages) and max(ages) == top  # every age of the epoch's range is drawn, none above it
+        assert 1 <= min(ages) and max(ages) == top  # the epoch's top is drawn, no age above it
     # once the ramp is over, the ramped set draws exactly what the plain one draws
     assert ([ramped[(2, i)].image_frame for i in range(len(ramped))]
             == [plain[(2, i)].image_frame for i in range(len(plain))])
