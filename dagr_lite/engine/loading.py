@@ -93,13 +93,19 @@ class ShardSampler(Sampler[int]):
         return len(range(self.rank, self.size, self.world_size))
 
 
+def batch_maker(graph: EventGraphSpec | None):
+    """What makes a batch of samples: :func:`collate`, or with ``graph`` (a model's own spec) a
+    :class:`GraphCollate` that also builds the event graph."""
+    return GraphCollate(graph) if graph is not None else collate
+
+
 def make_loader(dataset: EventEgoHands, *, batch_size: int, num_workers: int, sampler: Sampler | None = None,
                 graph: EventGraphSpec | None = None, drop_last: bool = False, worker_nice: int = 0) -> DataLoader:
     """A loader with :func:`collate`; with ``graph`` (the model's own spec) its workers also build
     the event graph. Training passes a :class:`RunSampler`, whose ``(epoch, index)`` pairs carry
     each sample's epoch to the workers. The workers run one thread each, at ``worker_nice``
     lower CPU priority (see :func:`prepare_worker`)."""
-    collate_fn = GraphCollate(graph) if graph is not None else collate
+    collate_fn = batch_maker(graph)
     return DataLoader(dataset, batch_size=batch_size, sampler=sampler, shuffle=False, num_workers=num_workers,
                       collate_fn=collate_fn, drop_last=drop_last, pin_memory=torch.cuda.is_available(),
                       worker_init_fn=partial(prepare_worker, nice=worker_nice) if num_workers else None)

@@ -1,5 +1,10 @@
-"""The precision of a training step: mixed precision where the device computes it natively."""
+"""The precision of a training step: mixed precision where the device computes it natively, and on
+a CPU only where it also makes the step faster."""
 from __future__ import annotations
+
+import copy
+import time
+from dataclasses import dataclass
 
 import torch
 
@@ -7,8 +12,9 @@ from dagr_lite.config import TrainerSettings
 
 
 def cpu_has_bfloat16() -> bool:
-    """Whether this CPU computes in bfloat16 natively (AVX512-BF16 or AMX), so that bfloat16
-    convolutions are faster than float32 ones; elsewhere they are emulated and slower."""
+    """Whether this CPU computes in bfloat16 natively (AVX512-BF16 or AMX); elsewhere bfloat16 is
+    emulated and slower than float32. Native is not always faster: on some CPUs with AVX512-BF16
+    alone the model's small convolutions run slower in bfloat16 (see :func:`time_precisions`)."""
     checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
     return any(bool(getattr(torch.cpu, name, lambda: False)()) for name in checks)
 
@@ -18,8 +24,9 @@ def amp_dtype(trainer: TrainerSettings, device: torch.device) -> torch.dtype | N
 
     CUDA: ``trainer.amp_dtype`` (``auto``: bfloat16 where the GPU supports it, else float16 with
     the gradient scaler). CPU: bfloat16 where the CPU has it natively (``auto`` or ``bfloat16``;
-    float16 is not offered there), else float32. The sparse graph products and the losses run in
-    float32 either way.
+    float16 is not offered there), else float32; with ``auto`` a run then keeps bfloat16 only if
+    :func:`time_precisions` finds it faster (:func:`prefers_trial` says when to ask). The sparse
+    graph products and the losses run in float32 either way.
     """
     if not trainer.amp or device.type not in ("cuda", "cpu"):
         return None
@@ -28,3 +35,54 @@ def amp_dtype(trainer: TrainerSettings, device: torch.device) -> torch.dtype | N
     if trainer.amp_dtype == "auto":
         return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
     return {"float16": torch.float16, "bfloat16": torch.bfloat16}[trainer.amp_dtype]
+
+
+def prefers_trial(trainer: TrainerSettings, device: torch.device) -> bool:
+    """Whether a run chooses its precision by timing a step in each (:func:`time_precisions`): a
+    CPU with native bfloat16 and ``amp_dtype: auto``."""
+    return amp_dtype(trainer, device) == torch.bfloat16 and device.type == "cpu" and trainer.amp_dtype == "auto"
+
+
+@dataclass(frozen=True)
+class PrecisionTrial:
+    """Seconds of one training step's forward and backward in each precision, on this CPU."""
+
+    float32_s: float
+    bfloat16_s: float
+
+    @property
+    def dtype(self) -> torch.dtype | None:
+        """The faster: ``torch.bfloat16``, or None for float32."""
+        return torch.bfloat16 if self.bfloat16_s < self.float32_s else None
+
+    def describe(self) -> str:
+        return (f"a step's forward and backward took {self.float32_s:.3f} s in float32 and {self.bfloat16_s:.3f} s "
+                f"in bfloat16 on this CPU")
+
+
+def time_precisions(model: torch.nn.Module, batch, *, rounds: int = 3) -> PrecisionTrial:
+    """Time the forward and backward of a training step on ``batch`` in float32 and in bfloat16
+    autocast, on a copy of ``model`` (its weights, batch-norm statistics and gradients stay as they
+    are; the random state is restored). After one warm-up each, the two take turns for ``rounds``
+    rounds and each keeps its fastest, so a busy moment of a shared machine counts against neither.
+    ``model`` must make no collective calls (time it before batch norm or the loss normaliser are
+    shared between processes)."""
+    trial = copy.deepcopy(model).train()
+    best = {None: float("inf"), torch.bfloat16: float("inf")}
+
+    def step(dtype: torch.dtype | None) -> float:
+        start = time.perf_counter()
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=dtype is not None):
+            loss = trial(batch)["loss"]
+        loss.backward()
+        seconds = time.perf_counter() - start
+        trial.zero_grad(set_to_none=True)
+        return seconds
+
+    with torch.random.fork_rng(devices=[]):
+        for dtype in best:
+            step(dtype)
+        for _ in range(rounds):
+            for dtype in best:
+                best[dtype] = min(best[dtype], step(dtype))
+    return PrecisionTrial(float32_s=best[None], bfloat16_s=best[torch.bfloat16])

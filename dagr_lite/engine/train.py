@@ -18,9 +18,11 @@ from torch.utils.tensorboard import SummaryWriter
 from dagr_lite.config import (TrainerSettings, build_dataset, build_model, build_optimizer, check_values,
                               detector_config, resolve_config, trainer_settings, training_size)
 from dagr_lite.engine.clock import TrainingClock, make_clock
-from dagr_lite.engine.distributed import Distributed, cleanup, global_normaliser, setup, synchronise_batch_norm
+from dagr_lite.engine.distributed import (Distributed, broadcast_object, cleanup, global_normaliser, setup,
+                                          synchronise_batch_norm)
+from dagr_lite.engine.loading import batch_maker
 from dagr_lite.engine.loop import NullWriter, TrainLoop, make_data
-from dagr_lite.engine.precision import amp_dtype
+from dagr_lite.engine.precision import amp_dtype, prefers_trial, time_precisions
 from dagr_lite.engine.runs import resolve_device, seed_everything, write_run_files
 from dagr_lite.engine.starting import resume, resumed_config, shared_run_folder, start_from, start_weights
 from dagr_lite.engine.state import TrainState
@@ -29,11 +31,11 @@ from dagr_lite.nn.detector import DetectorConfig
 
 
 def make_state(trainer: TrainerSettings, model, optimizer: torch.optim.Optimizer, steps_per_epoch: int,
-               device: torch.device, clock: TrainingClock, frame_cfg: DetectorConfig | None = None) -> TrainState:
+               amp: torch.dtype | None, clock: TrainingClock, frame_cfg: DetectorConfig | None = None) -> TrainState:
     return TrainState.create(model, optimizer, total_steps=trainer.total_steps(steps_per_epoch),
                              warmup_steps=trainer.warmup_steps, min_lr_ratio=trainer.min_lr_ratio,
                              ema_decay=trainer.ema_decay, ema_tau=trainer.ema_tau, grad_clip=trainer.grad_clip,
-                             amp=amp_dtype(trainer, device),
+                             amp=amp,
                              progress=clock.progress if clock.by_time else None, frame_cfg=frame_cfg)
 
 
@@ -68,17 +70,25 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
         model.zero_image_weights()
     if trainer.image_first and resume_from is None:  # the events' weights start at zero (see TrainLoop)
         model.zero_event_weights()
+    amp, trial = amp_dtype(trainer, device), None
+    if prefers_trial(trainer, device):  # a CPU with native bfloat16: the faster of the two on a first batch,
+        if place.is_main:               # timed before the processes share batch norm and the loss normaliser
+            first = [train_set[(0, index)] for index in range(min(cfg.loader.batch_size, len(train_set)))]
+            trial = time_precisions(model, batch_maker(model.graph_spec)(first))
+        trial = broadcast_object(trial, place)
+        amp = trial.dtype
     if place.enabled:
         model = synchronise_batch_norm(model, device)
         model.loss_normaliser = global_normaliser(place)
     data = make_data(cfg, train_set, model, place)
     clock = make_clock(trainer)
     frame_cfg = detector_config(cfg, height=train_set.image_size[0], width=train_set.image_size[1])
-    state = make_state(trainer, model, build_optimizer(cfg, model.parameters()), data.steps_per_epoch, device, clock,
+    state = make_state(trainer, model, build_optimizer(cfg, model.parameters()), data.steps_per_epoch, amp, clock,
                        frame_cfg)
     if place.is_main:
         precision = "float32" if state.amp_dtype is None else f"mixed precision {str(state.amp_dtype).split('.')[-1]}"
-        print(f"training on {device} in {precision}", flush=True)
+        why = f" ({trial.describe()}; trainer.amp_dtype=bfloat16 keeps bfloat16)" if trial else ""
+        print(f"training on {device} in {precision}{why}", flush=True)
     saved = resume(state, resume_from, run_dir / "checkpoints", place) if resume_from else None
     if place.is_main and not (run_dir / "config.yaml").exists():  # all checked: the run folder is made now
         write_run_files(run_dir, cfg)

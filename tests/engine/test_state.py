@@ -132,6 +132,33 @@ def test_the_cpu_trains_in_bfloat16_only_where_it_has_it_natively(monkeypatch, n
         assert chosen == (torch.bfloat16 if native else None)
     assert train_module.amp_dtype(OmegaConf.create({"amp": True, "amp_dtype": "float16"}), cpu) is None
     assert train_module.amp_dtype(OmegaConf.create({"amp": False, "amp_dtype": "auto"}), cpu) is None
+    # Only auto on a native CPU times the two (bfloat16 asked for is kept; CUDA never times).
+    asks = {dtype: train_module.prefers_trial(OmegaConf.create({"amp": True, "amp_dtype": dtype}), cpu)
+            for dtype in ("auto", "bfloat16")}
+    assert asks == {"auto": native, "bfloat16": False}
+    cuda = OmegaConf.create({"amp": True, "amp_dtype": "auto"})
+    assert not train_module.prefers_trial(cuda, torch.device("cuda"))
+
+
+def test_the_precision_trial_times_a_copy_and_keeps_the_faster():
+    """Timing both precisions leaves the model as it was (weights, batch-norm statistics, no
+    gradients, the random state) and chooses the smaller time, as a hand-made trial says."""
+    from dagr_lite.engine.precision import PrecisionTrial, time_precisions
+
+    assert PrecisionTrial(float32_s=0.2, bfloat16_s=0.3).dtype is None
+    assert PrecisionTrial(float32_s=0.3, bfloat16_s=0.2).dtype == torch.bfloat16
+    state = fresh_state("hybrid")
+    before = {key: value.clone() for key, value in state.model.state_dict().items()}
+    dataset = sample_set(stub_root(), "train", window_us=10_000, carry_picture=True)
+    batch = collate([dataset[i] for i in (3, 40)])
+    torch.manual_seed(7)
+    expected_draw = torch.rand(3)
+    torch.manual_seed(7)
+    trial = time_precisions(state.model, batch, rounds=1)
+    assert torch.equal(torch.rand(3), expected_draw)
+    assert 0 < trial.float32_s < float("inf") and 0 < trial.bfloat16_s < float("inf")
+    assert all(torch.equal(before[key], value) for key, value in state.model.state_dict().items())
+    assert all(parameter.grad is None for parameter in state.model.parameters())
 
 
 def test_mixed_precision_choices_run_a_step_on_the_cpu():

@@ -106,6 +106,32 @@ def pycocotools_metrics(detections: list[dict], split: str) -> dict:
     return {"mAP": scoring.stats[0], "AP50": scoring.stats[1], "AP75": scoring.stats[2]}
 
 
+@pytest.mark.parametrize("faster", ["float32", "bfloat16"])
+def test_a_cpu_run_with_native_bfloat16_trains_in_the_precision_its_trial_found_faster(tmp_path, monkeypatch,
+                                                                                      capsys, faster):
+    """``trainer.amp_dtype=auto`` on a CPU with native bfloat16 times a first batch in each precision
+    and trains in the faster (the trial replaced here by fixed times); the run says which and why."""
+    import dagr_lite.engine.precision as precision
+    import dagr_lite.engine.train as train_module
+    from dagr_lite.engine.precision import PrecisionTrial
+
+    timed = []
+
+    def trial(model, batch, **_):
+        timed.append(len(batch))
+        return PrecisionTrial(float32_s=0.2, bfloat16_s=0.1 if faster == "bfloat16" else 0.3)
+
+    monkeypatch.setattr(precision, "cpu_has_bfloat16", lambda: True)
+    monkeypatch.setattr(train_module, "time_precisions", trial)
+    cfg = small(tmp_path / "run", "trainer.max_steps=1", "trainer.val_every=1", "trainer.val_samples=2")
+    cfg.trainer.amp = True
+    train(cfg)
+    out = capsys.readouterr().out
+    assert timed == [cfg.loader.batch_size]  # one trial, on one batch of the run's size
+    precision_line = "float32" if faster == "float32" else "mixed precision bfloat16"
+    assert f"training on cpu in {precision_line} (a step's forward and backward took 0.200 s in float32" in out
+
+
 def test_val_samples_validates_on_samples_spread_over_the_split(tmp_path, capsys):
     from dagr_lite.engine.loop import spread_subset
 
