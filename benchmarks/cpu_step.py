@@ -7,7 +7,7 @@ batches of 16 from the default loader (2 workers at the trainer's lower priority
 event graphs while the step runs), forward, backward and AdamW, timed from the first batch
 asked for to the last step done (after 2 untimed warm-up steps). The arms take turns for
 ``--rounds`` rounds and each keeps its fastest (the machine is shared). Arms: ``float32`` or
-``bfloat16`` autocast (the trainer's CPU precision where the CPU has native bfloat16, printed),
+``bfloat16`` autocast (printed: whether the CPU has it natively; the trainer takes the faster),
 and for a model with an image the image stem ``conv`` (two 3x3 convolutions of stride 2) or
 ``patch`` (one 4x4 convolution of stride 4). The baseline, measured in the same run, is float32
 with the conv stem: the default before both. Each arm's step alone, on batches loaded
