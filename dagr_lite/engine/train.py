@@ -87,7 +87,8 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
                        frame_cfg)
     if place.is_main:
         precision = "float32" if state.amp_dtype is None else f"mixed precision {str(state.amp_dtype).split('.')[-1]}"
-        why = f" ({trial.describe()}; trainer.amp_dtype=bfloat16 keeps bfloat16)" if trial else ""
+        other = "trainer.amp_dtype=bfloat16 keeps bfloat16" if amp is None else "trainer.amp=false keeps float32"
+        why = f" ({trial.describe()}; {other})" if trial else ""
         print(f"training on {device} in {precision}{why}", flush=True)
     saved = resume(state, resume_from, run_dir / "checkpoints", place) if resume_from else None
     if place.is_main and not (run_dir / "config.yaml").exists():  # all checked: the run folder is made now

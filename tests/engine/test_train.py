@@ -130,6 +130,8 @@ def test_a_cpu_run_with_native_bfloat16_trains_in_the_precision_its_trial_found_
     assert timed == [cfg.loader.batch_size]  # one trial, on one batch of the run's size
     precision_line = "float32" if faster == "float32" else "mixed precision bfloat16"
     assert f"training on cpu in {precision_line} (a step's forward and backward took 0.200 s in float32" in out
+    other = "trainer.amp_dtype=bfloat16 keeps bfloat16" if faster == "float32" else "trainer.amp=false keeps float32"
+    assert other in out  # how to have the other precision
 
 
 def test_val_samples_validates_on_samples_spread_over_the_split(tmp_path, capsys):
