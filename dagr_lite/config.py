@@ -153,6 +153,7 @@ _RULES = {
     "trainer.log_every": ("a positive integer", lambda v: _integer(v) and v > 0),
     "trainer.image_every": ("an integer >= 0 (0: never)", lambda v: _integer(v) and v >= 0),
     "trainer.amp_dtype": ("one of auto, float16, bfloat16", lambda v: v in ("auto", "float16", "bfloat16")),
+    "trainer.channels_last": ("auto, true or false", lambda v: v in ("auto", True, False)),
     "trainer.checkpoint_every": ("an integer >= 0 (0: only at validation)", lambda v: _integer(v) and v >= 0),
     "trainer.checkpoint_minutes": ("a positive number or null", lambda v: v is None or (_number(v) and v > 0)),
     "trainer.warmup_steps": ("an integer >= 0", lambda v: _integer(v) and v >= 0),
@@ -364,6 +365,7 @@ class TrainerSettings:
     ema_tau: float
     amp: bool
     amp_dtype: str
+    channels_last: str | bool  # auto (on a CPU), true or false
     image_age: int  # data.image_age: the validation age whose metrics the run reports
     eval_backend: str  # eval.backend, eval.conf_threshold, eval.nms_threshold: how validation scores
     conf_threshold: float
@@ -383,7 +385,7 @@ class TrainerSettings:
 FIRST_PHASES = ("events_first", "image_first")
 TRAINER_KEYS = ("max_steps", "max_epochs", "max_minutes", "schedule_by", "val_every", "val_samples", "log_every", "image_every",
                 "checkpoint_every", "checkpoint_minutes", "warmup_steps", "min_lr_ratio", "grad_clip", "ema_decay",
-                "ema_tau", "amp", "amp_dtype")
+                "ema_tau", "amp", "amp_dtype", "channels_last")
 
 
 def trainer_settings(cfg: DictConfig) -> TrainerSettings:

@@ -22,7 +22,7 @@ from dagr_lite.engine.distributed import (Distributed, broadcast_object, cleanup
                                           synchronise_batch_norm)
 from dagr_lite.engine.loading import batch_maker
 from dagr_lite.engine.loop import NullWriter, TrainLoop, make_data
-from dagr_lite.engine.precision import amp_dtype, prefers_trial, time_precisions
+from dagr_lite.engine.precision import amp_dtype, memory_format, prefers_trial, time_precisions
 from dagr_lite.engine.runs import resolve_device, seed_everything, write_run_files
 from dagr_lite.engine.starting import resume, resumed_config, shared_run_folder, start_from, start_weights
 from dagr_lite.engine.state import TrainState
@@ -66,6 +66,7 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
     if init_from is not None:
         start_from(model, init_from, verbose=place.is_main)
     trainer = trainer_settings(cfg)
+    model = model.to(memory_format=memory_format(trainer, device))
     if trainer.events_first and resume_from is None:  # the image's weights start at zero (see TrainLoop)
         model.zero_image_weights()
     if trainer.image_first and resume_from is None:  # the events' weights start at zero (see TrainLoop)

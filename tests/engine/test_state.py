@@ -1,4 +1,6 @@
 """The training state, one step and one validation pass, called directly."""
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -185,3 +187,65 @@ def test_mixed_precision_choices_run_a_step_on_the_cpu():
     trainer = OmegaConf.create({"amp": True, "amp_dtype": "bfloat16"})
     assert amp_dtype(trainer, torch.device("cuda")) == torch.bfloat16
     assert amp_dtype(OmegaConf.create({"amp": False, "amp_dtype": "auto"}), torch.device("cuda")) is None
+
+
+def test_channels_last_is_the_cpu_default_and_can_be_asked_for():
+    from omegaconf import OmegaConf
+
+    from dagr_lite.engine.precision import memory_format
+
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    chosen = {(value, device.type): memory_format(OmegaConf.create({"channels_last": value}), device)
+              for value in ("auto", True, False) for device in (cpu, cuda)}
+    assert chosen == {("auto", "cpu"): torch.channels_last, ("auto", "cuda"): torch.contiguous_format,
+                      (True, "cpu"): torch.channels_last, (True, "cuda"): torch.channels_last,
+                      (False, "cpu"): torch.contiguous_format, (False, "cuda"): torch.contiguous_format}
+
+
+def test_channels_last_weights_give_the_contiguous_model_s_loss_and_gradients():
+    """The layout changes how the convolutions run, not what they compute: the hybrid's loss and
+    every gradient match the contiguous model's to float32 rounding, and its saved weights load
+    into a contiguous model as the same numbers."""
+    state = fresh_state("hybrid")
+    contiguous = state.model.train()
+    last = copy.deepcopy(contiguous).to(memory_format=torch.channels_last)
+    assert last.image.stem[0][0].weight.is_contiguous(memory_format=torch.channels_last)
+    dataset = sample_set(stub_root(), "train", window_us=10_000, carry_picture=True)
+    batch = collate([dataset[i] for i in (3, 40, 77)])
+    losses = []
+    for model in (contiguous, last):
+        torch.manual_seed(3)
+        loss = model(batch)["loss"]
+        loss.backward()
+        losses.append(float(loss.detach()))
+    assert losses[1] == pytest.approx(losses[0], rel=1e-5)
+    for (name, a), b in zip(contiguous.named_parameters(), last.parameters()):
+        scale = float(a.grad.abs().max()) + 1e-6
+        assert torch.allclose(b.grad, a.grad, rtol=1e-3, atol=1e-4 * scale), name
+    fresh = fresh_state("hybrid", seed=5).model
+    fresh.load_state_dict(last.state_dict())
+    assert all(torch.equal(a, b) for a, b in zip(fresh.state_dict().values(), last.state_dict().values()))
+
+
+def test_the_fused_adamw_makes_the_loop_s_update():
+    """optim.fused: the configured AdamW is fused, and given the same gradients its update is the
+    per-tensor loop's to rounding, over several steps of the schedule's kind of learning rate."""
+    cfg = resolve_config(compose_config("train", ["optim.lr=1e-3"]))
+    torch.manual_seed(0)
+    shapes = [(16, 3, 4, 4), (16,), (64, 32), (1,)]
+    start = [torch.randn(shape) for shape in shapes]
+    grads = [[torch.randn(shape) for shape in shapes] for _ in range(5)]
+    runs = []
+    for fused in (True, False):
+        params = [torch.nn.Parameter(value.clone()) for value in start]
+        optimizer = build_optimizer(cfg, params) if fused else torch.optim.AdamW(
+            params, lr=1e-3, weight_decay=cfg.optim.weight_decay, betas=tuple(cfg.optim.betas))
+        assert optimizer.param_groups[0]["fused"] is (True if fused else None)
+        for step in grads:
+            for param, grad in zip(params, step):
+                param.grad = grad.clone()
+            optimizer.step()
+        runs.append(params)
+    for a, b, s in zip(*runs, start):
+        assert not torch.equal(a, s)
+        assert torch.allclose(a, b, rtol=0, atol=1e-6)
