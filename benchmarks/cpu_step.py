@@ -56,6 +56,19 @@ def steps_alone(model, optimizer, batches, dtype) -> float:
     return (time.perf_counter() - start) / len(batches)
 
 
+def take_turns(arms, dataset, steps: int, rounds: int, workers: int, nice: int) -> tuple[list[float], list[float]]:
+    """Each arm ``(model, optimizer, dtype)``'s fastest seconds per step over ``rounds`` turns: fed
+    by a fresh loader (:func:`timed_steps`), and alone on 6 batches loaded beforehand (:func:`steps_alone`)."""
+    iterator = iter(make_loader(dataset, batch_size=16, num_workers=0, graph=arms[0][0].graph_spec))
+    loaded = [next(iterator) for _ in range(6)]
+    best, alone = [float("inf")] * len(arms), [float("inf")] * len(arms)
+    for _ in range(rounds):
+        for i, (model, optimizer, dtype) in enumerate(arms):
+            best[i] = min(best[i], timed_steps(model, optimizer, dataset, dtype, steps, workers, nice))
+            alone[i] = min(alone[i], steps_alone(model, optimizer, loaded, dtype))
+    return best, alone
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=20, help="timed steps per arm and round")
@@ -80,13 +93,7 @@ def main() -> None:
                 name = f"{variant} {'stem ' + stem if stem else ''} {'bfloat16' if dtype else 'float32'}"
                 arms.append((" ".join(name.split()), model.train(), torch.optim.AdamW(model.parameters(), lr=1e-4),
                              dtype))
-        iterator = iter(make_loader(dataset, batch_size=16, num_workers=0, graph=arms[0][1].graph_spec))
-        loaded = [next(iterator) for _ in range(6)]
-        best, alone = [float("inf")] * len(arms), [float("inf")] * len(arms)
-        for _ in range(args.rounds):
-            for i, (_, model, optimizer, dtype) in enumerate(arms):
-                best[i] = min(best[i], timed_steps(model, optimizer, dataset, dtype, args.steps, workers, nice))
-                alone[i] = min(alone[i], steps_alone(model, optimizer, loaded, dtype))
+        best, alone = take_turns([arm[1:] for arm in arms], dataset, args.steps, args.rounds, workers, nice)
         for (name, *_), seconds, own in zip(arms, best, alone):
             print(f"{name:32s} {seconds:6.3f} s/step, {best[0] / seconds:4.2f}x the step of {arms[0][0]} "
                   f"(the step alone {own:5.3f} s, {alone[0] / own:4.2f}x)", flush=True)

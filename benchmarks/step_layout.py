@@ -18,9 +18,8 @@ import argparse
 
 import torch
 
-from cpu_step import steps_alone, timed_steps  # beside this script
+from cpu_step import take_turns  # beside this script
 from dagr_lite.config import build_dataset, build_model, compose_config, resolve_config, training_size
-from dagr_lite.engine.loading import make_loader
 
 ARMS = (("contiguous, AdamW loop", False, None), ("channels last, AdamW loop", True, None),
         ("contiguous, AdamW fused", False, True), ("channels last, AdamW fused", True, True))
@@ -47,13 +46,8 @@ def main() -> None:
                 if last:
                     model = model.to(memory_format=torch.channels_last)
                 arms.append((name, model, torch.optim.AdamW(model.parameters(), lr=1e-4, fused=fused)))
-            iterator = iter(make_loader(dataset, batch_size=16, num_workers=0, graph=arms[0][1].graph_spec))
-            loaded = [next(iterator) for _ in range(6)]
-            best, alone = [float("inf")] * len(arms), [float("inf")] * len(arms)
-            for _ in range(args.rounds):
-                for i, (_, model, optimizer) in enumerate(arms):
-                    best[i] = min(best[i], timed_steps(model, optimizer, dataset, None, args.steps, workers, nice))
-                    alone[i] = min(alone[i], steps_alone(model, optimizer, loaded, None))
+            best, alone = take_turns([(model, optimizer, None) for _, model, optimizer in arms], dataset, args.steps,
+                                     args.rounds, workers, nice)
             print(f"{dataset_name} {variant} ({height}x{width} crops, {workers} loader workers at nice {nice}):")
             for (name, *_), seconds, own in zip(arms, best, alone):
                 print(f"  {name:28s} {seconds:6.3f} s/step, {best[0] / seconds:4.2f}x the steps of {arms[0][0]} "

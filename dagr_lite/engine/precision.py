@@ -1,5 +1,5 @@
 """The precision of a training step: mixed precision where the device computes it natively, and on
-a CPU only where it also makes the step faster."""
+a CPU only where it also makes the step faster; and the layout its convolutions' weights take."""
 from __future__ import annotations
 
 import copy
@@ -41,7 +41,8 @@ def memory_format(trainer: TrainerSettings, device: torch.device) -> torch.memor
     """How a training run stores its convolutions' weights (and so their maps): channels last where
     ``trainer.channels_last`` asks for it (``auto``: on a CPU, whose convolution kernels run it
     faster: with the fused AdamW, a step alone 1.08-1.17 times faster on 2 cores,
-    ``benchmarks/step_layout.py``), else contiguous. The weights are the same numbers either way; a step's results differ by rounding."""
+    ``benchmarks/step_layout.py``), else contiguous. The weights are the same numbers either way;
+    a step's results differ by rounding."""
     chosen = trainer.channels_last
     on = device.type == "cpu" if chosen == "auto" else bool(chosen)
     return torch.channels_last if on else torch.contiguous_format

@@ -230,7 +230,8 @@ def test_channels_last_weights_give_the_contiguous_model_s_loss_and_gradients():
 def test_the_fused_adamw_makes_the_loop_s_update():
     """optim.fused: the configured AdamW is fused, and given the same gradients its update is the
     per-tensor loop's to rounding, over several steps of the schedule's kind of learning rate."""
-    cfg = resolve_config(compose_config("train", ["optim.lr=1e-3"]))
+    configs = {fused: resolve_config(compose_config("train", ["optim.lr=1e-3"] + ([] if fused else ["optim.fused=null"])))
+               for fused in (True, False)}
     torch.manual_seed(0)
     shapes = [(16, 3, 4, 4), (16,), (64, 32), (1,)]
     start = [torch.randn(shape) for shape in shapes]
@@ -238,8 +239,7 @@ def test_the_fused_adamw_makes_the_loop_s_update():
     runs = []
     for fused in (True, False):
         params = [torch.nn.Parameter(value.clone()) for value in start]
-        optimizer = build_optimizer(cfg, params) if fused else torch.optim.AdamW(
-            params, lr=1e-3, weight_decay=cfg.optim.weight_decay, betas=tuple(cfg.optim.betas))
+        optimizer = build_optimizer(configs[fused], params)
         assert optimizer.param_groups[0]["fused"] is (True if fused else None)
         for step in grads:
             for param, grad in zip(params, step):
