@@ -1,7 +1,7 @@
 """Training-step speed and memory of each model variant, split into its parts.
 
     python benchmarks/train_step.py [--steps 6] [--events 50000] [--batch 16] [--workers 2] [--worker-nice 19]
-                                    [--device auto]
+                                    [--device auto] [--channels-last auto]
 
 For each variant (hybrid, events_only, image_only) at 320x180 and 640x360, trains ``--steps``
 steps on synthetic samples (a rendered hand scene as the image, ``--events`` events per sample
@@ -18,7 +18,9 @@ compute. Its ratio to the step with the workers is what the loader costs when it
 cores with the step (on few cores the workers' graph building slows the step's own threads,
 even while no time is spent waiting for data).
 
-Every step runs in the trainer's precision: on CUDA bfloat16 where the GPU has it (float16
+The model, its weights' layout (``trainer.channels_last``) and its optimiser (the fused AdamW)
+are the trainer's defaults; a hybrid with a carry branch (the default) reads a picture of each
+sample's events beside its frame. Every step runs in the trainer's precision: on CUDA bfloat16 where the GPU has it (float16
 elsewhere, here without the trainer's gradient scaler, which barely changes the time), on a CPU
 bfloat16 where the CPU has it natively, else float32. ``--device auto`` runs on CUDA when
 present; times are then taken after ``torch.cuda.synchronize()`` and the peak GPU memory of each
@@ -36,21 +38,26 @@ from torch.utils.data import Dataset
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.collate import GraphCollate
-from dagr_lite.data.dataset import Sample
+from dagr_lite.data.dataset import Sample, event_picture
 from dagr_lite.engine.loading import make_loader
 from dagr_lite.engine.runs import resolve_device
-from dagr_lite.engine.precision import amp_dtype
-from dagr_lite.config import build_model, compose_config, resolve_config
+from dagr_lite.engine.precision import amp_dtype, memory_format
+from dagr_lite.config import build_model, build_optimizer, compose_config, resolve_config, trainer_settings
 from dagr_lite.synth.stub import HandScene
 
 WINDOW_US = fmt.DEFAULT_WINDOW_US
 
 
 class SyntheticSamples(Dataset):
-    """Samples with a rendered frame, ``events`` events and the scene's boxes (cheap to make)."""
+    """Samples with a rendered frame, ``events`` events and the scene's boxes (cheap to make).
 
-    def __init__(self, height: int, width: int, events: int, size: int = 64):
+    ``carry_recent_us`` (None: none): the frame gains a picture of the sample's events (as a hybrid
+    with a carry branch reads it, ``data.carry_picture``; its span the horizon, its recent window
+    this long), made by the dataset's own :func:`~dagr_lite.data.dataset.event_picture`."""
+
+    def __init__(self, height: int, width: int, events: int, size: int = 64, carry_recent_us: int | None = None):
         self.height, self.width, self.events, self.size = height, width, events, size
+        self.carry_recent_us = carry_recent_us
         scene = HandScene(0, height=height, width=width)
         self.frames = [np.clip(scene.frame(k), 0, 255).astype(np.uint8) for k in range(8)]
         self.boxes = [torch.from_numpy(np.concatenate([b[:, :2], b[:, :2] + b[:, 2:]], 1)).float()
@@ -71,7 +78,12 @@ class SyntheticSamples(Dataset):
         xy = np.clip(np.round(xy), 0, [self.width - 1, self.height - 1])
         events = np.concatenate([xy, t[:, None], rng.integers(0, 2, (n, 1))], 1).astype(np.float32)
         k = index % 8
-        return Sample(events=torch.from_numpy(events), image=torch.from_numpy(self.frames[k]).permute(2, 0, 1).contiguous(),
+        image = self.frames[k]
+        if self.carry_recent_us is not None:
+            picture = event_picture(xy[:, 0].astype(np.int64), xy[:, 1].astype(np.int64), t, events[:, 3], WINDOW_US,
+                                    WINDOW_US, self.height, self.width, self.carry_recent_us)
+            image = np.concatenate([image, picture], axis=2)
+        return Sample(events=torch.from_numpy(events), image=torch.from_numpy(image).permute(2, 0, 1).contiguous(),
                       boxes=self.boxes[k], labels=torch.zeros(len(self.boxes[k]), dtype=torch.int64),
                       video="bench", frame=index, image_frame=index, t_start_us=0, t_end_us=WINDOW_US, t_image_us=0)
 
@@ -102,10 +114,14 @@ def step_on(model, optimizer, batch, args) -> tuple[float, float]:
 def run(variant: str, height: int, width: int, args) -> None:
     torch.manual_seed(0)
     device = args.device
-    model = build_model(resolve_config(compose_config("train", [f"model={variant}"])), height=height, width=width)
-    model = model.to(device)
-    optimizer = torch.optim.AdamW(model.parameters(), lr=2e-4)
-    dataset = SyntheticSamples(height, width, args.events, size=args.batch * (args.steps + 1))
+    cfg = resolve_config(compose_config("train", [f"model={variant}"]))
+    model = build_model(cfg, height=height, width=width).to(device)
+    if args.channels_last != "auto":
+        cfg.trainer.channels_last = args.channels_last == "true"
+    model = model.to(memory_format=memory_format(trainer_settings(cfg), device))  # as the trainer lays it out
+    optimizer = build_optimizer(cfg, model.parameters())  # the trainer's AdamW (fused)
+    carry = int(cfg.data.carry_recent_us) if cfg.data.carry_picture else None  # the default hybrid's carry branch
+    dataset = SyntheticSamples(height, width, args.events, size=args.batch * (args.steps + 1), carry_recent_us=carry)
     graph = model.graph_spec
     loader = make_loader(dataset, batch_size=args.batch, num_workers=args.workers, graph=graph,
                          worker_nice=args.worker_nice)
@@ -163,6 +179,8 @@ def main() -> None:
                         help="the workers' nice increment (default: the trainer's loader.worker_nice)")
     parser.add_argument("--variants", nargs="+", default=["hybrid", "events_only", "image_only"])
     parser.add_argument("--sizes", nargs="+", default=["320x180", "640x360"])
+    parser.add_argument("--channels-last", choices=("auto", "true", "false"), default="auto",
+                        help="the weights' layout, as trainer.channels_last (auto: channels last on a CPU)")
     parser.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda, cuda:1, ...")
     args = parser.parse_args()
     args.device = resolve_device(args.device)
@@ -172,7 +190,8 @@ def main() -> None:
         args.worker_nice = int(defaults.loader.worker_nice)
     where = torch.cuda.get_device_name(args.device) if args.device.type == "cuda" else "CPU"
     print(f"batch {args.batch}, {args.events:,} events per sample, {args.workers} workers (nice {args.worker_nice}), "
-          f"{torch.get_num_threads()} torch threads, on {args.device} ({where})", flush=True)
+          f"{torch.get_num_threads()} torch threads, on {args.device} ({where}), channels_last {args.channels_last}",
+          flush=True)
     for size in args.sizes:
         width, height = (int(v) for v in size.split("x"))
         for variant in args.variants:
