@@ -21,6 +21,7 @@ from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.augment import TrainAugment, crop_size
 from dagr_lite.data.dataset import RGB_CHANNELS, EventEgoHands, picture_channels
+from dagr_lite.data.spec import is_integer
 from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.detector import IMAGE_STEMS, Detector, DetectorConfig
 
@@ -93,12 +94,8 @@ def _check_dataset(dataset: DictConfig) -> None:
         raise ConfigError(f"dataset.fps must be positive, got {dataset.get('fps')!r}")
 
 
-def _integer(v) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
 def _integers(v, count: int, least: int) -> bool:
-    return isinstance(v, (ListConfig, list, tuple)) and len(v) == count and all(_integer(a) and a >= least for a in v)
+    return isinstance(v, (ListConfig, list, tuple)) and len(v) == count and all(is_integer(a) and a >= least for a in v)
 
 
 def _number(v) -> bool:
@@ -107,78 +104,78 @@ def _number(v) -> bool:
 
 # key: (what it must be, test). Keys a config does not have are skipped.
 _RULES = {
-    "seed": ("an integer", _integer),
-    "data.image_age": ("an integer >= 0 (frames)", lambda v: _integer(v) and v >= 0),
+    "seed": ("an integer", is_integer),
+    "data.image_age": ("an integer >= 0 (frames)", lambda v: is_integer(v) and v >= 0),
     "data.train_image_age": ("a range [low, high] of frames, 0 <= low <= high",
-                             lambda v: isinstance(v, ListConfig) and len(v) == 2 and all(_integer(a) for a in v)
+                             lambda v: isinstance(v, ListConfig) and len(v) == 2 and all(is_integer(a) for a in v)
                              and 0 <= v[0] <= v[1]),
     "data.train_image_age_power": ("a number >= 0 (0: ages drawn uniformly)", lambda v: _number(v) and v >= 0),
     "data.train_image_age_ramp": ("an integer >= 0 (frames an epoch; 0: the whole range from the start)",
-                                  lambda v: _integer(v) and v >= 0),
-    "data.context_us": ("an integer >= 0 (microseconds)", lambda v: _integer(v) and v >= 0),
+                                  lambda v: is_integer(v) and v >= 0),
+    "data.context_us": ("an integer >= 0 (microseconds)", lambda v: is_integer(v) and v >= 0),
     "data.augment.crop": ("a number in (0, 1] (a fraction of each side of the frame; 1: the whole frame)",
                           lambda v: _number(v) and 0 < v <= 1),
     "data.augment.crop_boxes": ("a number in [0, 1] (a probability)", lambda v: _number(v) and 0 <= v <= 1),
     "model.event_head_weight": ("a number >= 0 (0: no event head)", lambda v: _number(v) and v >= 0),
     "model.event_answers": ("true or false", lambda v: isinstance(v, bool)),
     "model.late_query": ("true or false", lambda v: isinstance(v, bool)),
-    "model.carry_width": ("an integer >= 0 (0: no carry branch)", lambda v: _integer(v) and v >= 0),
+    "model.carry_width": ("an integer >= 0 (0: no carry branch)", lambda v: is_integer(v) and v >= 0),
     "model.carry_frame": ("true or false", lambda v: isinstance(v, bool)),
     "model.event_dense": ("an integer >= 0 (pixels: the first stride, or that halved; 0: GCN pooled stages)",
-                          lambda v: _integer(v) and v >= 0),
-    "model.carry_attend": ("an integer >= 0 (cells each way at stride 16; 0: none)", lambda v: _integer(v) and v >= 0),
+                          lambda v: is_integer(v) and v >= 0),
+    "model.carry_attend": ("an integer >= 0 (cells each way at stride 16; 0: none)", lambda v: is_integer(v) and v >= 0),
     "model.image_stem": (f"one of {', '.join(IMAGE_STEMS)}", lambda v: v in IMAGE_STEMS),
     "model.time_scale_us": ("a positive number (microseconds)", lambda v: _number(v) and v > 0),
-    "data.window_us": ("a positive integer (microseconds)", lambda v: _integer(v) and v > 0),
-    "data.refractory_us": ("an integer >= 0 (microseconds; 0: every event)", lambda v: _integer(v) and v >= 0),
+    "data.window_us": ("a positive integer (microseconds)", lambda v: is_integer(v) and v > 0),
+    "data.refractory_us": ("an integer >= 0 (microseconds; 0: every event)", lambda v: is_integer(v) and v >= 0),
     "data.support_us": ("an integer >= 0 (microseconds; 0: no background-activity filter)",
-                        lambda v: _integer(v) and v >= 0),
-    "data.graph_context_us": ("an integer >= 0 (microseconds; 0: none)", lambda v: _integer(v) and v >= 0),
+                        lambda v: is_integer(v) and v >= 0),
+    "data.graph_context_us": ("an integer >= 0 (microseconds; 0: none)", lambda v: is_integer(v) and v >= 0),
     "data.event_picture": ("true or false", lambda v: isinstance(v, bool)),
     "data.carry_picture": ("true or false", lambda v: isinstance(v, bool)),
-    "data.carry_recent_us": ("an integer >= 0 (microseconds; 0: no recent channel)", lambda v: _integer(v) and v >= 0),
-    "data.max_events": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
-    "loader.batch_size": ("a positive integer", lambda v: _integer(v) and v > 0),
-    "loader.num_workers": ("an integer >= 0", lambda v: _integer(v) and v >= 0),
-    "loader.worker_nice": ("an integer from 0 to 19 (a Unix nice increment)", lambda v: _integer(v) and 0 <= v <= 19),
+    "data.carry_recent_us": ("an integer >= 0 (microseconds; 0: no recent channel)", lambda v: is_integer(v) and v >= 0),
+    "data.max_events": ("a positive integer or null", lambda v: v is None or (is_integer(v) and v > 0)),
+    "loader.batch_size": ("a positive integer", lambda v: is_integer(v) and v > 0),
+    "loader.num_workers": ("an integer >= 0", lambda v: is_integer(v) and v >= 0),
+    "loader.worker_nice": ("an integer from 0 to 19 (a Unix nice increment)", lambda v: is_integer(v) and 0 <= v <= 19),
     "optim.lr": ("a positive number", lambda v: _number(v) and v > 0),
-    "trainer.max_steps": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
-    "trainer.max_epochs": ("a positive integer or null", lambda v: v is None or (_integer(v) and v > 0)),
+    "trainer.max_steps": ("a positive integer or null", lambda v: v is None or (is_integer(v) and v > 0)),
+    "trainer.max_epochs": ("a positive integer or null", lambda v: v is None or (is_integer(v) and v > 0)),
     "trainer.max_minutes": ("a positive number or null", lambda v: v is None or (_number(v) and v > 0)),
     "trainer.schedule_by": ("steps or time", lambda v: v in ("steps", "time")),
     "trainer.events_first": ("a number in [0, 1) (a fraction of the schedule)", lambda v: _number(v) and 0 <= v < 1),
     "trainer.image_first": ("a number in [0, 1) (a fraction of the schedule)", lambda v: _number(v) and 0 <= v < 1),
-    "trainer.val_every": ("an integer >= 0 (0: every epoch)", lambda v: _integer(v) and v >= 0),
-    "trainer.val_samples": ("a positive integer or null (every sample)", lambda v: v is None or (_integer(v) and v > 0)),
-    "trainer.log_every": ("a positive integer", lambda v: _integer(v) and v > 0),
-    "trainer.image_every": ("an integer >= 0 (0: never)", lambda v: _integer(v) and v >= 0),
+    "trainer.val_every": ("an integer >= 0 (0: every epoch)", lambda v: is_integer(v) and v >= 0),
+    "trainer.val_samples": ("a positive integer or null (every sample)", lambda v: v is None or (is_integer(v) and v > 0)),
+    "trainer.log_every": ("a positive integer", lambda v: is_integer(v) and v > 0),
+    "trainer.image_every": ("an integer >= 0 (0: never)", lambda v: is_integer(v) and v >= 0),
     "trainer.amp_dtype": ("one of auto, float16, bfloat16", lambda v: v in ("auto", "float16", "bfloat16")),
     "trainer.channels_last": ("auto, true or false", lambda v: v in ("auto", True, False)),
-    "trainer.checkpoint_every": ("an integer >= 0 (0: only at validation)", lambda v: _integer(v) and v >= 0),
+    "trainer.checkpoint_every": ("an integer >= 0 (0: only at validation)", lambda v: is_integer(v) and v >= 0),
     "trainer.checkpoint_minutes": ("a positive number or null", lambda v: v is None or (_number(v) and v > 0)),
-    "trainer.warmup_steps": ("an integer >= 0", lambda v: _integer(v) and v >= 0),
+    "trainer.warmup_steps": ("an integer >= 0", lambda v: is_integer(v) and v >= 0),
     "trainer.min_lr_ratio": ("a number in [0, 1]", lambda v: _number(v) and 0 <= v <= 1),
     "trainer.grad_clip": ("a positive number", lambda v: _number(v) and v > 0),
     "trainer.ema_decay": ("a number in [0, 1)", lambda v: _number(v) and 0 <= v < 1),
     "trainer.ema_tau": ("a positive number", lambda v: _number(v) and v > 0),
     "eval.conf_threshold": ("a number in [0, 1]", lambda v: _number(v) and 0 <= v <= 1),
     "eval.nms_threshold": ("a number in (0, 1]", lambda v: _number(v) and 0 < v <= 1),
-    "save_images": ("an integer >= 0", lambda v: _integer(v) and v >= 0),
+    "save_images": ("an integer >= 0", lambda v: is_integer(v) and v >= 0),
     # detect and the demo
     "rate_hz": ("a positive number (answers per second of recording)", lambda v: _number(v) and v > 0),
     "seconds": ("a positive number of seconds or null (all of it)", lambda v: v is None or (_number(v) and v > 0)),
     "overwrite": ("true or false", lambda v: isinstance(v, bool)),
     "order": ("sort or refuse", lambda v: v in ("sort", "refuse")),
-    "order_window_us": ("an integer >= 0 (microseconds)", lambda v: _integer(v) and v >= 0),
+    "order_window_us": ("an integer >= 0 (microseconds)", lambda v: is_integer(v) and v >= 0),
     "operating.score": ("a number in [0, 1], or null (the checkpoint's)", lambda v: v is None or (_number(v) and 0 <= v <= 1)),
     "operating.nms_iou": ("a number in (0, 1], or null (the checkpoint's)", lambda v: v is None or (_number(v) and 0 < v <= 1)),
     "sensor.size": ("[width, height], two positive integers, or null", lambda v: v is None or _integers(v, 2, 1)),
     "sensor.crop": ("[x0, y0, width, height], four integers (x0, y0 >= 0; width, height > 0), or null",
                     lambda v: v is None or (_integers(v, 4, 0) and v[2] > 0 and v[3] > 0)),
-    "sensor.rotate": ("one of 0, 90, 180, 270 (degrees clockwise)", lambda v: _integer(v) and v in (0, 90, 180, 270)),
+    "sensor.rotate": ("one of 0, 90, 180, 270 (degrees clockwise)", lambda v: is_integer(v) and v in (0, 90, 180, 270)),
     "sensor.flip_x": ("true or false", lambda v: isinstance(v, bool)),
     "sensor.flip_y": ("true or false", lambda v: isinstance(v, bool)),
-    "sensor.scale": ("a positive integer (pixels binned scale x scale)", lambda v: _integer(v) and v > 0),
+    "sensor.scale": ("a positive integer (pixels binned scale x scale)", lambda v: is_integer(v) and v > 0),
     "udp.max_backlog_mb": ("a positive number (megabytes)", lambda v: _number(v) and v > 0),
     "udp.idle_s": ("a positive number (seconds)", lambda v: _number(v) and v > 0),
     "udp.wait_first_s": ("a positive number (seconds)", lambda v: _number(v) and v > 0),

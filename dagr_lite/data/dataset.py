@@ -23,7 +23,7 @@ from dagr_lite.data.errors import DatasetFormatError, Problem
 from dagr_lite.data.events import EventFile
 from dagr_lite.data.denoise import support_keep
 from dagr_lite.data.frames import frame_header_problems, list_frames, read_frame
-from dagr_lite.data.spec import SampleSpec, sample_start_us
+from dagr_lite.data.spec import SampleSpec, is_integer, sample_start_us
 from dagr_lite.data.labels import box_problems, list_videos, read_labels
 from dagr_lite.data.picture import add_events, render
 
@@ -156,11 +156,6 @@ def draw_age(rng: np.random.Generator, low: int, high: int, power: float = 0.0) 
     ages = np.arange(low, high + 1)
     weights = (ages - low + 1.0) ** power
     return int(ages[np.searchsorted(np.cumsum(weights), rng.random() * weights.sum(), side="right")])
-
-
-def is_integer(value) -> bool:
-    """Whether ``value`` is a Python or numpy integer (not a bool)."""
-    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
 
 
 def ramped_high(low: int, high: int, ramp: int, epoch: int) -> int:

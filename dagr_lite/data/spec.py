@@ -12,11 +12,15 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
+import numpy as np
+
 from dagr_lite.errors import UserError
 
 
-def _integer(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
+def is_integer(value) -> bool:
+    """Whether ``value`` is a Python or numpy integer (not a bool): the one test of every integer
+    setting (a sample's, a configuration's)."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
 
 
 def sample_start_us(t_query_us: float, window_us: int, t_image_us: float | None = None, context_us: int = 0) -> float:
@@ -69,17 +73,17 @@ class SampleSpec:
     support_us: int
 
     def __post_init__(self):
-        checks = {"window_us": (_integer(self.window_us) and self.window_us > 0, "a positive integer"),
-                  "context_us": (_integer(self.context_us) and self.context_us >= 0, "an integer >= 0"),
-                  "refractory_us": (_integer(self.refractory_us) and self.refractory_us >= 0, "an integer >= 0"),
-                  "support_us": (_integer(self.support_us) and self.support_us >= 0, "an integer >= 0"),
-                  "max_events": (self.max_events is None or (_integer(self.max_events) and self.max_events > 0),
+        checks = {"window_us": (is_integer(self.window_us) and self.window_us > 0, "a positive integer"),
+                  "context_us": (is_integer(self.context_us) and self.context_us >= 0, "an integer >= 0"),
+                  "refractory_us": (is_integer(self.refractory_us) and self.refractory_us >= 0, "an integer >= 0"),
+                  "support_us": (is_integer(self.support_us) and self.support_us >= 0, "an integer >= 0"),
+                  "max_events": (self.max_events is None or (is_integer(self.max_events) and self.max_events > 0),
                                  "a positive integer or None"),
                   "event_picture": (isinstance(self.event_picture, bool), "true or false"),
                   "carry_picture": (isinstance(self.carry_picture, bool), "true or false"),
-                  "carry_recent_us": (_integer(self.carry_recent_us) and self.carry_recent_us >= 0,
+                  "carry_recent_us": (is_integer(self.carry_recent_us) and self.carry_recent_us >= 0,
                                       "an integer >= 0"),
-                  "graph_context_us": (_integer(self.graph_context_us) and self.graph_context_us >= 0,
+                  "graph_context_us": (is_integer(self.graph_context_us) and self.graph_context_us >= 0,
                                        "an integer >= 0")}
         for name, (ok, expected) in checks.items():
             if not ok:
