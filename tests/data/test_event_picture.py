@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from dagr_lite.data.dataset import PICTURE_COUNT_FULL, add_to_picture, event_picture, picture_of, picture_state
+from dagr_lite.data.dataset import (PICTURE_COUNT_FULL, add_to_picture, channels_first, event_picture, picture_of,
+                                    picture_state)
 from dagr_lite.synth.stub import stub_root
 from tests.settings import sample_set
 
@@ -87,3 +88,13 @@ def test_the_carry_picture_is_the_frame_beside_a_picture_of_every_event_since_th
     np.testing.assert_array_equal(recent.image[3:].numpy().transpose(1, 2, 0), expected)
     with pytest.raises(ValueError, match="choose one"):
         sample_set(stub_root(), "valid", event_span="window", event_picture=True, carry_picture=True)
+
+
+def test_channels_first_is_the_concatenation_transposed():
+    rng = np.random.default_rng(0)
+    frame, picture = (rng.integers(0, 256, (18, 32, c), dtype=np.uint8) for c in (3, 4))
+    for parts in ([frame], [frame, picture], [frame[:, :, :0], picture]):
+        expected = np.ascontiguousarray(np.concatenate(parts, axis=2).transpose(2, 0, 1))
+        got = channels_first(parts)
+        assert got.flags.c_contiguous and got.dtype == np.uint8
+        np.testing.assert_array_equal(got, expected)
