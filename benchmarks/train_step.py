@@ -20,11 +20,11 @@ even while no time is spent waiting for data).
 
 The model, its weights' layout (``trainer.channels_last``) and its optimiser (the fused AdamW)
 are the trainer's defaults; a hybrid with a carry branch (the default) reads a picture of each
-sample's events beside its frame. Every step runs in the trainer's precision: on CUDA bfloat16 where the GPU has it (float16
-elsewhere, here without the trainer's gradient scaler, which barely changes the time), on a CPU
-bfloat16 where the CPU has it natively, else float32. ``--device auto`` runs on CUDA when
-present; times are then taken after ``torch.cuda.synchronize()`` and the peak GPU memory of each
-variant is printed too. ``benchmarks/cpu_step.py`` compares the two precisions on a CPU.
+sample's events beside its frame. Every step runs in the trainer's precision: on CUDA bfloat16
+where the GPU has it (float16 elsewhere, here without the trainer's gradient scaler, which
+barely changes the time), on a CPU bfloat16 where the CPU has it natively, else float32.
+``--device auto`` runs on CUDA when present; times are then taken after
+``torch.cuda.synchronize()`` and the peak GPU memory of each variant is printed too. ``benchmarks/cpu_step.py`` compares the two precisions on a CPU.
 """
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ from torch.utils.data import Dataset
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.collate import GraphCollate
-from dagr_lite.data.dataset import Sample, event_picture
+from dagr_lite.data.dataset import Sample, channels_first, event_picture
 from dagr_lite.engine.loading import make_loader
 from dagr_lite.engine.runs import resolve_device
 from dagr_lite.engine.precision import amp_dtype, memory_format
@@ -78,12 +78,11 @@ class SyntheticSamples(Dataset):
         xy = np.clip(np.round(xy), 0, [self.width - 1, self.height - 1])
         events = np.concatenate([xy, t[:, None], rng.integers(0, 2, (n, 1))], 1).astype(np.float32)
         k = index % 8
-        image = self.frames[k]
+        parts = [self.frames[k]]
         if self.carry_recent_us is not None:
-            picture = event_picture(xy[:, 0].astype(np.int64), xy[:, 1].astype(np.int64), t, events[:, 3], WINDOW_US,
-                                    WINDOW_US, self.height, self.width, self.carry_recent_us)
-            image = np.concatenate([image, picture], axis=2)
-        return Sample(events=torch.from_numpy(events), image=torch.from_numpy(image).permute(2, 0, 1).contiguous(),
+            parts.append(event_picture(xy[:, 0].astype(np.int64), xy[:, 1].astype(np.int64), t, events[:, 3], WINDOW_US,
+                                       WINDOW_US, self.height, self.width, self.carry_recent_us))
+        return Sample(events=torch.from_numpy(events), image=torch.from_numpy(channels_first(parts)),
                       boxes=self.boxes[k], labels=torch.zeros(len(self.boxes[k]), dtype=torch.int64),
                       video="bench", frame=index, image_frame=index, t_start_us=0, t_end_us=WINDOW_US, t_image_us=0)
 
@@ -114,10 +113,8 @@ def step_on(model, optimizer, batch, args) -> tuple[float, float]:
 def run(variant: str, height: int, width: int, args) -> None:
     torch.manual_seed(0)
     device = args.device
-    cfg = resolve_config(compose_config("train", [f"model={variant}"]))
+    cfg = resolve_config(compose_config("train", [f"model={variant}", f"trainer.channels_last={args.channels_last}"]))
     model = build_model(cfg, height=height, width=width).to(device)
-    if args.channels_last != "auto":
-        cfg.trainer.channels_last = args.channels_last == "true"
     model = model.to(memory_format=memory_format(trainer_settings(cfg), device))  # as the trainer lays it out
     optimizer = build_optimizer(cfg, model.parameters())  # the trainer's AdamW (fused)
     carry = int(cfg.data.carry_recent_us) if cfg.data.carry_picture else None  # the default hybrid's carry branch
