@@ -39,8 +39,8 @@ import numpy as np
 import torch
 
 from dagr_lite.errors import UserError
-from dagr_lite.data.dataset import (add_to_picture, arrival_keep, picture_channels, picture_of, picture_state,
-                                    sample_start_us)
+from dagr_lite.data.dataset import (add_to_picture, arrival_keep, channels_first, picture_channels, picture_of,
+                                    picture_state, sample_start_us)
 from dagr_lite.data.spec import SampleSpec
 from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.graph.pool import PooledGraph, recency_cells, recency_from_latest
@@ -431,9 +431,8 @@ class StreamingDetector:
             with self._part("carry picture + branch"):
                 picture = picture_of(*self._carry, t_us, max(t_us - self._t_image, 1.0), self.height, self.width,
                                      self.sample.carry_recent_us)
-                if model.cfg.carry_frame:  # the frame beside the picture
-                    picture = np.concatenate([self._frame, picture], axis=2)
-                carry_maps = model.picture_maps(self._pixels(picture))
+                parts = [self._frame, picture] if model.cfg.carry_frame else [picture]  # the frame beside the picture
+                carry_maps = model.picture_maps(self._pixels(*parts))
         with self._part("recency + fusion + head"):
             event_inputs = model.event_head_inputs(event_maps, recency) if model.cfg.event_answers else None
             return model.answer_outputs(*model.combine(image_maps, event_maps, recency, age, carry_maps), event_inputs)
@@ -452,9 +451,10 @@ class StreamingDetector:
     def _sampler(self):
         return self.model.node_sampler(self._image[1]) if self.hybrid else None
 
-    def _pixels(self, array: np.ndarray) -> torch.Tensor:
-        """An ``(H, W, C)`` uint8 picture as the ``(1, C, H, W)`` batch the model reads."""
-        return torch.from_numpy(np.ascontiguousarray(array.transpose(2, 0, 1)))[None].to(self.device)
+    def _pixels(self, *parts: np.ndarray) -> torch.Tensor:
+        """``(H, W, C_i)`` uint8 pictures, channels joined in order, as the ``(1, sum C_i, H, W)`` batch the
+        model reads (the dataset's :func:`~dagr_lite.data.dataset.channels_first`)."""
+        return torch.from_numpy(channels_first(parts))[None].to(self.device)
 
     def _add_to_carry(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> None:
         """Adds the events since the image (kept by the arrival filters) to the carry picture's state."""
