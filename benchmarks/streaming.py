@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from dagr_lite.data.collate import collate
-from dagr_lite.data.dataset import Sample, event_picture, sample_start_us
+from dagr_lite.data.dataset import Sample, channels_first, event_picture, sample_start_us
 from dagr_lite.data.labels import list_videos
 from dagr_lite.data.writer import VideoWriter
 from dagr_lite.apps.demo import Recording
@@ -171,14 +171,13 @@ def full_pass(model: Detector, rec: Recording, t_query: float, *, sample: Sample
     keep = slice(int(np.searchsorted(t, graph)), int(np.searchsorted(t, t_query, side="right")))
     x, y, tt, p = (rec.events[key][keep] for key in ("x", "y", "t", "p"))
     events = torch.from_numpy(np.stack([x, y, tt - t_image, p], 1).astype(np.float32)).reshape(-1, 4)
-    pixels = rec.frames[k]
+    parts = [rec.frames[k]]
     if model.carry is not None:  # and the picture of every event since the image, which its carry branch reads
         since = slice(int(np.searchsorted(t, t_image)), keep.stop)
-        height, width = pixels.shape[:2]
-        pixels = np.concatenate([pixels, event_picture(*(rec.events[key][since] for key in ("x", "y", "t", "p")),
-                                                       t_query, max(t_query - t_image, 1.0), height, width,
-                                                       sample.carry_recent_us)], axis=2)
-    sample = Sample(events=events, image=torch.from_numpy(np.ascontiguousarray(pixels.transpose(2, 0, 1))),
+        height, width = parts[0].shape[:2]
+        parts.append(event_picture(*(rec.events[key][since] for key in ("x", "y", "t", "p")), t_query,
+                                   max(t_query - t_image, 1.0), height, width, sample.carry_recent_us))
+    sample = Sample(events=events, image=torch.from_numpy(channels_first(parts)),
                     boxes=torch.zeros((0, 4)), labels=torch.zeros(0, dtype=torch.int64), video=rec.video, frame=k,
                     image_frame=k, t_start_us=int(begin), t_end_us=int(t_query), t_image_us=int(t_image))
     best, macs = np.inf, 0
