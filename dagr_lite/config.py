@@ -145,6 +145,7 @@ _RULES = {
     "trainer.schedule_by": ("steps or time", lambda v: v in ("steps", "time")),
     "trainer.events_first": ("a number in [0, 1) (a fraction of the schedule)", lambda v: _number(v) and 0 <= v < 1),
     "trainer.image_first": ("a number in [0, 1) (a fraction of the schedule)", lambda v: _number(v) and 0 <= v < 1),
+    "trainer.dense_first": ("a number in [0, 1) (a fraction of the schedule)", lambda v: _number(v) and 0 <= v < 1),
     "trainer.val_every": ("an integer >= 0 (0: every epoch)", lambda v: is_integer(v) and v >= 0),
     "trainer.val_samples": ("a positive integer or null (every sample)", lambda v: v is None or (is_integer(v) and v > 0)),
     "trainer.log_every": ("a positive integer", lambda v: is_integer(v) and v > 0),
@@ -349,6 +350,7 @@ class TrainerSettings:
     schedule_by: str
     events_first: float  # 0 for a model with one branch and for a run started from init_from
     image_first: float  # likewise
+    dense_first: float  # likewise
     val_every: int
     val_samples: int | None
     log_every: int
@@ -379,7 +381,7 @@ class TrainerSettings:
 
 # The keys of conf/train.yaml's trainer section (the first phases besides): a key given with + that the
 # loop does not read is refused rather than ignored.
-FIRST_PHASES = ("events_first", "image_first")
+FIRST_PHASES = ("events_first", "image_first", "dense_first")
 TRAINER_KEYS = ("max_steps", "max_epochs", "max_minutes", "schedule_by", "val_every", "val_samples", "log_every", "image_every",
                 "checkpoint_every", "checkpoint_minutes", "warmup_steps", "min_lr_ratio", "grad_clip", "ema_decay",
                 "ema_tau", "amp", "amp_dtype", "channels_last")
@@ -391,13 +393,16 @@ def trainer_settings(cfg: DictConfig) -> TrainerSettings:
     hybrid = bool(cfg.model.use_events and cfg.model.use_image)
     first = {key: float(trainer.get(key, 0.0) or 0.0) if hybrid and cfg.get("init_from") is None else 0.0
              for key in FIRST_PHASES}
-    if first["events_first"] and first["image_first"]:
-        raise ConfigError(f"trainer.events_first={first['events_first']} and trainer.image_first="
-                          f"{first['image_first']}: one branch learns alone first, not both; set the other to 0")
+    set_ = [f"trainer.{key}={value}" for key, value in first.items() if value]
+    if len(set_) > 1:
+        raise ConfigError(f"{' and '.join(set_)}: a run has one first phase, not two; set all but one to 0")
     if first["image_first"] and (cfg.model.late_query or float(cfg.model.event_head_weight) > 0):
         raise ConfigError(f"trainer.image_first={first['image_first']} needs model.late_query=false and "
                           f"model.event_head_weight=0 (got {cfg.model.late_query} and {cfg.model.event_head_weight}): "
                           "the events must reach the output through the fusion alone")
+    if first["dense_first"] and float(cfg.model.event_head_weight) > 0:
+        raise ConfigError(f"trainer.dense_first={first['dense_first']} needs model.event_head_weight=0 (got "
+                          f"{cfg.model.event_head_weight}): the event graph must reach the output through the fusion alone")
     return TrainerSettings(**{key: trainer[key] for key in TRAINER_KEYS}, **first,
                            image_age=int(cfg.data.image_age), eval_backend=cfg.eval.backend,
                            conf_threshold=float(cfg.eval.conf_threshold), nms_threshold=float(cfg.eval.nms_threshold))

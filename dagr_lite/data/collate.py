@@ -1,6 +1,7 @@
 """Batching samples with different numbers of events and boxes."""
 from __future__ import annotations
 
+import multiprocessing
 from dataclasses import dataclass, fields
 from typing import Sequence
 
@@ -117,14 +118,36 @@ class GraphCollate:
 
     ``spec`` is the model's own :class:`~dagr_lite.graph.spec.EventGraphSpec`, so the loader's
     graph is the one the model would build; building it in the workers keeps it off the training step.
+
+    :attr:`building` switches the workers' graph off and on while they run (a flag in shared memory
+    that they inherit): off, batches come without a graph (``edge_index`` None), as a hybrid's
+    ``trainer.dense_first`` phase reads them. Batches made before a switch keep what they were
+    made with; :meth:`complete` gives such a batch its graph.
     """
 
     def __init__(self, spec: EventGraphSpec):
         self.spec = spec
+        self._building = multiprocessing.RawValue("b", 1)
         # Compile (or load) the graph builder here, so that the forked workers inherit it.
         spec.edges(torch.tensor([[0.0, 0.0, 0.0, 1.0], [1.0, 0.0, 1.0, 1.0]]), workers=1)
 
+    @property
+    def building(self) -> bool:
+        """Whether batches made from now on get their graph (every worker reads the same flag)."""
+        return bool(self._building.value)
+
+    @building.setter
+    def building(self, on: bool) -> None:
+        self._building.value = 1 if on else 0
+
     def __call__(self, samples: Sequence[Sample]) -> Batch:
         batch = collate(samples)
-        batch.edge_index = self.spec.edges(batch.events, batch.batch_index, workers=1)
+        if self.building:
+            batch.edge_index = self.spec.edges(batch.events, batch.batch_index, workers=1)
+        return batch
+
+    def complete(self, batch: Batch) -> Batch:
+        """``batch`` with its graph: built here (with the machine's threads) when it came without one."""
+        if batch.edge_index is None:
+            batch.edge_index = self.spec.edges(batch.events, batch.batch_index)
         return batch

@@ -14,7 +14,8 @@ from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
 from dagr_lite.errors import UserError
-from dagr_lite.config import ConfigError, TrainerSettings, build_dataset
+from dagr_lite.config import FIRST_PHASES, ConfigError, TrainerSettings, build_dataset
+from dagr_lite.data.collate import GraphCollate
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.checkpoint import describe_dataset, save_checkpoint
 from dagr_lite.engine.clock import TrainingClock
@@ -139,7 +140,12 @@ class TrainLoop:
     ``init_from`` an events-only checkpoint, in one run. ``trainer.image_first`` = f is the
     same the other way round: the image learns alone (``Detector.zero_event_weights``,
     ``train_step(events=False)``: event and recency maps zero, the event branch idle), then the
-    events join.
+    events join. ``trainer.dense_first`` = f: the hybrid learns without its event graph
+    (``Detector.zero_graph_weights``, ``train_step(graph=False)``: the event branch idle and its
+    maps zero, the recency maps and a carry branch as always), and the loader's workers build no
+    graph in the phase (:attr:`GraphCollate.building`), so a step costs what a dense model's does;
+    then the graph joins, every step from there on with its batch's graph (one made before the
+    switch gets it built here).
     """
 
     def __init__(self, trainer: TrainerSettings, config: dict, state: TrainState, data: TrainData, run_dir: Path,
@@ -166,13 +172,17 @@ class TrainLoop:
         self.saved_at = time.monotonic()
         self.terminated = False  # set by SIGTERM (see run)
         # One branch learns alone first (at most one of the two is > 0, checked with the config).
-        self.first_fraction = trainer.events_first or trainer.image_first
-        self.first_key = "events_first" if trainer.events_first else "image_first"
-        self.alone = {"image": False} if trainer.events_first else {"events": False}  # train_step's, in the phase
+        self.first_key = next((key for key in FIRST_PHASES if getattr(trainer, key)), "events_first")
+        self.first_fraction = getattr(trainer, self.first_key)
+        self.alone = {"events_first": {"image": False}, "image_first": {"events": False},  # train_step's, in the phase
+                      "dense_first": {"graph": False}}[self.first_key]
         self.in_phase = False  # whether the next step is in that phase (set as the loop runs)
+        collate = data.train_loader.collate_fn
+        # dense_first: the loader's graph, switched off in the phase
+        self.graphs = collate if trainer.dense_first and isinstance(collate, GraphCollate) else None
 
     def first_phase(self) -> bool:
-        """Whether the next step is in the ``trainer.events_first`` or ``image_first`` phase: how far
+        """Whether the next step is in the ``trainer.events_first``, ``image_first`` or ``dense_first`` phase: how far
         along the schedule is, by steps (and by the time budget with ``schedule_by=time``,
         whichever is further)."""
         if not self.first_fraction:
@@ -202,6 +212,8 @@ class TrainLoop:
         state = self.state
         self.clock.start(self.resumed_position, state.step)
         self.in_phase = self.first_phase()  # the first step's
+        if self.graphs is not None:
+            self.graphs.building = not self.in_phase
         by_time = self.clock.by_time  # then the bar counts steps and shows the time left
         bar = tqdm(total=None if by_time else self.total, initial=state.step, desc="training", unit="step",
                    disable=not self.place.is_main)
@@ -210,8 +222,10 @@ class TrainLoop:
             return self.metrics if self.metrics is not None else self.save_and_validate()
         self.data.sampler.start_at(self.epoch, self.offset)
         for batch in self.data.train_loader:  # every epoch from here on, one iterator
-            batch = batch.to(state.device, non_blocking=True)
             in_phase = self.in_phase  # this step's phase, read once
+            if self.graphs is not None and not in_phase:
+                batch = self.graphs.complete(batch)  # one the workers made before the graph joined
+            batch = batch.to(state.device, non_blocking=True)
             out = mean_over_ranks(train_step(state, batch, **(self.alone if in_phase else {})), self.place)
             self.offset += self.data.global_batch_size
             if self.offset >= self.epoch_samples:
@@ -225,8 +239,11 @@ class TrainLoop:
                 self.stop_on_signal(bar)
             out_of_time = self.read_clock()
             self.in_phase = self.first_phase()  # the next step's, from this reading
+            if self.graphs is not None:
+                self.graphs.building = not self.in_phase
             if in_phase and not self.in_phase and self.place.is_main:
-                joins = "the image joins" if self.first_key == "events_first" else "the events join"
+                joins = {"events_first": "the image joins", "image_first": "the events join",
+                         "dense_first": "the graph joins"}[self.first_key]
                 print(f"step {state.step}: {joins} (trainer.{self.first_key}={self.first_fraction})", flush=True)
             if state.step % self.val_every == 0 or state.step == self.total or out_of_time:
                 self.save_and_validate()

@@ -123,11 +123,13 @@ class TrainState:
         self.step, self.best_metric = int(state["step"]), float(state["best_metric"])
 
 
-def train_step(state: TrainState, batch: Batch, *, image: bool = True, events: bool = True) -> dict[str, torch.Tensor]:
+def train_step(state: TrainState, batch: Batch, *, image: bool = True, events: bool = True,
+               graph: bool = True) -> dict[str, torch.Tensor]:
     """One optimiser step on ``batch`` (already on the model's device); returns the detached losses.
     ``image=False``: a hybrid's image features are zero and its image branch is not run;
-    ``events=False``: its event and recency maps are zero and its event branch is not run
-    (:meth:`Detector.forward`).
+    ``events=False``: its event and recency maps are zero and its event branch is not run;
+    ``graph=False``: its event branch's maps are zero and the branch is not run, so the batch
+    needs no graph (:meth:`Detector.forward`).
 
     A non-finite loss raises :class:`FloatingPointError` naming the step and every loss term,
     before any weight changes.
@@ -136,7 +138,7 @@ def train_step(state: TrainState, batch: Batch, *, image: bool = True, events: b
     model.train()
     with torch.autocast(state.device.type, dtype=state.amp_dtype, enabled=state.amp):
         out = (state.forward or model)(batch, **({} if image else {"image": False}),
-                                       **({} if events else {"events": False}))
+                                       **({} if events else {"events": False}), **({} if graph else {"graph": False}))
     loss = out["loss"]
     if not torch.isfinite(loss):
         parts = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in out.items())

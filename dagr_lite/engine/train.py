@@ -71,6 +71,8 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
         model.zero_image_weights()
     if trainer.image_first and resume_from is None:  # the events' weights start at zero (see TrainLoop)
         model.zero_event_weights()
+    if trainer.dense_first and resume_from is None:  # the event graph's weights start at zero (see TrainLoop)
+        model.zero_graph_weights()
     amp, trial = amp_dtype(trainer, device), None
     if prefers_trial(trainer, device):  # a CPU with native bfloat16: the faster of the two on a first batch,
         if place.is_main:               # timed before the processes share batch norm and the loss normaliser
@@ -96,7 +98,8 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
         write_run_files(run_dir, cfg)
     if place.enabled:
         state.forward = DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None,
-                                                find_unused_parameters=bool(trainer.events_first or trainer.image_first))  # the image branch
+                                                find_unused_parameters=bool(trainer.events_first or trainer.image_first
+                                                                           or trainer.dense_first))  # a branch idle in a first phase
     writer = SummaryWriter(str(run_dir / "tensorboard")) if place.is_main else NullWriter()
     try:
         loop = TrainLoop(trainer, OmegaConf.to_container(cfg, resolve=True), state, data, run_dir, writer, clock,

@@ -376,9 +376,9 @@ class Detector(nn.Module):
         maps, query, image, _ = self._features(batch)
         return maps, query, image
 
-    def _features(self, batch: Batch, image: bool = True, events: bool = True):
+    def _features(self, batch: Batch, image: bool = True, events: bool = True, graph: bool = True):
         """:meth:`features`, and in training the event head's input (its maps and query maps; else
-        None). ``image=False``, ``events=False``: see :meth:`forward`."""
+        None). ``image=False``, ``events=False``, ``graph=False``: see :meth:`forward`."""
         if not events and self.events is not None:
             return self._image_features(batch)
         if self.image is None:
@@ -390,15 +390,22 @@ class Detector(nn.Module):
                                       device=batch.events.device) for c, s in zip(self.image.channels, self.image.strides)]
         if self.events is None:
             return image_maps[1:], None, None, None
-        if image_maps is None:
-            sampler = None
-        elif image:
-            sampler = self.node_sampler(self.node_maps(image_maps))
-        else:
-            sampler = self.blank_sampler
         pooled = batch.pooled()
-        event_maps = self.events(batch.events, batch.batch_index, len(batch), image_sampler=sampler,
-                                 edge_index=batch.edge_index, pooled=pooled)
+        if not graph:  # the event branch's maps zero, the branch not run (nor its image features at the nodes)
+            if image_maps is None:
+                raise ValueError("forward(graph=False) needs a hybrid: this detector has no image branch")
+            event_maps = [image_maps[0].new_zeros(len(batch), c, math.ceil(self.cfg.height / s),
+                                                  math.ceil(self.cfg.width / s))
+                          for c, s in zip(self.events.out_channels, self.strides)]
+        else:
+            if image_maps is None:
+                sampler = None
+            elif image:
+                sampler = self.node_sampler(self.node_maps(image_maps))
+            else:
+                sampler = self.blank_sampler
+            event_maps = self.events(batch.events, batch.batch_index, len(batch), image_sampler=sampler,
+                                     edge_index=batch.edge_index, pooled=pooled)
         events, event_batch = (batch.events, batch.batch_index) if pooled is None else \
             (batch.events[pooled], batch.batch_index[pooled])  # the recency of the sample's own events
         recency = [recency_maps(events, event_batch, batch.age_us, batch_size=len(batch), stride=stride,
@@ -605,6 +612,22 @@ class Detector(nn.Module):
             for fuse, c, e, k in zip(self.fuse, self.image.channels[1:], self.events.out_channels, self.carry_widths):
                 fuse[0].weight[:, c:c + e + self.num_recency + k].zero_()  # [image, event, recency, carry, age]
 
+    def zero_graph_weights(self) -> None:
+        """Zero the fusion's weights that read the event branch's maps, the only way from the event
+        graph to the output of a hybrid without an event head (the recency maps and a carry branch
+        read the events without it). It then answers exactly what ``forward(graph=False)`` answers,
+        whatever its graph, until training moves them: the start of ``trainer.dense_first``, in
+        which they stay zero because every event map is zero (no gradient reaches them, and weight
+        decay keeps a zero at zero)."""
+        if self.image is None or self.events is None:
+            raise ValueError("only a hybrid (use_events and use_image) has weights that read the event graph")
+        if self.event_head is not None:
+            raise ValueError("trainer.dense_first needs model.event_head_weight=0: an event head reads the event "
+                             "branch's maps beside the fusion")
+        with torch.no_grad():
+            for fuse, c, e in zip(self.fuse, self.image.channels[1:], self.events.out_channels):
+                fuse[0].weight[:, c:c + e].zero_()  # the fusion reads [image, event, ...]
+
     def node_maps(self, image_maps: list[torch.Tensor]) -> list[torch.Tensor]:
         """The image maps projected to the channels joined at the event nodes, one per level."""
         return [proj(m) for proj, m in zip(self.to_nodes, image_maps)]
@@ -619,17 +642,20 @@ class Detector(nn.Module):
         return sampler
 
     def forward(self, batch: Batch, *, conf_threshold: float | None = None, nms_threshold: float | None = None,
-                image: bool = True, events: bool = True):
+                image: bool = True, events: bool = True, graph: bool = True):
         """Losses in training, detections in evaluation. ``image=False`` (a hybrid): the image
         branch is not run and every image feature the model reads is zero, at the nodes and in
         the fusion (the ``trainer.events_first`` phase; with :meth:`zero_image_weights` this is
         what the hybrid computes with any image). ``events=False`` (a hybrid): the event branch is
         not run and its maps and the recency maps are zero (the ``trainer.image_first`` phase; with
-        :meth:`zero_event_weights`, what the hybrid computes with any events). Detections need ``conf_threshold`` and
-        ``nms_threshold`` (``eval.*`` in ``conf/``)."""
+        :meth:`zero_event_weights`, what the hybrid computes with any events). ``graph=False`` (a
+        hybrid): the event branch is not run and its maps are zero, while the recency maps and a
+        carry branch read the events as always, so the batch needs no graph (the
+        ``trainer.dense_first`` phase; with :meth:`zero_graph_weights`, what the hybrid computes
+        with any graph). Detections need ``conf_threshold`` and ``nms_threshold`` (``eval.*`` in ``conf/``)."""
         if not self.training and (conf_threshold is None or nms_threshold is None):
             raise TypeError("Detector in evaluation mode needs conf_threshold= and nms_threshold= (eval.* in conf/)")
-        raw, shapes, event_inputs = self.outputs(batch, image=image, events=events)
+        raw, shapes, event_inputs = self.outputs(batch, image=image, events=events, graph=graph)
         if self.training:
             out = yolox_losses(raw, shapes, self.strides, batch.boxes, batch.labels, normaliser=self.loss_normaliser)
             if self.event_head is not None and event_inputs is not None:
@@ -641,10 +667,10 @@ class Detector(nn.Module):
             return out
         return self.detections(raw, shapes, conf_threshold=conf_threshold, nms_threshold=nms_threshold)
 
-    def outputs(self, batch: Batch, *, image: bool = True, events: bool = True
+    def outputs(self, batch: Batch, *, image: bool = True, events: bool = True, graph: bool = True
                 ) -> tuple[torch.Tensor, list[tuple[int, int]], tuple]:
         """The head's raw output ``(B, A, 5 + classes)``, its map shapes, and the event head's inputs."""
-        maps, query, image_inputs, event_inputs = self._features(batch, image=image, events=events)
+        maps, query, image_inputs, event_inputs = self._features(batch, image=image, events=events, graph=graph)
         if self.training:
             raw, shapes = self.head(maps, query, image_inputs)
         else:

@@ -353,7 +353,7 @@ def test_image_first_learns_from_the_image_alone_then_the_events_join(tmp_path, 
     assert len(calls) == 3  # the event branch was not run in the phase
     assert [reading for _, _, reading, _ in seen[:4]] == [0.0] * 4 and seen[5][2] > 0
     assert len({branch for *_, branch in seen[:4]}) == 1 and seen[5][3] != seen[0][3]
-    with pytest.raises(ConfigError, match=r"one branch learns alone first, not both"):
+    with pytest.raises(ConfigError, match=r"a run has one first phase, not two"):
         train(small(tmp_path / "both", "trainer.image_first=0.5", "trainer.events_first=0.5"))
     with pytest.raises(ConfigError, match=r"trainer\.image_first=0\.5 needs model\.late_query=false"):
         train(small(tmp_path / "late", "trainer.image_first=0.5", "model.late_query=true", "model.carry_width=0"))
@@ -373,6 +373,59 @@ def test_a_hybrid_with_its_event_weights_zeroed_answers_what_it_answers_without_
         model.zero_event_weights()
         after, _, _ = model.outputs(batch)
     torch.testing.assert_close(after, blind, rtol=0, atol=0)
+
+
+def test_dense_first_learns_without_the_graph_then_the_graph_joins(tmp_path, monkeypatch):
+    """trainer.dense_first=0.5 over 6 steps: steps 1-3 run no event branch and their batches come
+    without a graph, the fusion's weights for the event maps stay exactly zero and the event branch
+    does not move, while the recency and carry columns learn; from step 4 every batch has its graph
+    and the event weights learn. With another first phase, or an event head, it is refused."""
+    seen, original = [], loop_module.train_step
+
+    @torch.no_grad()
+    def sums(model):
+        c, e = model.image.channels[1], model.events.out_channels[0]
+        weight = model.fuse[0][0].weight
+        return (float(weight[:, c:c + e].abs().sum()), float(weight[:, c + e:].abs().sum()),
+                float(sum(p.abs().sum() for p in model.events.parameters())))
+
+    def recording_step(state, batch, *, graph=True):
+        seen.append((graph, batch.edge_index is not None, *sums(state.model)))
+        return original(state, batch, graph=graph)
+
+    monkeypatch.setattr(loop_module, "train_step", recording_step)
+    train(small(tmp_path / "hybrid", "trainer.max_steps=6", "trainer.dense_first=0.5", "trainer.val_every=1000",
+                "loader.num_workers=1"))
+    assert [graph for graph, *_ in seen] == [False] * 3 + [True] * 3
+    assert [has for _, has, *_ in seen[3:]] == [True] * 3  # the graph joined: every batch has one
+    assert not seen[0][1]  # the workers built none in the phase
+    assert [reading for _, _, reading, _, _ in seen[:4]] == [0.0] * 4 and seen[5][2] > 0
+    assert seen[3][3] != seen[0][3]  # the recency and carry columns learnt in the phase
+    assert len({branch for *_, branch in seen[:4]}) == 1 and seen[5][4] != seen[0][4]
+    with pytest.raises(ConfigError, match=r"a run has one first phase, not two"):
+        train(small(tmp_path / "both", "trainer.dense_first=0.5", "trainer.image_first=0.5"))
+    with pytest.raises(ConfigError, match=r"trainer\.dense_first=0\.5 needs model\.event_head_weight=0"):
+        train(small(tmp_path / "head", "trainer.dense_first=0.5", "model.event_head_weight=0.5"))
+
+
+def test_a_hybrid_with_its_graph_weights_zeroed_answers_what_it_answers_without_its_graph():
+    """``zero_graph_weights``: the fused head then reads nothing of the event branch, so the hybrid's
+    raw output with its graph equals ``forward(graph=False)``'s, which needs no graph, and differs
+    before the zeroing; the recency maps and the carry branch still read the events."""
+    torch.manual_seed(0)
+    model = Detector(small_detector_config(180, 320)).eval()
+    dataset = sample_set(stub_root(), "valid", image_age=2, carry_picture=True)
+    batch = collate([dataset[i] for i in (3, 30)])
+    bare = collate([dataset[i] for i in (3, 30)])
+    batch.edge_index = model.graph_spec.edges(batch.events, batch.batch_index)
+    with torch.no_grad():
+        before, _, _ = model.outputs(batch)
+        dense, _, _ = model.outputs(bare, graph=False)
+        assert not torch.allclose(before, dense)
+        assert not torch.allclose(dense, model.outputs(bare, events=False)[0])  # the events still count
+        model.zero_graph_weights()
+        after, _, _ = model.outputs(batch)
+    torch.testing.assert_close(after, dense, rtol=0, atol=0)
 
 
 def test_events_first_follows_a_time_budget(tmp_path, monkeypatch):
