@@ -102,7 +102,7 @@ def trained_checkpoints(tmp_path_factory) -> dict[str, Path]:
         if variant.endswith("_late"):
             late += ["model.carry_width=0"]
         train(compose_config("train", [f"run_dir={root / variant}", f"model={model}", *late, "trainer.max_steps=3",
-                                       "trainer.schedule_by=steps",
+                                       "trainer.schedule_by=steps", "trainer.dense_first=0",  # every step trains the graph
                                        "device=cpu", "trainer.amp=false", "loader.batch_size=4",
                                        "loader.num_workers=0", "trainer.image_every=0", "trainer.warmup_steps=1",
                                        "optim.lr=3e-3", "trainer.val_samples=8"]))

@@ -61,7 +61,7 @@ def test_default_dataset_is_the_stub_with_its_short_recipe():
     cfg = resolve_config(compose_cfg("train"))
     assert cfg.dataset.name == "stub" and cfg.dataset.root is None
     assert (cfg.dataset.height, cfg.dataset.width) == (180, 320)
-    assert cfg.optim.lr == pytest.approx(1e-3) and cfg.trainer.max_epochs == 20 and cfg.loader.batch_size == 16
+    assert cfg.optim.lr == pytest.approx(1e-3) and cfg.trainer.max_epochs == 40 and cfg.loader.batch_size == 16
     paper = resolve_config(compose_cfg("train", ["dataset=v6", "dataset.root=/data/v6"]))
     assert paper.optim.lr == pytest.approx(2e-4) and paper.trainer.max_steps == 100_000  # the paper's recipe
     assert resolve_config(compose_cfg("train", ["optim.lr=5e-4"])).optim.lr == pytest.approx(5e-4)
@@ -229,7 +229,9 @@ def test_trainer_settings_carry_every_trainer_key_and_decide_the_events_first_ph
 
     from dagr_lite.config import TrainerSettings, trainer_settings
 
-    cfg = compose_cfg("train", ["trainer.events_first=0.25", "trainer.max_steps=123", "eval.nms_threshold=0.5"])
+    assert trainer_settings(compose_cfg("train")).dense_first == 0.7  # the quick recipe's
+    cfg = compose_cfg("train", ["trainer.events_first=0.25", "trainer.dense_first=0", "trainer.max_steps=123",
+                                "eval.nms_threshold=0.5"])
     settings = trainer_settings(cfg)
     for field in dataclasses.fields(TrainerSettings):
         if field.name in cfg.trainer and field.name != "events_first":
@@ -240,6 +242,7 @@ def test_trainer_settings_carry_every_trainer_key_and_decide_the_events_first_ph
     assert trainer_settings(compose_cfg("train", ["trainer.max_steps=null", "trainer.max_epochs=3"])).total_steps(44) == 132
     # A model with one branch has no events-only phase, nor has a run that starts from other weights.
     assert trainer_settings(compose_cfg("train", ["model=events_only", "trainer.events_first=0.25"])).events_first == 0
+    assert trainer_settings(compose_cfg("train", ["model=image_only"])).dense_first == 0
     assert trainer_settings(compose_cfg("train", ["trainer.events_first=0.25", "init_from=x.pt"])).events_first == 0
     with pytest.raises(dataclasses.FrozenInstanceError):
         settings.max_steps = 1

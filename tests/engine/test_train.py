@@ -310,7 +310,7 @@ def test_events_first_learns_from_the_events_alone_then_the_image_joins(tmp_path
     stay exactly zero and the image branch does not move; from step 4 it learns. An events-only
     model is left as it is."""
     seen = image_steps(monkeypatch)
-    train(small(tmp_path / "hybrid", "trainer.max_steps=6", "trainer.events_first=0.5", "trainer.val_every=1000",
+    train(small(tmp_path / "hybrid", "trainer.max_steps=6", "trainer.events_first=0.5", "trainer.dense_first=0", "trainer.val_every=1000",
                 "data.augment.image_dropout=0"))
     assert [image for image, _, _ in seen] == [False] * 3 + [True] * 3
     assert [reading for _, reading, _ in seen[:4]] == [0.0] * 4 and seen[5][1] > 0
@@ -347,7 +347,7 @@ def test_image_first_learns_from_the_image_alone_then_the_events_join(tmp_path, 
     calls = []
     real = Detector._image_features
     monkeypatch.setattr(Detector, "_image_features", lambda self, batch: calls.append(1) or real(self, batch))
-    train(small(tmp_path / "hybrid", "trainer.max_steps=6", "trainer.image_first=0.5", "trainer.val_every=1000",
+    train(small(tmp_path / "hybrid", "trainer.max_steps=6", "trainer.image_first=0.5", "trainer.dense_first=0", "trainer.val_every=1000",
                 "data.augment.image_dropout=0"))
     assert [(image, events) for image, events, _, _ in seen] == [(True, False)] * 3 + [(True, True)] * 3
     assert len(calls) == 3  # the event branch was not run in the phase
@@ -356,7 +356,7 @@ def test_image_first_learns_from_the_image_alone_then_the_events_join(tmp_path, 
     with pytest.raises(ConfigError, match=r"a run has one first phase, not two"):
         train(small(tmp_path / "both", "trainer.image_first=0.5", "trainer.events_first=0.5"))
     with pytest.raises(ConfigError, match=r"trainer\.image_first=0\.5 needs model\.late_query=false"):
-        train(small(tmp_path / "late", "trainer.image_first=0.5", "model.late_query=true", "model.carry_width=0"))
+        train(small(tmp_path / "late", "trainer.image_first=0.5", "trainer.dense_first=0", "model.late_query=true", "model.carry_width=0"))
 
 
 def test_a_hybrid_with_its_event_weights_zeroed_answers_what_it_answers_without_events():
@@ -436,7 +436,7 @@ def test_events_first_follows_a_time_budget(tmp_path, monkeypatch):
     seen = image_steps(monkeypatch)
     train(small(tmp_path / "run", "trainer.max_steps=null", "trainer.max_epochs=100000", "trainer.max_minutes=1",
                 "trainer.schedule_by=time", "trainer.warmup_steps=2", "trainer.val_every=1000",
-                "trainer.events_first=0.5", "data.augment.image_dropout=0"))
+                "trainer.events_first=0.5", "trainer.dense_first=0", "data.augment.image_dropout=0"))
     assert [image for image, _, _ in seen] == [False] * 6 + [True] * 5
 
 
