@@ -171,7 +171,7 @@ class TrainLoop:
             self.epoch, self.offset = self.epoch + 1, 0
         self.saved_at = time.monotonic()
         self.terminated = False  # set by SIGTERM (see run)
-        # One branch learns alone first (at most one of the two is > 0, checked with the config).
+        # A first phase: one branch alone, or the dense parts without the graph (at most one, checked with the config).
         self.first_key = next((key for key in FIRST_PHASES if getattr(trainer, key)), "events_first")
         self.first_fraction = getattr(trainer, self.first_key)
         self.alone = {"events_first": {"image": False}, "image_first": {"events": False},  # train_step's, in the phase
