@@ -394,9 +394,7 @@ class Detector(nn.Module):
         if not graph:  # the event branch's maps zero, the branch not run (nor its image features at the nodes)
             if image_maps is None:
                 raise ValueError("forward(graph=False) needs a hybrid: this detector has no image branch")
-            event_maps = [image_maps[0].new_zeros(len(batch), c, math.ceil(self.cfg.height / s),
-                                                  math.ceil(self.cfg.width / s))
-                          for c, s in zip(self.events.out_channels, self.strides)]
+            event_maps = self.zero_event_maps(image_maps)
         else:
             if image_maps is None:
                 sampler = None
@@ -434,13 +432,17 @@ class Detector(nn.Module):
         if self.image is None:
             raise ValueError("forward(events=False) needs a hybrid: this detector has no image branch")
         image_maps = self.frame_maps(batch.images)
-        zeros = [m.new_zeros(len(batch), c, *m.shape[-2:])
-                 for m, c in zip(image_maps[1:], self.events.out_channels)]
+        zeros = self.zero_event_maps(image_maps)
         recency = [m.new_zeros(len(batch), self.num_recency, *m.shape[-2:]) for m in image_maps[1:]]
         carry = None if self.carry is None else [m.new_zeros(len(batch), c, *m.shape[-2:]) for m, c in
                                                  zip(image_maps[1:], self.carry_widths)]
         maps, query, image_inputs = self.combine(image_maps, zeros, recency, batch.age_us, carry, attend=False)
         return maps, query, image_inputs, None
+
+    def zero_event_maps(self, image_maps: list[torch.Tensor]) -> list[torch.Tensor]:
+        """Event maps of zeros, each the size of the image map of its stride (the event branch's
+        own size, ``ceil(H / stride)``), for a hybrid whose event branch is not run."""
+        return [m.new_zeros(len(m), c, *m.shape[-2:]) for m, c in zip(image_maps[1:], self.events.out_channels)]
 
     def frame_maps(self, images: torch.Tensor) -> list[torch.Tensor]:
         """The image branch's maps of ``(B, C, H, W)`` images (the channels it reads: the frame, or

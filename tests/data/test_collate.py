@@ -60,7 +60,7 @@ def test_graph_collate_switches_its_workers_graph_off_and_on():
     made = [batch.edge_index is not None for batch in batches]
     assert made[-1] and made == sorted(made)  # once on, on for good; at most the batches in flight had none
     for s in samples[:3]:
-        built = GraphCollate.__call__(make, [s]).edge_index
+        built = make([s]).edge_index  # building is on
         bare = collate([s])
         assert bare.edge_index is None
         torch.testing.assert_close(make.complete(bare).edge_index, built, rtol=0, atol=0)
