@@ -229,7 +229,7 @@ def test_trainer_settings_carry_every_trainer_key_and_decide_the_events_first_ph
 
     from dagr_lite.config import TrainerSettings, trainer_settings
 
-    assert trainer_settings(compose_cfg("train")).dense_first == 0.7  # the quick recipe's
+    assert trainer_settings(compose_cfg("train")).dense_first == 0.5  # the quick recipe's
     cfg = compose_cfg("train", ["trainer.events_first=0.25", "trainer.dense_first=0", "trainer.max_steps=123",
                                 "eval.nms_threshold=0.5"])
     settings = trainer_settings(cfg)
