@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from dagr_lite.data.collate import collate
-from dagr_lite.data.dataset import Sample, channels_first, event_picture, sample_start_us
+from dagr_lite.data.dataset import CarryPicture, Sample, channels_first, sample_start_us
 from dagr_lite.data.labels import list_videos
 from dagr_lite.data.writer import VideoWriter
 from dagr_lite.apps.demo import Recording
@@ -173,10 +173,11 @@ def full_pass(model: Detector, rec: Recording, t_query: float, *, sample: Sample
     events = torch.from_numpy(np.stack([x, y, tt - t_image, p], 1).astype(np.float32)).reshape(-1, 4)
     parts = [rec.frames[k]]
     if model.carry is not None:  # and the picture of every event since the image, which its carry branch reads
-        since = slice(int(np.searchsorted(t, t_image)), keep.stop)
         height, width = parts[0].shape[:2]
-        parts.append(event_picture(*(rec.events[key][since] for key in ("x", "y", "t", "p")), t_query,
-                                   max(t_query - t_image, 1.0), height, width, sample.carry_recent_us))
+        carry = CarryPicture(height, width, t_image, sample.carry_recent_us, sample.carry_confirm_us)
+        since = slice(int(np.searchsorted(t, carry.reads_from_us)), keep.stop)
+        carry.add(*(rec.events[key][since] for key in ("x", "y", "t", "p")))
+        parts.append(carry.picture(t_query))
     sample = Sample(events=events, image=torch.from_numpy(channels_first(parts)),
                     boxes=torch.zeros((0, 4)), labels=torch.zeros(0, dtype=torch.int64), video=rec.video, frame=k,
                     image_frame=k, t_start_us=int(begin), t_end_us=int(t_query), t_image_us=int(t_image))

@@ -20,7 +20,7 @@ from omegaconf.errors import OmegaConfBaseException
 from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.augment import TrainAugment, crop_size
-from dagr_lite.data.dataset import RGB_CHANNELS, EventEgoHands, picture_channels
+from dagr_lite.data.dataset import RGB_CHANNELS, EventEgoHands, carry_channels
 from dagr_lite.data.spec import is_integer
 from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.detector import IMAGE_STEMS, Detector, DetectorConfig
@@ -134,6 +134,8 @@ _RULES = {
     "data.event_picture": ("true or false", lambda v: isinstance(v, bool)),
     "data.carry_picture": ("true or false", lambda v: isinstance(v, bool)),
     "data.carry_recent_us": ("an integer >= 0 (microseconds; 0: no recent channel)", lambda v: is_integer(v) and v >= 0),
+    "data.carry_confirm_us": ("an integer >= 0 (microseconds; 0: no confirmed channels)",
+                              lambda v: is_integer(v) and v >= 0),
     "data.max_events": ("a positive integer or null", lambda v: v is None or (is_integer(v) and v > 0)),
     "loader.batch_size": ("a positive integer", lambda v: is_integer(v) and v > 0),
     "loader.num_workers": ("an integer >= 0", lambda v: is_integer(v) and v >= 0),
@@ -258,6 +260,7 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
                           age_ramp=int(data.get("train_image_age_ramp", 0)) if train else 0,
                           event_picture=picture, carry_picture=bool(data.get("carry_picture", False)),
                           carry_recent_us=int(data.get("carry_recent_us", 0)),
+                          carry_confirm_us=int(data.get("carry_confirm_us", 0)),
                           frames=with_image or not train)  # a frameless model's training skips the frames
     if not len(built) and built.videos and first_frame is None:  # (the sweep says its own)
         lengths = [built.num_frames(v) for v in range(len(built.videos))]
@@ -301,7 +304,8 @@ def detector_config(cfg: DictConfig, *, height: int, width: int) -> DetectorConf
         raise ConfigError(f"model.size must be one of {sorted(model.sizes)}, got {model.size!r}")
     size = model.sizes[model.size]
     picture, carry = bool(cfg.data.get("carry_picture", False)), int(model.carry_width)
-    channels = picture_channels(int(cfg.data.get("carry_recent_us", 0)) if picture else 0)  # the carry picture's
+    channels = carry_channels(int(cfg.data.get("carry_recent_us", 0)) if picture else 0,  # the carry picture's
+                              int(cfg.data.get("carry_confirm_us", 0)) if picture else 0)
     if carry and not picture:
         raise ConfigError(f"model.carry_width={carry} reads the picture of the events since the image: it needs "
                           "data.carry_picture=true")

@@ -39,8 +39,7 @@ import numpy as np
 import torch
 
 from dagr_lite.errors import UserError
-from dagr_lite.data.dataset import (add_to_picture, arrival_keep, channels_first, picture_channels, picture_of,
-                                    picture_state, sample_start_us)
+from dagr_lite.data.dataset import CarryPicture, arrival_keep, carry_channels, channels_first, sample_start_us
 from dagr_lite.data.spec import SampleSpec
 from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.graph.pool import PooledGraph, recency_cells, recency_from_latest
@@ -174,10 +173,12 @@ def check_streamable(detector: DetectorConfig, sample: SampleSpec, where: str = 
         raise UserError(f"{where}this model's image branch reads a picture of the events since the image beside the "
                          "camera frame (data.carry_picture without model.carry_width); the streaming detector runs "
                          "such a picture through a carry branch only, whose maps join at the fusion")
-    if detector.carry_width and picture_channels(sample.carry_recent_us) != detector.carry_channels:
+    made = carry_channels(sample.carry_recent_us, sample.carry_confirm_us)
+    if detector.carry_width and made != detector.carry_channels:
         raise UserError(f"{where}this model's carry branch reads pictures of {detector.carry_channels} channels, but "
-                         f"data.carry_recent_us={sample.carry_recent_us} makes pictures of "
-                         f"{picture_channels(sample.carry_recent_us)} (0: three channels, > 0: four)")
+                         f"data.carry_recent_us={sample.carry_recent_us} and data.carry_confirm_us="
+                         f"{sample.carry_confirm_us} make pictures of {made} (three, one more with a recent "
+                         "window, three more with confirmed events)")
     if sample.event_picture:
         raise UserError(f"{where}this model reads a picture of events in place of the camera frame "
                          "(data.event_picture, the dense peer of benchmarks/dense_peer.py); the streaming "
@@ -210,6 +211,8 @@ class StreamingDetector:
         self.sample, self.operating = sample, operating
         self.context_us, self.window_us, self.refractory_us = sample.context_us, sample.window_us, sample.refractory_us
         self.support_us = sample.support_us
+        # How long before an image its sample may read: the context, or the confirmation of a carry picture.
+        self._lead_us = max(self.context_us, sample.carry_confirm_us if model.carry is not None else 0)
         self.height, self.width = model.cfg.height, model.cfg.width
         self.map_sizes = [(math.ceil(self.height / s), math.ceil(self.width / s)) for s in model.strides]
         spec = model.graph_spec
@@ -265,8 +268,7 @@ class StreamingDetector:
         self._image = None  # (image maps, node maps) of the latest image
         self._t_image: float | None = None
         self._frame: np.ndarray | None = None  # the latest image's pixels (a carry branch with carry_frame reads them)
-        # A carry branch's picture of the events since the image: per-pixel (ON, OFF) counts and latest time.
-        self._carry: tuple[np.ndarray, np.ndarray] | None = None
+        self._carry: CarryPicture | None = None  # a carry branch's picture of the events since the image
         self._segment: _Segment | None = None
 
     @property
@@ -291,8 +293,9 @@ class StreamingDetector:
         if not self.hybrid:
             return
         needed_from = self.sample.graph_start_us(max(t_us, self._last_t), t_us)
-        # A carry picture also reads every event since the image.
-        read_from = min(needed_from, t_us) if self.model.carry is not None else needed_from
+        # A carry picture also reads every event since the image (and those that confirm them, before it).
+        read_from = min(needed_from, t_us - self.sample.carry_confirm_us) if self.model.carry is not None \
+            else needed_from
         if read_from < self._kept_from:
             raise UserError(f"image at t={t_us:g} us needs the events from {read_from:g} us, but "
                              f"only those since {self._kept_from:g} us are kept (an image may be at most "
@@ -302,7 +305,8 @@ class StreamingDetector:
             self._image = (image_maps, self.model.node_maps(image_maps))
         self._t_image, self._frame = t_us, image
         if self.model.carry is not None:  # the picture restarts from the logged events since the image
-            self._carry = picture_state(self.height, self.width)
+            self._carry = CarryPicture(self.height, self.width, t_us, self.sample.carry_recent_us,
+                                       self.sample.carry_confirm_us)
             self._add_to_carry(*(self._log[key].view for key in ("x", "y", "t", "p")))
         # Events older than the horizon of the earliest answer left to give are not read.
         self._start_segment(t_us, needed_from)
@@ -429,8 +433,7 @@ class StreamingDetector:
         carry_maps = None
         if self._carry is not None:
             with self._part("carry picture + branch"):
-                picture = picture_of(*self._carry, t_us, max(t_us - self._t_image, 1.0), self.height, self.width,
-                                     self.sample.carry_recent_us)
+                picture = self._carry.picture(t_us)
                 parts = [self._frame, picture] if model.cfg.carry_frame else [picture]  # the frame beside the picture
                 carry_maps = model.picture_maps(self._pixels(*parts))
         with self._part("recency + fusion + head"):
@@ -457,11 +460,10 @@ class StreamingDetector:
         return torch.from_numpy(channels_first(parts))[None].to(self.device)
 
     def _add_to_carry(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> None:
-        """Adds the events since the image (kept by the arrival filters) to the carry picture's state."""
-        if self._carry is None or not len(t):
-            return
-        since = int(np.searchsorted(t, self._t_image, side="left"))
-        add_to_picture(*self._carry, x[since:], y[since:], t[since:], p[since:], self.width)
+        """Adds events (kept by the arrival filters) to the carry picture's state: those since the
+        image are counted, those just before it may confirm them."""
+        if self._carry is not None:
+            self._carry.add(x, y, t, p)
 
     def _start_segment(self, origin_us: float, first_us: float) -> None:
         """A new segment from ``origin_us``, fed with the logged events since ``first_us``."""
@@ -484,7 +486,7 @@ class StreamingDetector:
         """Bring the segment up to the logged events, and forget what no later answer can read."""
         log = self._log
         if self.hybrid and self._segment is None:  # no image yet: keep what a late image may need
-            keep_from = self._last_t - MAX_IMAGE_DELAY_US - self.context_us
+            keep_from = self._last_t - MAX_IMAGE_DELAY_US - self._lead_us
             self._trim_log(int(np.searchsorted(log["t"].view, keep_from, side="left")), keep_from)
             return
         if not self.hybrid:
@@ -498,7 +500,7 @@ class StreamingDetector:
         else:
             t_start = self._graph_start(self._last_t)  # the earliest event any later answer reads
             # A later image (not older than this one) may need the events since its time - context_us.
-            keep_from = max(self._t_image, self._last_t - MAX_IMAGE_DELAY_US) - self.context_us
+            keep_from = max(self._t_image, self._last_t - MAX_IMAGE_DELAY_US) - self._lead_us
             self._trim_log(min(self._done, int(np.searchsorted(log["t"].view, keep_from, side="left"))), keep_from)
         self._expire(t_start)
         end = log["t"].n

@@ -24,6 +24,7 @@ from tests.settings import EVAL
 H, W = 48, 64
 CONTEXT_US, WINDOW_US = 10_000, 33_333
 RECENT_US = 12_000  # a four-channel carry picture's recent window
+CONFIRM_US = 15_000  # a carry picture's confirmation (six or seven channels): longer than the context
 
 
 def streaming(model: Detector, *, refractory_us: int = 0, score: float = 0.0,
@@ -33,7 +34,8 @@ def streaming(model: Detector, *, refractory_us: int = 0, score: float = 0.0,
                                                max_events=None, event_picture=False,
                                                graph_context_us=graph_context_us,
                                                carry_picture=model.carry is not None,
-                                               carry_recent_us=RECENT_US if model.cfg.carry_channels == 4 else 0,
+                                               carry_recent_us=RECENT_US if model.cfg.carry_channels in (4, 7) else 0,
+                                               carry_confirm_us=CONFIRM_US if model.cfg.carry_channels >= 6 else 0,
                                                support_us=support_us),
                              OperatingPoint(score=score, nms_iou=EVAL["nms_threshold"]))
 
@@ -110,7 +112,14 @@ def check_against_batch(stream: StreamingDetector, model: Detector, events: dict
         since = kept & (t >= t_image)
         picture = event_picture(*(v[:upto][since] for v in events.values()), t_query, max(t_query - t_image, 1.0), H, W,
                                 stream.sample.carry_recent_us)
-        image = np.concatenate([image, picture], axis=2)
+        pictures = [image, picture]
+        if stream.sample.carry_confirm_us:  # and of those since it that a neighbour's kept event confirms
+            kept_events = {key: v[:upto][kept] for key, v in events.items()}
+            confirmed = support_keep_reference(kept_events["x"], kept_events["y"], kept_events["t"],
+                                               stream.sample.carry_confirm_us, W, H) & (kept_events["t"] >= t_image)
+            pictures.append(event_picture(*(v[confirmed] for v in kept_events.values()), t_query,
+                                          max(t_query - t_image, 1.0), H, W))
+        image = np.concatenate(pictures, axis=2)
     origin = t_image if hybrid else stream.origin_us
     sample = sample_of(image, tuple(v[:upto][keep] for v in events.values()), origin, t_query, math.ceil(start))
     with torch.no_grad():
@@ -529,12 +538,14 @@ def test_demo_writes_a_playable_animation_and_a_strip(hybrid_checkpoint, tmp_pat
 
 
 @pytest.mark.parametrize(("refractory_us", "carry_channels", "carry_frame", "carry_attend"),
-                         [(0, 3, False, 0), (3_000, 3, False, 0), (0, 4, True, 0), (0, 4, True, 1)])
+                         [(0, 3, False, 0), (3_000, 3, False, 0), (0, 4, True, 0), (0, 4, True, 1), (0, 6, False, 0),
+                          (3_000, 7, True, 0)])
 def test_streaming_with_a_carry_branch_equals_the_batch_model(refractory_us, carry_channels, carry_frame,
                                                               carry_attend):
     """The picture of every event since the image (those the refractory period keeps), kept as
     per-pixel counts and latest times from the image on and read at each answer by the carry
-    branch (with four channels also the recency over the last ``RECENT_US``, with ``carry_frame``
+    branch (with four channels also the recency over the last ``RECENT_US``, with six or seven
+    also the picture of the events a neighbour confirms within ``CONFIRM_US``, with ``carry_frame``
     beside the frame), gives the batch model's answer; the image may come after events newer than it."""
     model = small_model("hybrid", seed=7, carry_width=4, carry_channels=carry_channels, carry_frame=carry_frame,
                         carry_attend=carry_attend)
@@ -543,14 +554,16 @@ def test_streaming_with_a_carry_branch_equals_the_batch_model(refractory_us, car
     images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 190_000)]
     checks, largest, stream = replay(model, events, images, seed=11, refractory_us=refractory_us, detect_prob=0.5)
     assert checks >= 20 and largest >= 300
-    assert stream._carry is not None and stream._carry[0].sum() > 0
+    assert stream._carry is not None and stream._carry.counts.sum() > 0
+    if carry_channels >= 6:  # some events are confirmed, not all
+        assert 0 < stream._carry.confirmed[0].sum() < 0.9 * stream._carry.counts.sum()
 
 
 def test_a_model_reading_a_picture_of_events_is_refused_by_its_key():
     model = small_model("hybrid")
     for key in ("event_picture", "carry_picture"):
         spec = SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=0, support_us=0, max_events=None,
-                          graph_context_us=0, carry_recent_us=0,
+                          graph_context_us=0, carry_recent_us=0, carry_confirm_us=0,
                           **{"event_picture": False, "carry_picture": False, key: True})
         with pytest.raises(UserError, match=f"data.{key}"):
             StreamingDetector(model, spec, OperatingPoint(score=0.0, nms_iou=EVAL["nms_threshold"]))
@@ -560,8 +573,10 @@ def test_a_carry_branch_is_refused_a_picture_of_other_channels():
     """A four-channel carry branch on a sample of three-channel pictures (no recent window)."""
     model = small_model("hybrid", carry_width=4, carry_channels=4)
     spec = SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=0, support_us=0, max_events=None,
-                      graph_context_us=0, event_picture=False, carry_picture=True, carry_recent_us=0)
-    with pytest.raises(UserError, match="reads pictures of 4 channels, but data.carry_recent_us=0 makes pictures of 3"):
+                      graph_context_us=0, event_picture=False, carry_picture=True, carry_recent_us=0,
+                      carry_confirm_us=0)
+    with pytest.raises(UserError, match="reads pictures of 4 channels, but data.carry_recent_us=0 and "
+                                        "data.carry_confirm_us=0 make pictures of 3"):
         StreamingDetector(model, spec, OperatingPoint(score=0.0, nms_iou=EVAL["nms_threshold"]))
 
 

@@ -9,6 +9,7 @@ and fixed spans only, so the streaming detector reads exactly the same events
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Sequence
@@ -25,7 +26,7 @@ from dagr_lite.data.denoise import support_keep
 from dagr_lite.data.frames import frame_header_problems, list_frames, read_frame
 from dagr_lite.data.spec import SampleSpec, is_integer, sample_start_us
 from dagr_lite.data.labels import box_problems, list_videos, read_labels
-from dagr_lite.data.picture import add_events, render
+from dagr_lite.data.picture import add_confirmed, add_events, render
 
 # At most this many frame problems are listed when the dataset refuses to open.
 MAX_LISTED_PROBLEMS = 10
@@ -42,6 +43,12 @@ def picture_channels(recent_us: float) -> int:
     """The channels of an event picture: ON count, OFF count, recency, and with ``recent_us > 0``
     the recency over the last ``recent_us`` (:func:`picture_of`)."""
     return PICTURE_CHANNELS + (1 if recent_us > 0 else 0)
+
+
+def carry_channels(recent_us: float, confirm_us: float) -> int:
+    """The channels of a carry picture (:class:`CarryPicture`): an event picture's
+    (:func:`picture_channels`), and with ``confirm_us > 0`` three more of the confirmed events."""
+    return picture_channels(recent_us) + (PICTURE_CHANNELS if confirm_us > 0 else 0)
 
 
 def event_picture(x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray, t_end_us: float, window_us: float,
@@ -95,6 +102,60 @@ def picture_of(counts: np.ndarray, last: np.ndarray, t_end_us: float, window_us:
     picture = np.empty((height * width, picture_channels(recent_us)), np.uint8)
     render(counts, last, float(t_end_us), float(window_us), float(recent_us), PICTURE_COUNT_FULL, picture)
     return picture.reshape(height, width, -1)
+
+
+class CarryPicture:
+    """A picture of every event since the image (``t_image_us``), kept as per-pixel state that
+    events are added to in any pieces: the carry branch's input, made by the loader for a sample
+    and by the streaming detector at each answer, the same to the bit.
+
+    Its channels at query time ``t``: those of :func:`event_picture` of the events of
+    ``[t_image_us, t)`` over the image's age (ON count, OFF count, recency; with ``recent_us > 0``
+    the recency over the last ``recent_us``), then, with ``confirm_us > 0``, the ON count, OFF
+    count and recency of the *confirmed* events alone: those one of whose 8 neighbouring pixels
+    had an event less than ``confirm_us`` before it (the background-activity filter's rule,
+    :mod:`~dagr_lite.data.denoise`, counting every event and dropping none). A noise event fires
+    alone, so the confirmed channels show where edges moved even where noise covers the frame.
+    Deciding needs the events of ``confirm_us`` before the image too: :meth:`add` them all
+    (:attr:`reads_from_us`); those before the image only confirm.
+    """
+
+    def __init__(self, height: int, width: int, t_image_us: float, recent_us: float = 0, confirm_us: float = 0):
+        self.height, self.width = int(height), int(width)
+        self.t_image_us, self.recent_us, self.confirm_us = float(t_image_us), float(recent_us), float(confirm_us)
+        self.counts, self.last = picture_state(self.height, self.width)
+        if self.confirm_us > 0:
+            self.confirmed = picture_state(self.height, self.width)
+            self.seen = np.full(self.height * self.width, -np.inf)  # every pixel's latest event, before the image too
+
+    @property
+    def reads_from_us(self) -> float:
+        """The earliest event time the picture depends on: the image's, less ``confirm_us``."""
+        return self.t_image_us - max(self.confirm_us, 0.0)
+
+    @property
+    def channels(self) -> int:
+        return carry_channels(self.recent_us, self.confirm_us)
+
+    def add(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> None:
+        """Adds events sorted by ``t``, later than any added before (integer pixels in the frame)."""
+        if not len(t):
+            return
+        x, y, t, p = np.asarray(x), np.asarray(y), np.asarray(t), np.asarray(p)
+        since = int(np.searchsorted(t, self.t_image_us, side="left"))
+        add_to_picture(self.counts, self.last, x[since:], y[since:], t[since:], p[since:], self.width)
+        if self.confirm_us > 0:
+            add_confirmed(*self.confirmed, self.seen, x, y, t, p, self.t_image_us, self.confirm_us, self.width,
+                          self.height)
+
+    def picture(self, t_end_us: float) -> np.ndarray:
+        """``(H, W, channels)`` uint8 at query time ``t_end_us``."""
+        span = max(t_end_us - self.t_image_us, 1)
+        picture = picture_of(self.counts, self.last, t_end_us, span, self.height, self.width, self.recent_us)
+        if self.confirm_us <= 0:
+            return picture
+        confirmed = picture_of(*self.confirmed, t_end_us, span, self.height, self.width)
+        return np.concatenate([picture, confirmed], axis=2)
 
 
 def refractory_keep(x: np.ndarray, y: np.ndarray, t: np.ndarray, refractory_us: float, width: int,
@@ -289,6 +350,8 @@ class EventEgoHands(Dataset):
             that carries the image forward with every event since it.
         carry_recent_us: > 0: the carry picture gains a fourth channel, the recency over the last
             ``carry_recent_us`` (where the events are now; ``(7, H, W)`` images); 0: three.
+        carry_confirm_us: > 0: the carry picture gains three channels of the events a neighbouring
+            pixel confirms within this long (:class:`CarryPicture`); 0: none.
         graph_context_us: > 0: a sample's events also hold those of this long before its start
             (for ``event_span="image"`` not from before ``t(k - a) - context_us``), which the event
             graph reads as neighbours and never pools (:class:`~dagr_lite.data.spec.SampleSpec`);
@@ -307,7 +370,7 @@ class EventEgoHands(Dataset):
                  clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0, age_power: float = 0.0,
                  age_ramp: int = 0,
                  graph_context_us: int, event_picture: bool = False, carry_picture: bool = False,
-                 carry_recent_us: int = 0, frames: bool = True, support_us: int):
+                 carry_recent_us: int = 0, frames: bool = True, support_us: int, carry_confirm_us: int = 0):
         if split not in fmt.SPLITS:
             raise UserError(f"split must be one of {fmt.SPLITS}, got {split!r}")
         self.age_range = age_range(image_age)
@@ -332,6 +395,9 @@ class EventEgoHands(Dataset):
         if carry_recent_us < 0:
             raise UserError(f"carry_recent_us must be >= 0, got {carry_recent_us}")
         self.carry_recent_us = int(carry_recent_us)
+        if not is_integer(carry_confirm_us) or carry_confirm_us < 0:
+            raise UserError(f"carry_confirm_us must be an integer >= 0, got {carry_confirm_us!r}")
+        self.carry_confirm_us = int(carry_confirm_us)
         if context_us < 0:
             raise UserError(f"context_us must be >= 0, got {context_us}")
         if refractory_us < 0:
@@ -382,7 +448,8 @@ class EventEgoHands(Dataset):
         return SampleSpec(window_us=self.window_us, context_us=self.context_us, refractory_us=self.refractory_us,
                           max_events=self.max_events, event_picture=self.event_picture,
                           graph_context_us=self.graph_context_us, carry_picture=self.carry_picture,
-                          carry_recent_us=self.carry_recent_us, support_us=self.support_us)
+                          carry_recent_us=self.carry_recent_us, support_us=self.support_us,
+                          carry_confirm_us=self.carry_confirm_us)
 
     def _open_video(self, video: str, labels: dict[int, np.ndarray], clip_boxes: bool):
         frames_dir = fmt.frames_dir(self.root, self.split, video)
@@ -486,8 +553,11 @@ class EventEgoHands(Dataset):
         t_start = int(sample_start_us(t_end, self.window_us, with_image, self.context_us))
         t_graph = int(sample_start_us(t_end, self.window_us + self.graph_context_us, with_image, self.context_us))
         height, width = self.image_size
-        # One read serves the graph's events and, with a carry picture, every event since the image.
-        kept = self._kept_events(v, min(t_graph, t_image) if self.carry_picture else t_graph, t_end)
+        # One read serves the graph's events and, with a carry picture, every event since the image (and
+        # those confirm_us before it, which confirm).
+        carry = CarryPicture(height, width, t_image, self.carry_recent_us, self.carry_confirm_us) \
+            if self.carry_picture else None
+        kept = self._kept_events(v, min(t_graph, math.floor(carry.reads_from_us)) if carry else t_graph, t_end)
         graph_from = int(np.searchsorted(kept["t"], t_graph, side="left"))
         raw = {key: values[graph_from:] for key, values in kept.items()}
         if self.max_events is not None and len(raw["t"]) > self.max_events:
@@ -508,9 +578,9 @@ class EventEgoHands(Dataset):
             image = np.zeros((height, width, 0), np.uint8)  # no frame: (H, W, 0)
         parts = [image]
         if self.carry_picture:  # every event since the image, recency over its age (and the recent window)
-            since = int(np.searchsorted(kept["t"], t_image, side="left"))
-            parts.append(event_picture(*(kept[key][since:] for key in ("x", "y", "t", "p")), t_end,
-                                       max(t_end - t_image, 1), height, width, self.carry_recent_us))
+            since = int(np.searchsorted(kept["t"], carry.reads_from_us, side="left"))
+            carry.add(*(kept[key][since:] for key in ("x", "y", "t", "p")))
+            parts.append(carry.picture(t_end))
         sample = Sample(events=torch.from_numpy(events),
                         image=torch.from_numpy(channels_first(parts)),  # (3, H, W), with a picture (6 or 7, H, W)
                         boxes=torch.from_numpy(np.array(boxes, dtype=np.float32).reshape(-1, 4)),

@@ -21,17 +21,23 @@ from dagr_lite.graph.compiled import KERNEL  # the project's kernel options: cac
 
 
 @numba.njit(**KERNEL)
+def neighbour_fired(last, xi, yi, ti, period_us, width, height):  # pragma: no cover - compiled
+    """Whether one of pixel ``(xi, yi)``'s 8 neighbours has ``ti - last[q] < period_us`` (``last``:
+    each pixel's latest event time, -inf: none; the pixel itself does not count)."""
+    for yy in range(max(yi - 1, 0), min(yi + 2, height)):
+        row = yy * width
+        for xx in range(max(xi - 1, 0), min(xi + 2, width)):
+            if (xx != xi or yy != yi) and ti - last[row + xx] < period_us:
+                return True
+    return False
+
+
+@numba.njit(**KERNEL)
 def _support_pass(x, y, t, support_us, width, height, last, keep):  # pragma: no cover - compiled
     """Fills ``keep`` in arrival order, updating ``last`` (each pixel's latest event time)."""
     for i in range(len(t)):
         xi, yi, ti = x[i], y[i], t[i]
-        supported = False
-        for yy in range(max(yi - 1, 0), min(yi + 2, height)):
-            row = yy * width
-            for xx in range(max(xi - 1, 0), min(xi + 2, width)):
-                if (xx != xi or yy != yi) and ti - last[row + xx] < support_us:
-                    supported = True
-        keep[i] = supported
+        keep[i] = neighbour_fired(last, xi, yi, ti, support_us, width, height)
         last[yi * width + xi] = ti
 
 

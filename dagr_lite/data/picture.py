@@ -9,6 +9,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from dagr_lite.data.denoise import neighbour_fired
 from dagr_lite.graph.compiled import KERNEL  # the project's kernel options: cached, GIL released
 
 
@@ -46,3 +47,26 @@ def render(counts, last, t_end_us, window_us, recent_us, count_full, picture):  
         else:
             for c in range(2, picture.shape[1]):
                 picture[j, c] = 0
+
+
+@numba.njit(**KERNEL)
+def add_confirmed(counts, last, seen, x, y, t, p, t_from, confirm_us, width, height):  # pragma: no cover - compiled
+    """In place, for the events ``x, y, t, p`` in arrival order: an event at or after ``t_from`` whose
+    8 neighbouring pixels hold one with ``t - seen[q] < confirm_us`` (``seen``: each pixel's latest
+    earlier event time, -inf: none; its own pixel does not count) is *confirmed* and added to
+    ``counts`` and ``last`` as :func:`add_events` adds it; every event then updates ``seen``. The
+    rule of the background-activity filter (:mod:`~dagr_lite.data.denoise`), deciding what is
+    counted rather than what is kept."""
+    for i in range(len(t)):
+        xi, yi = np.int64(x[i]), np.int64(y[i])
+        ti = np.float64(t[i])
+        j = yi * width + xi
+        if ti >= t_from and neighbour_fired(seen, xi, yi, ti, confirm_us, width, height):
+            if p[i] == 1:
+                counts[0, j] += 1
+            elif p[i] == 0:
+                counts[1, j] += 1
+            if ti > last[j]:
+                last[j] = ti
+        if ti > seen[j]:
+            seen[j] = ti

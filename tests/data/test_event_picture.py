@@ -2,8 +2,9 @@
 import numpy as np
 import pytest
 
-from dagr_lite.data.dataset import (PICTURE_COUNT_FULL, add_to_picture, channels_first, event_picture, picture_of,
-                                    picture_state)
+from dagr_lite.data.dataset import (PICTURE_COUNT_FULL, CarryPicture, add_to_picture, carry_channels, channels_first,
+                                    event_picture, picture_of, picture_state)
+from dagr_lite.data.denoise import support_keep, support_keep_reference
 from dagr_lite.synth.stub import stub_root
 from tests.settings import sample_set
 
@@ -98,3 +99,51 @@ def test_channels_first_is_the_concatenation_transposed():
         got = channels_first(parts)
         assert got.flags.c_contiguous and got.dtype == np.uint8
         np.testing.assert_array_equal(got, expected)
+
+
+def test_the_confirmed_channels_are_the_picture_of_the_events_a_neighbour_confirms():
+    """:class:`CarryPicture`'s confirmed channels against the background-activity filter's brute-force
+    rule, the events added in random pieces; an event before the image confirms and is not counted."""
+    rng = np.random.default_rng(3)
+    height, width, n, t_image, confirm = 11, 14, 3000, 20_000, 150
+    x, y = rng.integers(0, width, n), rng.integers(0, height, n)
+    t, p = np.sort(rng.integers(0, 60_000, n)) // 10 * 10, rng.integers(0, 2, n)  # ties at 10 us
+    carry = CarryPicture(height, width, t_image, recent_us=4_000, confirm_us=confirm)
+    assert carry.channels == carry_channels(4_000, confirm) == 7
+    cuts = np.sort(rng.integers(0, n, 12))
+    for piece in np.split(np.arange(n), cuts):
+        carry.add(x[piece], y[piece], t[piece], p[piece])
+    got = carry.picture(60_000)
+    since = t >= t_image
+    confirmed = support_keep_reference(x, y, t, confirm, width, height) & since
+    assert 0.2 < confirmed.sum() / since.sum() < 0.9  # some events are confirmed, not all
+    np.testing.assert_array_equal(got[..., :4], event_picture(x[since], y[since], t[since], p[since], 60_000, 40_000,
+                                                              height, width, 4_000))
+    np.testing.assert_array_equal(got[..., 4:], _picture_by_loop(x[confirmed], y[confirmed], t[confirmed],
+                                                                 p[confirmed], 60_000, 40_000, height, width))
+    plain = CarryPicture(height, width, t_image)  # without confirmation: the event picture since the image
+    plain.add(x, y, t, p)
+    assert plain.channels == 3 and carry_channels(0, 0) == 3
+    np.testing.assert_array_equal(plain.picture(60_000), event_picture(x[since], y[since], t[since], p[since], 60_000,
+                                                                       40_000, height, width))
+
+
+def test_a_sample_with_confirmed_channels_reads_the_events_just_before_its_image():
+    plain = sample_set(stub_root(), "valid", image_age=(1, 10), carry_picture=True, carry_recent_us=10_000)
+    confirmed = sample_set(stub_root(), "valid", image_age=(1, 10), carry_picture=True, carry_recent_us=10_000,
+                           carry_confirm_us=5_000)
+    assert confirmed.sample.carry_confirm_us == 5_000
+    for index in (3, 40):
+        a, b = plain[index], confirmed[index]
+        assert b.image.shape == (10, 180, 320)
+        np.testing.assert_array_equal(b.image[:7].numpy(), a.image.numpy())  # the frame and the raw picture
+        np.testing.assert_array_equal(b.events.numpy(), a.events.numpy())  # the graph reads every event
+        v = confirmed.videos.index(b.video)
+        raw = confirmed.events_of(v, b.t_image_us - 5_000, b.t_end_us)
+        keep = support_keep(raw["x"], raw["y"], raw["t"], 5_000, 320, 180) & (raw["t"] >= b.t_image_us)
+        assert 0 < keep.sum() < (raw["t"] >= b.t_image_us).sum()
+        expected = _picture_by_loop(raw["x"][keep], raw["y"][keep], raw["t"][keep].astype(np.float64), raw["p"][keep],
+                                    b.t_end_us, b.t_end_us - b.t_image_us, 180, 320)
+        np.testing.assert_array_equal(b.image[7:].numpy().transpose(1, 2, 0), expected)
+    with pytest.raises(ValueError, match="carry_confirm_us must be an integer >= 0, got -1"):
+        sample_set(stub_root(), "valid", carry_picture=True, carry_confirm_us=-1)
