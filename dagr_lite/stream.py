@@ -9,7 +9,9 @@ run on the sample of that moment, the sample training and evaluation read
 - a hybrid reads the latest image, and no event from before ``image time - context_us``;
 - with ``refractory_us`` > 0, an event whose pixel had one less than that long before it is
   dropped on arrival; with ``support_us`` > 0, one whose 8 neighbouring pixels had none less than
-  that long before it (:func:`~dagr_lite.data.dataset.arrival_keep`).
+  that long before it (:func:`~dagr_lite.data.dataset.arrival_keep`);
+- a carry branch reads the picture of every event since the image (with ``carry_confirm_us``,
+  also of those a neighbouring pixel confirms: :class:`~dagr_lite.data.dataset.CarryPicture`).
 
 Work per update: new events get their incoming edges from the streaming graph builder, the
 first GCN stage computes the new nodes only (reading the cached features of older nodes; a
