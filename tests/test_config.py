@@ -302,3 +302,13 @@ def test_an_image_age_longer_than_every_video_is_refused_not_scored_minus_one():
     cfg = resolve_config(compose_cfg("train", ["data.image_age=1000"]))
     with pytest.raises(ConfigError, match=r"\[valid\]: no sample at image age 1000: its videos have 60 to 60 frames"):
         build_dataset(cfg, "valid", train=False, with_image=True)
+
+
+@pytest.mark.parametrize("name", ["evaluate", "sweep"])
+def test_evaluation_reads_every_sample_key_from_the_checkpoint_unless_given(name, tmp_path):
+    """Each key of a sample is null in evaluate's and sweep's ``data`` (the checkpoint's value), so
+    no key of conf/data's training defaults overrides what a model was trained with."""
+    from dagr_lite.data.spec import SampleSpec
+
+    cfg = compose_cfg(name, [f"ckpt={tmp_path / 'last.pt'}"] if name == "evaluate" else ["ckpt=[a.pt]"])
+    assert {key: cfg.data.get(key) for key in SampleSpec.keys()} == dict.fromkeys(SampleSpec.keys())
