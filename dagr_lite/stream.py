@@ -310,8 +310,9 @@ class StreamingDetector:
             self._carry = CarryPicture(self.height, self.width, t_us, self.sample.carry_recent_us,
                                        self.sample.carry_confirm_us)
             self._add_to_carry(*(self._log[key].view for key in ("x", "y", "t", "p")))
-        # Events older than the horizon of the earliest answer left to give are not read.
-        self._start_segment(t_us, needed_from)
+        # Events older than the horizon of the earliest answer left to give are not read; the log keeps
+        # those a later image's sample may read (its context, its carry picture's confirmation).
+        self._start_segment(t_us, needed_from, keep_from_us=t_us - self._lead_us)
 
     def push_events(self, x, y, t, p) -> None:
         """Events sorted by ``t`` (any number, including 0), not earlier than any pushed before."""
@@ -467,10 +468,12 @@ class StreamingDetector:
         if self._carry is not None:
             self._carry.add(x, y, t, p)
 
-    def _start_segment(self, origin_us: float, first_us: float) -> None:
-        """A new segment from ``origin_us``, fed with the logged events since ``first_us``."""
+    def _start_segment(self, origin_us: float, first_us: float, keep_from_us: float | None = None) -> None:
+        """A new segment from ``origin_us``, fed with the logged events since ``first_us``; the log
+        keeps those since ``first_us`` or, when earlier, ``keep_from_us``."""
         t = self._log["t"].view
-        self._trim_log(int(np.searchsorted(t, first_us, side="left")), first_us)
+        keep_from = first_us if keep_from_us is None else min(first_us, keep_from_us)
+        self._trim_log(int(np.searchsorted(t, keep_from, side="left")), keep_from)
         self._done = 0
         self._segment = _Segment(self, origin_us)
         self._segment.first_us = first_us
@@ -501,7 +504,7 @@ class StreamingDetector:
             self._trim_log(min(self._done, int(np.searchsorted(log["t"].view, t_start, side="left"))), t_start)
         else:
             t_start = self._graph_start(self._last_t)  # the earliest event any later answer reads
-            # A later image (not older than this one) may need the events since its time - context_us.
+            # A later image (not older than this one) may need the events since its time - _lead_us.
             keep_from = max(self._t_image, self._last_t - MAX_IMAGE_DELAY_US) - self._lead_us
             self._trim_log(min(self._done, int(np.searchsorted(log["t"].view, keep_from, side="left"))), keep_from)
         self._expire(t_start)

@@ -559,6 +559,32 @@ def test_streaming_with_a_carry_branch_equals_the_batch_model(refractory_us, car
         assert 0 < stream._carry.confirmed[0].sum() < 0.9 * stream._carry.counts.sum()
 
 
+def test_a_confirmation_longer_than_the_context_serves_close_and_late_images():
+    """The log keeps ``CONFIRM_US`` before each image, so a second image 4 ms after the first and an
+    image pushed 30 ms after newer events both read the events that confirm their first ones."""
+    model = small_model("hybrid", seed=8, carry_width=4, carry_channels=6)
+    rng = np.random.default_rng(31)
+    events = random_stream(rng, 2000, 200_000)
+    t = events["t"]
+    stream = streaming(model)
+    images = [rng.integers(0, 256, (H, W, 3), dtype=np.uint8) for _ in range(3)]
+    pushed = 0
+    checks = 0
+    for t_push, image, t_image, queries in ((30_000, images[0], 30_000, ()), (33_000, images[1], 34_000, (41_000,)),
+                                            (100_000, images[2], 70_000, (100_000, 104_000))):
+        upto = int(np.searchsorted(t, t_push, side="left"))
+        stream.push_events(*(events[key][pushed:upto] for key in ("x", "y", "t", "p")))
+        pushed = upto
+        stream.push_image(image, t_image)
+        for t_query in queries:
+            upto = int(np.searchsorted(t, t_query, side="left"))
+            stream.push_events(*(events[key][pushed:upto] for key in ("x", "y", "t", "p")))
+            pushed = upto
+            check_against_batch(stream, model, events, upto, image, t_image, t_query)
+            checks += 1
+    assert checks == 3 and stream._carry.confirmed[0].sum() > 0
+
+
 def test_a_model_reading_a_picture_of_events_is_refused_by_its_key():
     model = small_model("hybrid")
     for key in ("event_picture", "carry_picture"):
