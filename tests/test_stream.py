@@ -546,7 +546,8 @@ def test_streaming_with_a_carry_branch_equals_the_batch_model(refractory_us, car
     per-pixel counts and latest times from the image on and read at each answer by the carry
     branch (with four channels also the recency over the last ``RECENT_US``, with six or seven
     also the picture of the events a neighbour confirms within ``CONFIRM_US``, with ``carry_frame``
-    beside the frame), gives the batch model's answer; the image may come after events newer than it."""
+    beside the frame), gives the batch model's answer; events up to 5 ms older than an image may
+    come after it."""
     model = small_model("hybrid", seed=7, carry_width=4, carry_channels=carry_channels, carry_frame=carry_frame,
                         carry_attend=carry_attend)
     rng = np.random.default_rng(23)
