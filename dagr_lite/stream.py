@@ -296,8 +296,9 @@ class StreamingDetector:
             return
         needed_from = self.sample.graph_start_us(max(t_us, self._last_t), t_us)
         # A carry picture also reads every event since the image (and those that confirm them, before it).
-        read_from = min(needed_from, t_us - self.sample.carry_confirm_us) if self.model.carry is not None \
-            else needed_from
+        carry = CarryPicture(self.height, self.width, t_us, self.sample.carry_recent_us,
+                             self.sample.carry_confirm_us) if self.model.carry is not None else None
+        read_from = needed_from if carry is None else min(needed_from, carry.reads_from_us)
         if read_from < self._kept_from:
             raise UserError(f"image at t={t_us:g} us needs the events from {read_from:g} us, but "
                              f"only those since {self._kept_from:g} us are kept (an image may be at most "
@@ -306,10 +307,8 @@ class StreamingDetector:
             image_maps = self.model.frame_maps(self._pixels(image))
             self._image = (image_maps, self.model.node_maps(image_maps))
         self._t_image, self._frame = t_us, image
-        if self.model.carry is not None:  # the picture restarts from the logged events since the image
-            self._carry = CarryPicture(self.height, self.width, t_us, self.sample.carry_recent_us,
-                                       self.sample.carry_confirm_us)
-            self._add_to_carry(*(self._log[key].view for key in ("x", "y", "t", "p")))
+        self._carry = carry  # the picture restarts from the logged events since the image
+        self._add_to_carry(*(self._log[key].view for key in ("x", "y", "t", "p")))
         # Events older than the horizon of the earliest answer left to give are not read; the log keeps
         # those a later image's sample may read (its context, its carry picture's confirmation).
         self._start_segment(t_us, needed_from, keep_from_us=t_us - self._lead_us)
