@@ -1,6 +1,13 @@
 """Shared fixtures: small datasets written with the project's writer, and a private cache folder."""
 from __future__ import annotations
 
+import os
+
+# The suite runs on every core (pytest-xdist, `-n auto`): each worker takes one core's share of
+# threads, set before torch is first imported, and the processes a test starts inherit it.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ["OMP_NUM_THREADS"] = "1"
+
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -66,9 +73,13 @@ def make_dataset(root: Path, *, videos: dict[str, str] | None = None, num_frames
 
 @pytest.fixture(autouse=True, scope="session")
 def private_cache(tmp_path_factory):
-    """Keep generated data (the stub dataset) out of the user's cache folder."""
+    """Keep generated data (the stub dataset) out of the user's cache folder. The workers of one
+    run share it: each dataset is made once, atomically, by whichever worker needs it first."""
     mp = pytest.MonkeyPatch()
-    mp.setenv("DAGR_LITE_CACHE", str(tmp_path_factory.mktemp("cache")))
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent / "cache" if os.environ.get("PYTEST_XDIST_WORKER") else base / "cache"
+    shared.mkdir(exist_ok=True)
+    mp.setenv("DAGR_LITE_CACHE", str(shared))
     mp.delenv("EVENTEGOHANDS_ROOT", raising=False)
     yield
     mp.undo()
