@@ -76,7 +76,9 @@ def remove_empty_output_folder() -> None:
 
 def hydra_command(config_name: str, run: Callable[[DictConfig], object]) -> Callable[[], None]:
     """A command's ``main``: Hydra composes ``conf/<config_name>.yaml`` with the command line and
-    ``run(cfg)`` runs inside :func:`user_errors`."""
+    ``run(cfg)`` runs inside :func:`user_errors`. A command line that does not compose (a setting
+    or an option that does not exist, an override that cannot be read) is one line too, before
+    Hydra makes any folder (:func:`composition_problem`)."""
     import hydra
 
     @hydra.main(config_path=str(CONF_DIR), config_name=config_name, version_base=None)
@@ -85,4 +87,47 @@ def hydra_command(config_name: str, run: Callable[[DictConfig], object]) -> Call
             run(cfg)
         remove_empty_output_folder()  # e.g. a resumed run that went on in its own folder
 
-    return main
+    def command() -> None:
+        arguments = sys.argv[1:]
+        # Hydra's own flags (--cfg, --help, -m) and its settings (hydra.*) go to Hydra as they are.
+        plain = not any(a.startswith("-") or a.lstrip("+~").startswith("hydra") for a in arguments)
+        if plain and os.environ.get("HYDRA_FULL_ERROR") != "1":
+            problem = composition_problem(config_name, arguments)
+            if problem:
+                print(f"error: {problem}", file=sys.stderr, flush=True)
+                raise SystemExit(1)
+        main()
+
+    return command
+
+
+def composition_problem(config_name: str, overrides: list[str]) -> str | None:
+    """Why ``conf/<config_name>.yaml`` does not compose with ``overrides``, in one line (None: it does)."""
+    from hydra.errors import ConfigCompositionException, MissingConfigException, OverrideParseException
+
+    from dagr_lite.config import compose_config
+    try:
+        compose_config(config_name, overrides)
+    except MissingConfigException as err:  # a config group's option that does not exist
+        text = str(err)
+        missing = re.search(r"Could not find '([\w.]+)/([^']+)'", text)
+        options = re.findall(r"^\t([\w.-]+)$", text, flags=re.MULTILINE)
+        if missing and options:
+            return (f"{missing.group(1)}={missing.group(2)}: no such option; {missing.group(1)} is one of "
+                    f"{', '.join(options)}")
+        return one_line(text)
+    except ConfigCompositionException as err:
+        key = re.search(r"Could not override '([^']+)'", str(err))
+        if key and "not in struct" in str(err.__cause__ or ""):
+            return (f"{key.group(1)}: no such setting in conf/{config_name}.yaml "
+                    f"(`--cfg job` prints every setting)")
+        return one_line(f"{err} ({err.__cause__})" if err.__cause__ else str(err))
+    except OverrideParseException as err:
+        return f"the command line cannot be read: {one_line(str(err))}"
+    return None
+
+
+def one_line(text: str) -> str:
+    """``text``'s lines, without omegaconf's detail lines, joined by "; "."""
+    lines = [line.strip() for line in text.splitlines() if line.strip() and not OMEGACONF_DETAIL.match(line)]
+    return "; ".join(lines)

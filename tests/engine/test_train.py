@@ -564,6 +564,35 @@ def test_a_mistake_on_the_command_line_is_one_line_and_leaves_no_folder(tmp_path
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_setting_or_option_that_does_not_exist_is_one_line_and_leaves_no_folder(tmp_path):
+    """A misspelt key, a config group's option that does not exist and an override that cannot be
+    read: one line naming it (the options of the group), exit status 1, no folder."""
+    import os
+    import subprocess
+    import sys
+    repo = Path(__file__).resolve().parents[2]
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    cases = {
+        "loader.batchsize=8": "error: loader.batchsize: no such setting in conf/train.yaml (`--cfg job` prints every setting)",
+        "model=event_only": "error: model=event_only: no such option; model is one of events_only, hybrid, image_only",
+        "seed=[1": "error: the command line cannot be read: no viable alternative at input '[1'",
+    }
+    for argument, message in cases.items():
+        run = subprocess.run([sys.executable, str(repo / "train.py"), argument], capture_output=True, text=True,
+                             cwd=tmp_path, env=env)
+        assert run.returncode == 1, argument
+        assert run.stderr.strip().startswith(message) and "\n" not in run.stderr.strip(), run.stderr
+        assert list(tmp_path.iterdir()) == []
+    sweep = subprocess.run([sys.executable, "-m", "dagr_lite.apps.sweep", "ckpt=x.pt", "ags=[1]"], capture_output=True,
+                           text=True, cwd=tmp_path, env=env)
+    assert sweep.returncode == 1
+    assert sweep.stderr.strip() == "error: ags: no such setting in conf/sweep.yaml (`--cfg job` prints every setting)"
+    # Hydra's own flags still reach it.
+    shown = subprocess.run([sys.executable, str(repo / "train.py"), "--cfg", "job"], capture_output=True, text=True,
+                           cwd=tmp_path, env=env)
+    assert shown.returncode == 0 and "dataset:" in shown.stdout
+
+
 def test_a_refused_run_writes_nothing_into_the_earlier_one(tmp_path):
     import subprocess
     import sys
