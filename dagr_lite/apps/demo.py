@@ -142,7 +142,8 @@ def demo(cfg: DictConfig) -> dict:
             frames.append(Image.fromarray(picture))
     strip_file = write_pictures(out, frames, strip, cfg.playback_fps)
     latency = np.array(latencies)
-    print(f"{len(frames)} frames -> {out}; strip of frame {k_strip} to {k_strip + 1} -> {strip_file}\n"
+    print(f"{len(latency)} updates: {len(frames)} frames -> {out}; the strip's {len(strip)} moments, frame {k_strip} "
+          f"to {k_strip + 1} -> {strip_file}\n"
           f"update latency: median {1e3 * np.median(latency):.1f} ms, p95 {1e3 * np.percentile(latency, 95):.1f} ms",
           flush=True)
     return {"out": out, "strip": strip_file, "latencies": latency}
