@@ -49,8 +49,7 @@ def user_errors():
 def user_message(err: BaseException) -> str:
     """The error's message without omegaconf's detail lines (``full_key: ...``, ``object_type=...``);
     a missing mandatory value says how to give it."""
-    lines = [line for line in str(err).splitlines() if not OMEGACONF_DETAIL.match(line)]
-    message = "\n".join(lines)
+    message = "\n".join(without_detail(str(err)))
     missing = re.search(r"Missing mandatory value: ([\w.]+)", message)
     if missing:
         message += f"; give it on the command line: {missing.group(1)}=..."
@@ -127,7 +126,11 @@ def composition_problem(config_name: str, overrides: list[str]) -> str | None:
     return None
 
 
+def without_detail(text: str) -> list[str]:
+    """``text``'s lines without omegaconf's detail lines (``full_key: ...``, ``object_type=...``)."""
+    return [line for line in text.splitlines() if not OMEGACONF_DETAIL.match(line)]
+
+
 def one_line(text: str) -> str:
-    """``text``'s lines, without omegaconf's detail lines, joined by "; "."""
-    lines = [line.strip() for line in text.splitlines() if line.strip() and not OMEGACONF_DETAIL.match(line)]
-    return "; ".join(lines)
+    """``text``'s lines, without omegaconf's detail lines and blank ones, joined by "; "."""
+    return "; ".join(line.strip() for line in without_detail(text) if line.strip())
