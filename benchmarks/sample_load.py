@@ -12,6 +12,11 @@ part's share.
 The carry picture's kernel reads the events' stored columns (uint16, uint16, int64, uint8). The
 baseline, measured in the same run on the same events, is the same kernel fed columns cast to
 int64 / float64 first, as it was before; the ratio is printed.
+
+The augmentation moves the events, the boxes and the frame's pixels once, in compiled passes. Its
+baseline, timed in the same run on the same samples and draws, is the chain of library functions
+it replaces (``hflip``, ``zoom_translate``, ``crop``: a torch operation per step) with the frame
+resampled by ``grid_sample``; the ratio is printed.
 """
 from __future__ import annotations
 
@@ -21,9 +26,11 @@ import time
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from dagr_lite.config import build_dataset, compose_config, graph_spec, resolve_config
 from dagr_lite.data import dataset as dataset_module
+from dagr_lite.data.augment import crop, hflip, zoom_translate
 from dagr_lite.data.collate import GraphCollate
 from dagr_lite.data.dataset import picture_state
 from dagr_lite.data.picture import add_events
@@ -62,6 +69,43 @@ def picture_kernel_ratio(dataset, rng: np.random.Generator, rounds: int = 60) ->
                 add_events(counts, last, x, y, t, p, width)
             out.append(time.perf_counter() - start)
     return float(np.median(stored)), float(np.median(cast))
+
+
+def grid_sample_window(image: torch.Tensor, scale: float, tx: float, ty: float, window) -> torch.Tensor:
+    """The frame's pixels of ``window`` resampled by ``grid_sample`` (the baseline's warp)."""
+    _, height, width = image.shape
+    x0, y0, w, h = window
+    us = (torch.arange(width, dtype=torch.float32) + 0.5 - tx) / scale
+    vs = (torch.arange(height, dtype=torch.float32) + 0.5 - ty) / scale
+    grid = torch.stack(torch.meshgrid((2 * us / width - 1)[x0:x0 + w], (2 * vs / height - 1)[y0:y0 + h],
+                                      indexing="xy"), dim=-1)
+    out = F.grid_sample(image[None].float(), grid[None], mode="bilinear", padding_mode="zeros", align_corners=False)
+    return out[0].round().clamp(0, 255).to(torch.uint8)
+
+
+def baseline_augment(aug, sample, rng: np.random.Generator):
+    """``aug``'s flip, zoom and crop (the same draws) through the library's functions, one step at a time."""
+    flip, warp = aug._draw_geometry(sample, rng)
+    if flip:
+        sample = hflip(sample)
+    moved = sample if warp is None else zoom_translate(sample, *warp, min_box_size=aug.min_box_size, image=False,
+                                                       crop_follows=True)
+    x0, y0, width, height = aug._crop_place(moved, rng)
+    part = None if warp is None else grid_sample_window(sample.image, *warp, (x0, y0, width, height))
+    return crop(moved, x0, y0, width, height, min_box_size=aug.min_box_size, image=part)
+
+
+def augment_ratio(aug, samples, rounds: int = 3) -> tuple[float, float]:
+    """Seconds a sample's augmentation takes (best of ``rounds``), fused and through the baseline."""
+    best = {}
+    for _ in range(rounds):
+        for name, run in (("fused", aug), ("baseline", lambda s, r: baseline_augment(aug, s, r))):
+            rng = np.random.default_rng(7)
+            start = time.perf_counter()
+            for sample in samples:
+                run(sample, rng)
+            best[name] = min(best.get(name, np.inf), (time.perf_counter() - start) / len(samples))
+    return best["fused"], best["baseline"]
 
 
 def main() -> None:
@@ -104,6 +148,12 @@ def main() -> None:
     print(f"  {'sample':<14} {1000 * total / n:6.2f} ms a sample")
     if graph_s:
         print(f"  {'graphs':<14} {1000 * graph_s / n:6.2f} ms a sample (collate of 16, with the batch's tensors)")
+    if dataset.transform is not None and dataset.transform.crop < 1:
+        transform, dataset.transform = dataset.transform, None
+        plain = [dataset[int(index)] for index in order[20:]]  # the same samples before augmentation
+        fused, baseline = augment_ratio(transform, plain)
+        print(f"augmentation: fused {1000 * fused:.2f} ms a sample, through the library's steps with grid_sample "
+              f"(baseline) {1000 * baseline:.2f} ms, {baseline / fused:.2f}x")
     if cfg.data.carry_picture:
         stored, cast = picture_kernel_ratio(dataset, rng)
         print(f"carry picture's events (5 frames), kernel on the stored columns: {1000 * stored:.2f} ms, "

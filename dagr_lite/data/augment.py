@@ -13,11 +13,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from dagr_lite.data.dataset import Sample
+from dagr_lite.graph.compiled import KERNEL  # the project's kernel options: cached, GIL released
 
 
 def hflip(sample: Sample) -> Sample:
@@ -54,23 +55,103 @@ def zoom_translate(sample: Sample, scale: float, tx: float, ty: float, *, min_bo
 
 
 def warp_image(image: torch.Tensor, scale: float, tx: float, ty: float,
-               window: tuple[int, int, int, int] | None = None) -> torch.Tensor:
+               window: tuple[int, int, int, int] | None = None, *, flip: bool = False) -> torch.Tensor:
     """``(C, H, W)`` uint8 ``image`` resampled bilinearly by ``u -> scale * u + (tx, ty)`` (zeros outside
-    the source). ``window = (x0, y0, width, height)``: only those output pixels, ``(C, height, width)``,
-    each the same to the bit as in the whole warped image (its sampling position is computed from
-    the same frame-wide coordinates). An image of no channels (a frameless sample) comes back cut alone."""
-    _, height, width = image.shape
+    the source; what ``grid_sample`` gives with ``align_corners=False``, to within one grey level of its
+    float32 rounding). ``window = (x0, y0, width, height)``: only those output pixels, ``(C, height,
+    width)``, each the same to the bit as in the whole warped image (its sampling position is computed
+    from the same frame-wide coordinates). ``flip``: the image mirrored left-right first, to the bit
+    (:func:`hflip`). An image of no channels (a frameless sample) comes back cut alone."""
+    channels, height, width = image.shape
     x0, y0, w, h = window if window is not None else (0, 0, width, height)
-    if not len(image):
-        return image[:, y0:y0 + h, x0:x0 + w]
-    # Output pixel centre u' samples the source at (u' - t) / scale.
-    us = (torch.arange(width, dtype=torch.float32) + 0.5 - tx) / scale  # (W,)
-    vs = (torch.arange(height, dtype=torch.float32) + 0.5 - ty) / scale  # (H,)
-    gx, gy = (2 * us / width - 1)[x0:x0 + w], (2 * vs / height - 1)[y0:y0 + h]
-    grid = torch.stack(torch.meshgrid(gx, gy, indexing="xy"), dim=-1)  # (h, w, 2)
-    out = F.grid_sample(image[None].float(), grid[None], mode="bilinear", padding_mode="zeros",
-                        align_corners=False)[0]  # (C, h, w)
-    return out.round().clamp(0, 255).to(torch.uint8)
+    out = torch.empty((channels, h, w), dtype=torch.uint8)
+    if channels:
+        _warp_window(image.contiguous().numpy(), flip, float(scale), float(tx), float(ty), x0, y0, out.numpy())
+    return out
+
+
+@numba.njit(**KERNEL)
+def _warp_window(image, flip, scale, tx, ty, x0, y0, out):  # pragma: no cover - compiled
+    """Fills ``out (C, h, w)`` uint8 with output pixels ``[x0, x0 + w) x [y0, y0 + h)`` of ``image (C, H,
+    W)`` (mirrored left-right first if ``flip``) resampled by ``u -> scale * u + (tx, ty)``: each output
+    pixel centre ``u + 0.5`` reads the source at ``(u + 0.5 - t) / scale``, bilinearly between pixel
+    centres, zero outside; rounded half to even, in float64."""
+    channels, height, width = image.shape
+    h, w = out.shape[1], out.shape[2]
+    col, col_weight = _taps(x0, w, tx, scale, width)
+    if flip:
+        col = width - 1 - col
+    row, row_weight = _taps(y0, h, ty, scale, height)
+    for c in range(channels):
+        for i in range(h):
+            top, bottom = image[c, row[i, 0]], image[c, row[i, 1]]
+            for j in range(w):
+                upper = col_weight[j, 0] * top[col[j, 0]] + col_weight[j, 1] * top[col[j, 1]]
+                lower = col_weight[j, 0] * bottom[col[j, 0]] + col_weight[j, 1] * bottom[col[j, 1]]
+                value = row_weight[i, 0] * upper + row_weight[i, 1] * lower
+                out[c, i, j] = np.uint8(min(max(np.rint(value), 0.0), 255.0))
+
+
+@numba.njit(**KERNEL)
+def _taps(first, count, shift, scale, size):  # pragma: no cover - compiled
+    """For output pixels ``first .. first + count - 1`` along one axis: the two source pixels each reads
+    (``(count, 2)``, 0 where outside the source) and their bilinear weights (0 where outside)."""
+    index = np.zeros((count, 2), np.int64)
+    weight = np.zeros((count, 2))
+    for j in range(count):
+        s = (first + j + 0.5 - shift) / scale - 0.5
+        low = np.floor(s)
+        frac = s - low
+        for k in range(2):
+            q = np.int64(low) + k
+            if 0 <= q < size:
+                index[j, k] = q
+                weight[j, k] = frac if k else 1.0 - frac
+    return index, weight
+
+
+@numba.njit(**KERNEL)
+def _move_events(events, flip, width, warp, scale, tx, ty, x0, y0, out_width, out_height, out):  # pragma: no cover
+    """Writes to ``out`` the rows of ``events (N, 4)`` float32 as :func:`hflip` (``flip``, a frame
+    ``width`` wide), :func:`zoom_translate` (``warp``: ``scale, tx, ty``, float32) and :func:`crop` (whole
+    offsets ``x0, y0``, an ``out_width x out_height`` frame) leave them, operation for operation in
+    float32: events whose pixel centre lies in the output frame, clamped to its pixels; returns how
+    many."""
+    half = np.float32(0.5)
+    mirror = np.float32(width - 1)
+    shift_x, shift_y = np.float32(x0), np.float32(y0)
+    right, bottom = np.float32(out_width) - half, np.float32(out_height) - half
+    last_x, last_y = np.float32(out_width - 1), np.float32(out_height - 1)
+    kept = 0
+    for i in range(events.shape[0]):
+        x, y = events[i, 0], events[i, 1]
+        if flip:
+            x = mirror - x
+        if warp:
+            x = (scale * (x + half) + tx) - half
+            y = (scale * (y + half) + ty) - half
+        x, y = x - shift_x, y - shift_y
+        if x >= -half and x < right and y >= -half and y < bottom:
+            out[kept, 0] = min(max(x, np.float32(0.0)), last_x)
+            out[kept, 1] = min(max(y, np.float32(0.0)), last_y)
+            out[kept, 2], out[kept, 3] = events[i, 2], events[i, 3]
+            kept += 1
+    return kept
+
+
+def _moved_boxes(sample: Sample, flip: bool, warp: tuple[float, float, float] | None, min_box_size: float) -> Sample:
+    """The sample's boxes (and labels) as :func:`hflip` and :func:`zoom_translate` leave them (the events
+    and the image are left as they were)."""
+    boxes = sample.boxes
+    if flip:
+        boxes = boxes.clone()
+        boxes[:, 0] = sample.width - sample.boxes[:, 2]
+        boxes[:, 2] = sample.width - sample.boxes[:, 0]
+    if warp is None:
+        return sample.replace(boxes=boxes)
+    scale, tx, ty = warp
+    boxes = boxes * scale + torch.tensor([tx, ty, tx, ty], dtype=torch.float32)  # (M, 4)
+    return _boxes_inside(sample, boxes, sample.width, sample.height, min_box_size)
 
 
 def _inside(sample: Sample, events: torch.Tensor, boxes: torch.Tensor, width: int, height: int,
@@ -88,11 +169,14 @@ def _inside(sample: Sample, events: torch.Tensor, boxes: torch.Tensor, width: in
 
 def _boxes_inside(sample: Sample, boxes: torch.Tensor, width: int, height: int, min_box_size: float) -> Sample:
     """``sample`` with ``boxes (M, 4)`` clipped to a ``width x height`` frame and dropped when thinner
-    than ``min_box_size`` (with their labels)."""
-    boxes[:, [0, 2]] = boxes[:, [0, 2]].clamp(0, width)
-    boxes[:, [1, 3]] = boxes[:, [1, 3]].clamp(0, height)
-    keep = ((boxes[:, 2] - boxes[:, 0]) >= min_box_size) & ((boxes[:, 3] - boxes[:, 1]) >= min_box_size)
-    return sample.replace(boxes=boxes[keep], labels=sample.labels[keep])
+    than ``min_box_size`` (with their labels). In NumPy: a handful of boxes costs torch's per-call overhead."""
+    array = boxes.numpy()
+    np.clip(array[:, 0::2], 0, width, out=array[:, 0::2])
+    np.clip(array[:, 1::2], 0, height, out=array[:, 1::2])
+    keep = ((array[:, 2] - array[:, 0]) >= min_box_size) & ((array[:, 3] - array[:, 1]) >= min_box_size)
+    if keep.all():
+        return sample.replace(boxes=boxes)
+    return sample.replace(boxes=torch.from_numpy(array[keep]), labels=torch.from_numpy(sample.labels.numpy()[keep]))
 
 
 def crop(sample: Sample, x0: int, y0: int, width: int, height: int, *, min_box_size: float = 2.0,
@@ -183,16 +267,28 @@ class TrainAugment:
 
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
         flip, warp = self._draw_geometry(sample, rng)
-        if flip:
-            sample = hflip(sample)
-        if self.crop < 1:  # the zoom resamples only the crop's pixels: the same sample, a quarter of the work
-            moved = sample if warp is None else zoom_translate(sample, *warp, min_box_size=self.min_box_size,
-                                                               image=False, crop_follows=True)  # image, events: below
-            x0, y0, width, height = self._crop_place(moved, rng)
-            part = None if warp is None else warp_image(sample.image, *warp, window=(x0, y0, width, height))
-            sample = crop(moved, x0, y0, width, height, min_box_size=self.min_box_size, image=part)
-        elif warp is not None:
-            sample = zoom_translate(sample, *warp, min_box_size=self.min_box_size)
+        if self.crop == 1 and warp is None:  # the whole frame, perhaps mirrored: nothing leaves it
+            return self._drop(hflip(sample) if flip else sample, rng)
+        moved = _moved_boxes(sample, flip, warp, self.min_box_size)  # the events and the image: below, once
+        x0, y0, width, height = (self._crop_place(moved, rng) if self.crop < 1  # the crop's pixels only
+                                 else (0, 0, sample.width, sample.height))
+        if warp is not None:
+            image = warp_image(sample.image, *warp, window=(x0, y0, width, height), flip=flip)
+        else:
+            image = sample.image.flip(-1) if flip else sample.image
+            image = image[:, y0:y0 + height, x0:x0 + width]
+        scale, tx, ty = warp if warp is not None else (1.0, 0.0, 0.0)
+        events = sample.events.contiguous().numpy()
+        out = np.empty_like(events)
+        kept = _move_events(events, flip, sample.width, warp is not None, np.float32(scale), np.float32(tx),
+                            np.float32(ty), x0, y0, width, height, out)
+        boxes = moved.boxes - torch.tensor([x0, y0, x0, y0], dtype=moved.boxes.dtype)  # (M, 4)
+        sample = _boxes_inside(moved.replace(image=image, events=torch.from_numpy(out[:kept])), boxes, width,
+                               height, self.min_box_size)
+        return self._drop(sample, rng)
+
+    def _drop(self, sample: Sample, rng: np.random.Generator) -> Sample:
+        """The sample with its frame blanked (``image_dropout``) and events dropped (``event_drop``), as drawn."""
         if self.image_dropout and rng.random() < self.image_dropout:
             sample = sample.blank_frame()
         if self.event_drop:

@@ -251,6 +251,46 @@ def test_a_warped_window_is_the_same_part_of_the_whole_warped_image_to_the_bit()
     assert warp_image(frameless, 1.2, 3.0, 1.0, window=(4, 2, 10, 6)).shape == (0, 6, 10)
 
 
+def test_the_warp_is_torchs_bilinear_grid_sample_within_one_grey_level_and_mirrors_to_the_bit():
+    """The compiled warp against ``grid_sample`` (align_corners=False, zeros outside), the independent
+    reference: the two round float32 and float64 sampling positions, so a pixel may differ by one
+    grey level where its value lies at a half; the flag ``flip`` is the image mirrored first."""
+    rng = np.random.default_rng(4)
+    image = textured_sample(rng).image  # (7, 72, 128)
+    _, height, width = image.shape
+    for scale, tx, ty in ((1.0, 0.0, 0.0), (1.37, -20.3, -7.9), (1.0, 5.5, -3.25), (1.5, -64.0, -36.0), (0.8, 9.1, 4.4)):
+        us = (torch.arange(width, dtype=torch.float64) + 0.5 - tx) / scale
+        vs = (torch.arange(height, dtype=torch.float64) + 0.5 - ty) / scale
+        grid = torch.stack(torch.meshgrid(2 * us / width - 1, 2 * vs / height - 1, indexing="xy"), -1)
+        ref = torch.nn.functional.grid_sample(image[None].double(), grid[None], mode="bilinear", padding_mode="zeros",
+                                              align_corners=False)[0].round().clamp(0, 255)
+        out = warp_image(image, scale, tx, ty)
+        diff = (out.double() - ref).abs()
+        assert diff.max() <= 1 and (diff > 0).double().mean() < 0.01
+        assert torch.equal(warp_image(image, scale, tx, ty, flip=True), warp_image(image.flip(-1), scale, tx, ty))
+        assert torch.equal(warp_image(image, scale, tx, ty, window=(3, 5, 40, 20), flip=True),
+                           warp_image(image.flip(-1), scale, tx, ty)[:, 5:25, 3:43])
+
+
+def test_the_augmentation_of_whole_frames_is_the_reference_functions_to_the_bit():
+    """``crop: 1``: a flip, then a zoom and translation of the whole frame (or none)."""
+    for zoom, translate in (((1.0, 1.5), 0.1), ((1.0, 1.0), 0.0)):
+        aug = TrainAugment(flip_prob=0.5, zoom=zoom, translate=translate, min_box_size=2.0, image_dropout=0.0,
+                           event_drop=0.0, crop=1.0, crop_multiple=32, crop_boxes=0.0)
+        for seed in range(12):
+            sample = textured_sample(np.random.default_rng(seed), channels=(7, 3, 0)[seed % 3])
+            fast = aug(sample, np.random.default_rng([seed, 2]))
+            rng = np.random.default_rng([seed, 2])
+            ref = hflip(sample) if rng.random() < 0.5 else sample
+            scale = float(rng.uniform(*zoom))
+            offsets = [rng.uniform(min(0.0, s * (1 - scale)), max(0.0, s * (1 - scale)))
+                       + rng.uniform(-translate, translate) * s for s in (ref.width, ref.height)]
+            if scale != 1.0 or offsets != [0.0, 0.0]:
+                ref = zoom_translate(ref, scale, offsets[0], offsets[1], min_box_size=2.0)
+            for key in ("image", "events", "boxes", "labels"):
+                assert torch.equal(getattr(fast, key), getattr(ref, key)), (zoom, seed, key)
+
+
 @pytest.mark.parametrize("zoom, translate", [((1.0, 1.5), 0.1), ((1.0, 1.0), 0.0)])  # the second: no warp
 def test_a_crop_after_the_zoom_is_the_whole_zoomed_sample_cut_to_the_bit(zoom, translate):
     """The augmentation resamples only the crop's pixels; the reference warps the whole frame, then
