@@ -142,7 +142,7 @@ class CarryPicture:
         if not len(t):
             return
         x, y, t, p = np.asarray(x), np.asarray(y), np.asarray(t), np.asarray(p)
-        since = int(np.searchsorted(t, self.t_image_us, side="left"))
+        since = first_at_or_after(t, self.t_image_us)
         add_to_picture(self.counts, self.last, x[since:], y[since:], t[since:], p[since:], self.width)
         if self.confirm_us > 0:
             add_confirmed(*self.confirmed, self.seen, x, y, t, p, self.t_image_us, self.confirm_us, self.width,
@@ -216,6 +216,15 @@ def arrival_keep(x: np.ndarray, y: np.ndarray, t: np.ndarray, *, refractory_us: 
 
 class SampleTooLarge(ValueError):
     """A sample holds more events than ``max_events`` allows (a guard, never a thinning)."""
+
+
+def first_at_or_after(t: np.ndarray, time_us: float) -> int:
+    """Index of the first entry of the sorted times ``t`` at or after ``time_us``. Integer times are
+    searched for the whole microsecond at or after a fractional ``time_us`` (the same index): NumPy
+    would otherwise cast the whole array to float first."""
+    if np.issubdtype(t.dtype, np.integer) and math.isfinite(time_us):
+        time_us = math.ceil(time_us)
+    return int(np.searchsorted(t, time_us, side="left"))
 
 
 def draw_age(rng: np.random.Generator, low: int, high: int, power: float = 0.0) -> int:
@@ -578,7 +587,7 @@ class EventEgoHands(Dataset):
             image = np.zeros((height, width, 0), np.uint8)  # no frame: (H, W, 0)
         parts = [image]
         if self.carry_picture:  # every event since the image, recency over its age (and the recent window)
-            since = int(np.searchsorted(kept["t"], carry.reads_from_us, side="left"))
+            since = first_at_or_after(kept["t"], carry.reads_from_us)
             carry.add(*(kept[key][since:] for key in ("x", "y", "t", "p")))
             parts.append(carry.picture(t_end))
         sample = Sample(events=torch.from_numpy(events),

@@ -136,6 +136,8 @@ def _timeidx_problems(timeidx: np.ndarray, num_events: int, num_frames: int | No
 
 def polarity_problem(p: np.ndarray, start: int) -> str | None:
     """What is wrong with polarities ``p`` (events ``start, start + 1, ...``), or None if all are 0 or 1."""
+    if not len(p) or (p.min() >= 0 and p.max() <= 1 and np.issubdtype(p.dtype, np.integer)):
+        return None  # the common case, in two reductions
     bad = np.flatnonzero((p != 0) & (p != 1))
     if not len(bad):
         return None
@@ -297,7 +299,7 @@ class EventFile:
             values = self._array(key)[start:stop]
         except OSError as err:
             raise DatasetFormatError.at(self.path, f"cannot read entries {start}..{stop - 1} ({err})", key=key) from err
-        return values.astype(np.int64) if key == fmt.KEY_T else values
+        return values.astype(np.int64, copy=False) if key == fmt.KEY_T else values
 
     def _read_polarity(self, start: int, stop: int) -> np.ndarray:
         """``p[start:stop]``, raising naming the file, key, value and index when one is not 0 or 1."""
