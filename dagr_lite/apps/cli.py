@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 from typing import Callable
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue
 
 from dagr_lite.config import CONF_DIR
@@ -123,6 +123,34 @@ def composition_problem(config_name: str, overrides: list[str]) -> str | None:
         return one_line(f"{err} ({err.__cause__})" if err.__cause__ else str(err))
     except OverrideParseException as err:
         return f"the command line cannot be read: {one_line(str(err))}"
+    return added_setting_problem(config_name, overrides)
+
+
+_ABSENT = object()  # OmegaConf.select's answer for a key that is not there
+
+
+def added_setting_problem(config_name: str, overrides: list[str]) -> str | None:
+    """Why an override that adds a key (Hydra's ``+key=value`` or ``++key=value``) would add one that no
+    code reads (None: none does). A key may be added only to a collection of named entries (every
+    value a mapping, as ``model.sizes``, to which a size of one's own can be added); a new key among
+    settings is a misspelt one that Hydra would accept silently."""
+    from dagr_lite.config import compose_config
+    added = [o for o in overrides if o.startswith("+") and "=" in o]
+    keys = [o.lstrip("+").split("=", 1)[0] for o in added]
+    keys = [k for k in keys if "/" not in k and "@" not in k and not (CONF_DIR / k.replace(".", "/")).is_dir()]
+    if not keys:  # none, or config groups' options (Hydra checks those)
+        return None
+    cfg = compose_config(config_name, [o for o in overrides if o not in added])
+    for key in keys:
+        if OmegaConf.select(cfg, key, default=_ABSENT) is not _ABSENT:
+            continue  # there already: `+` is Hydra's error to give, `++` sets it
+        parent_key = key.rpartition(".")[0]
+        parent = OmegaConf.select(cfg, parent_key, default=None) if parent_key else cfg
+        entries = OmegaConf.to_container(parent, resolve=False) if isinstance(parent, DictConfig) else None
+        named = bool(entries) and all(isinstance(value, dict) for value in entries.values())
+        if not named:
+            return (f"+{key}: no such setting in conf/{config_name}.yaml; a setting added with '+' would be read "
+                    f"by nothing (`--cfg job` prints every setting)")
     return None
 
 

@@ -43,3 +43,17 @@ def test_the_sweep_without_out_is_a_users_mistake_not_hydras_trace(tmp_path):
                          capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert run.returncode == 1 and run.stderr.strip() == f"error: {tmp_path / 'none.pt'}: checkpoint file is missing"
     assert not (tmp_path / "runs").exists()
+
+
+def test_a_key_added_with_a_plus_is_refused_among_settings_and_allowed_among_named_entries():
+    from dagr_lite.apps.cli import composition_problem
+    for override in ("+loader.batchsize=8", "+sed=1", "++trainer.max_minute=5", "+nothing.here=1", "+model.sizes.s.x=1"):
+        key = override.lstrip("+").split("=")[0]
+        assert composition_problem("train", [override]) == (
+            f"+{key}: no such setting in conf/train.yaml; a setting added with '+' would be read by nothing "
+            "(`--cfg job` prints every setting)")
+    # a size of one's own, chosen by name: model.sizes holds named entries only
+    assert composition_problem("train", ["+model.sizes.l={image_width:32,event_channels:[24,48,72,96],head_hidden:128}",
+                                         "model.size=l"]) is None
+    assert composition_problem("train", ["++trainer.max_minutes=5"]) is None  # there already: ++ sets it
+    assert "already" in composition_problem("train", ["+trainer.max_minutes=5"])  # Hydra's own refusal

@@ -576,6 +576,7 @@ def test_a_setting_or_option_that_does_not_exist_is_one_line_and_leaves_no_folde
         "loader.batchsize=8": "error: loader.batchsize: no such setting in conf/train.yaml (`--cfg job` prints every setting)",
         "model=event_only": "error: model=event_only: no such option; model is one of events_only, hybrid, image_only",
         "seed=[1": "error: the command line cannot be read: no viable alternative at input '[1'",
+        "+loader.batchsize=8": "error: +loader.batchsize: no such setting in conf/train.yaml; a setting added with '+'",
     }
     for argument, message in cases.items():
         run = subprocess.run([sys.executable, str(repo / "train.py"), argument], capture_output=True, text=True,
