@@ -133,7 +133,17 @@ class CocoEvaluator:
 
 
 def format_metrics(metrics: dict[str, float]) -> str:
-    """A one-table summary of the metrics."""
+    """A one-table summary of the metrics; a metric with nothing to measure (COCO's -1) reads ``n/a``,
+    and a line under the table says why."""
     head = " ".join(f"{key:>7s}" for key in METRIC_KEYS)
-    values = " ".join(f"{metrics[key]:7.4f}" for key in METRIC_KEYS)
-    return f"{head}\n{values}"
+    values = " ".join(f"{'n/a':>7s}" if metrics[key] == -1 else f"{metrics[key]:7.4f}" for key in METRIC_KEYS)
+    unmeasured = [key for key in METRIC_KEYS if metrics[key] == -1]
+    if not unmeasured:
+        return f"{head}\n{values}"
+    sizes = {"APs": "small (area under 32x32 pixels)", "APm": "medium (area 32x32 to 96x96)",
+             "APl": "large (area over 96x96)"}
+    if set(unmeasured) <= set(sizes):
+        why = "no ground-truth box is " + " or ".join(sizes[key] for key in unmeasured)
+    else:
+        why = "no ground-truth box at all"
+    return f"{head}\n{values}\nn/a: {', '.join(unmeasured)}: {why} (-1 in metrics.json, as in COCO)"

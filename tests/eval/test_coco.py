@@ -6,7 +6,7 @@ import pytest
 from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
-from dagr_lite.eval.coco import METRIC_KEYS, CocoEvaluator
+from dagr_lite.eval.coco import METRIC_KEYS, CocoEvaluator, format_metrics
 
 
 def test_a_perfect_detector_scores_one():
@@ -38,6 +38,23 @@ def test_no_detections_and_no_ground_truth_are_defined():
     empty.add("v_frame_0", 50, 50, np.zeros((0, 4)), [[0, 0, 10, 10]], [0.5])
     assert all(v == -1.0 for v in empty.compute().values())
     assert all(v == -1.0 for v in CocoEvaluator().compute().values())
+
+
+def test_the_printed_table_says_which_metrics_had_nothing_to_measure_and_why():
+    ev = CocoEvaluator()
+    ev.add("v_frame_0", 100, 100, [[0, 0, 40, 40]], [[4, 0, 44, 40]], [0.9])  # one medium box
+    lines = format_metrics(ev.compute()).splitlines()
+    assert lines[0].split() == list(METRIC_KEYS)
+    values = dict(zip(METRIC_KEYS, lines[1].split()))
+    assert values["APs"] == values["APl"] == "n/a" and values["APm"] == "0.7000"
+    assert lines[2] == ("n/a: APs, APl: no ground-truth box is small (area under 32x32 pixels) or large "
+                        "(area over 96x96) (-1 in metrics.json, as in COCO)")
+    empty = CocoEvaluator()
+    empty.add("v_frame_0", 50, 50, np.zeros((0, 4)), [[0, 0, 10, 10]], [0.5])
+    assert format_metrics(empty.compute()).splitlines()[2].endswith("no ground-truth box at all (-1 in metrics.json, "
+                                                                    "as in COCO)")
+    whole = {key: 0.5 for key in METRIC_KEYS}
+    assert len(format_metrics(whole).splitlines()) == 2 and "n/a" not in format_metrics(whole)
 
 
 def reference_stats(images, gts, dets):
