@@ -262,6 +262,27 @@ def check_labels(root: Path, videos: dict[str, tuple[int, tuple[int, int] | None
     return problems
 
 
+def convention_lines(conventions: dict[Path, str | None]) -> list[str]:
+    """What ``check`` prints of the files' frame-time conventions: one line counting each, then a line
+    for each file whose ``timeidx`` is not this package's own (``round``) or could not be told."""
+    if not conventions:
+        return []
+    counts: dict[str, int] = {}
+    for convention in conventions.values():
+        name = (convention or "not determined").split(" ")[0]
+        counts[name] = counts.get(name, 0) + 1
+    known = {"round": "round(1e6 * k / fps), as this package writes", "truncate": "int(1e6 * k / fps), the reference "
+             "loader's", "not determined": "timeidx has a problem listed below"}
+    order = [*known, *sorted(set(counts) - set(known))]
+    parts = [f"{name} in {counts[name]} file{'s' * (counts[name] > 1)} ({known.get(name, name)})"
+             for name in order if name in counts]
+    lines = [f"frame times (timeidx): {'; '.join(parts)}. Each file is read in its own convention, so a mix is no "
+             f"problem"]
+    lines += [f"{path}: frame times (timeidx): {convention or 'not determined'}"
+              for path, convention in conventions.items() if convention is None or not convention.startswith("round")]
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m dagr_lite.data.check", description=__doc__.splitlines()[0])
     parser.add_argument("root", type=Path, help="dataset folder holding train/, valid/, test/ and bounding_boxes.json")
@@ -273,8 +294,8 @@ def main(argv: list[str] | None = None) -> int:
     conventions: dict[Path, str | None] = {}
     problems = check_dataset(args.root, fps=args.fps, decode_frames=args.decode_frames, progress=True,
                              conventions=conventions)
-    for path, convention in conventions.items():
-        print(f"{path}: frame times (timeidx): {convention or 'not determined'}")
+    for line in convention_lines(conventions):
+        print(line)
     for problem in problems[: args.max_report]:
         print(problem)
     if len(problems) > args.max_report:
