@@ -7,7 +7,7 @@ from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "dagr_lite"
 # Bottom to top: a part may import the parts before it, never one after it.
-LAYERS = ("errors", "graph", "data", "synth", "nn", "eval", "config", "engine", "stream", "camera", "apps")
+LAYERS = ("errors", "progress", "graph", "data", "synth", "nn", "eval", "config", "engine", "stream", "camera", "apps")
 
 
 def part_of(module: str) -> str | None:

@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from PIL import Image
-from tqdm import tqdm
 
 from dagr_lite.camera.render import render_moment
 from dagr_lite.apps.cli import hydra_command
@@ -29,6 +28,7 @@ from dagr_lite.data.frames import list_frames, read_frame
 from dagr_lite.data.labels import list_videos
 from dagr_lite.data.writer import temporary_name
 from dagr_lite.engine.runs import resolve_device
+from dagr_lite.progress import progress_bar
 from dagr_lite.stream import StreamingDetector
 
 FORMATS = {".webp": "WEBP", ".gif": "GIF"}
@@ -121,7 +121,7 @@ def demo(cfg: DictConfig) -> dict:
     stops = sorted(set(np.arange(t_first + step_us, t_last + 1e-6, step_us).tolist()) | set(strip_times))
     frames, strip, latencies = [], [], []
     pushed_until, image_k = t_first, -1
-    for now in tqdm(stops, desc=f"streaming {rec.video} at {cfg.rate_hz:g} Hz", unit="update"):
+    for now in progress_bar(stops, desc=f"streaming {rec.video} at {cfg.rate_hz:g} Hz", unit="update"):
         tic = time.perf_counter()
         while image_k + 1 < len(rec.frames) and rec.frame_times[image_k + 1] <= now:
             image_k += 1

@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from dagr_lite.errors import UserError
 from dagr_lite.apps.cli import user_errors
@@ -37,6 +36,7 @@ from dagr_lite.data.writer import write_labels, write_text_atomically
 from dagr_lite.eval.coco import CocoEvaluator
 from dagr_lite.eval.operating import SCORE_THRESHOLDS, best_score
 from dagr_lite.nn.head import postprocess
+from dagr_lite.progress import progress_bar
 
 # The labeller's detections: boxes from this score, NMS at this IoU (then best_threshold picks the score kept).
 LABEL_SCORE = 0.01
@@ -108,7 +108,7 @@ def predict_all(checkpoint: Path, root: Path, videos: dict[str, str], *, batch_s
 
     model = load_checkpoint(checkpoint).model().eval()
     out = {}
-    for video, split in tqdm(videos.items(), desc="predicting", unit="video"):
+    for video, split in progress_bar(videos.items(), desc="predicting", unit="video"):
         count = len(list_frames(fmt.frames_dir(root, split, video)))
         out[video] = {}
         for start in range(0, count, batch_size):

@@ -13,12 +13,12 @@ import json
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from dagr_lite.errors import UserError
 from dagr_lite.apps.event_rate import BIN_US, rate_picture
 from dagr_lite.camera.detect import CLOCK_JUMP_US
 from dagr_lite.camera.recording import open_recording
+from dagr_lite.progress import progress_bar
 
 HOT_PIXELS = 10  # the hottest pixels listed
 
@@ -35,7 +35,7 @@ def recording_stats(path: Path | str, out: Path | str, *, size: tuple[int, int] 
     counts = {"on": np.zeros(0, np.int64), "off": np.zeros(0, np.int64)}  # events per 10 ms bin
     carried = np.zeros(0, np.int64)  # keys of the last microsecond read, which the next chunk may share
     jumps, skipped = [], 0  # the clock's jumps, and the time they hold (beyond one bin each) left out
-    for chunk in tqdm(rec.events(), desc=f"reading {Path(path).name}", unit=" chunk"):
+    for chunk in progress_bar(rec.events(), desc=f"reading {Path(path).name}", unit=" chunk"):
         t_raw = chunk["t"]
         t_first = int(t_raw[0]) if t_first is None else t_first
         # a stretch without events of CLOCK_JUMP_US or more is a jump of the clock (detect's rule): the

@@ -29,7 +29,6 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from tqdm import tqdm  # noqa: E402
 
 from dagr_lite.errors import UserError
 from dagr_lite.apps.cli import user_errors  # noqa: E402
@@ -39,6 +38,7 @@ from dagr_lite.data.events import EventFile
 from dagr_lite.data.frames import list_frames, read_frame
 from dagr_lite.data.labels import list_videos, read_labels
 from dagr_lite.eval.fast_coco import coco_stats
+from dagr_lite.progress import progress_bar  # noqa: E402
 
 READ_US = 1_000_000  # events are read this much at a time
 WINDOW_US = fmt.DEFAULT_WINDOW_US  # the events drawn before a frame
@@ -226,7 +226,7 @@ def dataset_stats(root: Path | str, out: Path | str, *, videos: list[str] | None
     if unknown:
         raise UserError(f"{root}: videos {unknown} are not in the dataset (it holds {sorted(found)})")
     per_video, all_counts, names = {}, {}, []
-    for video in tqdm(chosen, desc="videos", unit="video"):
+    for video in progress_bar(chosen, desc="videos", unit="video"):
         per_video[video], all_counts[video] = video_stats(root, found[video], video, labels.get(video, {}), fps)
     short = {v: r["frames"] for v, r in per_video.items() if frame is not None and not 0 <= frame < r["frames"]}
     if pictures and short:  # checked before anything is written

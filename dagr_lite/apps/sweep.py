@@ -26,7 +26,6 @@ import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from scipy.optimize import linear_sum_assignment
 from torch.utils.data import Dataset
-from tqdm import tqdm
 
 from dagr_lite.apps.cli import hydra_command
 from dagr_lite.config import ConfigError, build_dataset, resolve_config
@@ -41,6 +40,7 @@ from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.eval.score import detections_of, score_entries
 from dagr_lite.nn.detector import Detector
 from dagr_lite.nn.head import box_iou
+from dagr_lite.progress import progress_bar
 from dagr_lite.stream import StreamingDetector
 
 # Boxes of frames k and k + 1 are the same hand when their IoU is at least this (after the best one-to-one match).
@@ -113,7 +113,7 @@ def streamed_detections(model: Detector, dataset: EventEgoHands, frames: list[tu
     """
     entries = []
     height, width = dataset.image_size
-    for v, k in tqdm(frames, desc=desc, leave=False, disable=not progress):
+    for v, k in progress_bar(frames, desc=desc, leave=False, disable=not progress):
         boxes, t_end = point_truth(dataset, v, k, fraction)
         image_frame = k - age
         t_image = dataset.frame_time_us(v, image_frame)

@@ -23,12 +23,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from dagr_lite.errors import UserError
 from dagr_lite.camera.recording import Events, concat, take
 from dagr_lite.camera.render import Mp4Writer, render_moment
 from dagr_lite.camera.sensor import Sensor, fit_sensor
+from dagr_lite.progress import progress_bar
 from dagr_lite.stream import StreamingDetector
 
 # A stretch of the recording's clock this long without an event is a jump (a clock reset, a
@@ -156,8 +156,8 @@ def run_detect(stream: StreamingDetector, source, sensor: Sensor, out: Path | st
     previous = _catch_sigterm()
     try:
         runner = _Runner(stream, sensor, output, 1e6 / rate_hz, live, source.frames())
-        bar = tqdm(desc=f"detect {Path(str(source.path)).name}", unit=" ev", unit_scale=True,
-                   disable=not progress or live)
+        bar = progress_bar(desc=f"detect {Path(str(source.path)).name}", unit=" ev", unit_scale=True,
+                           disable=not progress or live)
         for chunk in source.events():
             bar.update(len(chunk["t"]))
             if seconds is not None:  # the events of the first ``seconds`` only, wherever a chunk ends

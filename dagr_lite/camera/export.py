@@ -16,13 +16,13 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from tqdm import tqdm
 
 from dagr_lite.errors import UserError
 from dagr_lite.camera.aedat import write_aedat4
 from dagr_lite.camera.recording import open_recording
 from dagr_lite.data import format as fmt
 from dagr_lite.data.labels import list_videos
+from dagr_lite.progress import progress_bar
 
 TARGETS = {"aedat4": ".aedat4", "evt2": ".evt2.raw", "evt3": ".evt3.raw", "dat": ".dat", "es": ".es",
            "csv": ".csv", "mp4": ".mp4"}
@@ -108,7 +108,7 @@ def export_dataset(root: Path | str, out: Path | str, targets: list[str], videos
     if missing:
         raise UserError(f"{root}: videos {missing} are not in the dataset (it holds {sorted(found)})")
     written, kept = [], []
-    for video in tqdm(chosen, desc="export", unit="video"):
+    for video in progress_bar(chosen, desc="export", unit="video"):
         (out / found[video]).mkdir(parents=True, exist_ok=True)
         new, old = export_video(fmt.events_path(root, found[video], video), out / found[video] / video, targets)
         written, kept = written + new, kept + old

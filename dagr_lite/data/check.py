@@ -15,13 +15,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.errors import DatasetFormatError, Problem
 from dagr_lite.data.events import fits_neither_message, header_problems, open_h5, polarity_problem
 from dagr_lite.data.frames import frame_header_problems, jpeg_size, list_frames, read_frame
 from dagr_lite.data.labels import box_problems, list_videos, load_labels_json, parse_boxes
+from dagr_lite.progress import progress_bar
 
 BLOCK_EVENTS = 1 << 22
 
@@ -192,7 +192,7 @@ def check_dataset(root: Path | str, *, fps: float = fmt.DEFAULT_FPS, decode_fram
             names = sorted(p.name[: -len(fmt.EVENTS_SUFFIX)] for p in events_dir.glob("*" + fmt.EVENTS_SUFFIX)
                            if fmt.frames_dir(root, split, p.name[: -len(fmt.EVENTS_SUFFIX)]).is_dir())
         jobs += [(split, name) for name in names]
-    for split, video in tqdm(jobs, desc="checking videos", disable=not progress):
+    for split, video in progress_bar(jobs, desc="checking videos", disable=not progress):
         if video in videos:
             problems.append(Problem(fmt.events_path(root, split, video), "", "video name appears in two splits"))
         num_frames = None

@@ -11,7 +11,6 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig
 from torch.utils.data import DataLoader, Subset
-from tqdm import tqdm
 
 from dagr_lite.errors import UserError
 from dagr_lite.config import FIRST_PHASES, ConfigError, TrainerSettings, build_dataset
@@ -24,6 +23,7 @@ from dagr_lite.engine.loading import EpochSampler, RunSampler, ShardSampler, mak
 from dagr_lite.engine.state import TrainState, train_step, validation_pass
 from dagr_lite.eval.operating import NMS_IOUS, OperatingPoint, choose_operating_point
 from dagr_lite.eval.score import render_sample
+from dagr_lite.progress import progress_bar, say
 
 
 @dataclass
@@ -215,8 +215,8 @@ class TrainLoop:
         if self.graphs is not None:
             self.graphs.building = not self.in_phase
         by_time = self.clock.by_time  # then the bar counts steps and shows the time left
-        bar = tqdm(total=None if by_time else self.total, initial=state.step, desc="training", unit="step",
-                   disable=not self.place.is_main)
+        bar = progress_bar(total=None if by_time else self.total, initial=state.step, desc="training", unit="step",
+                           disable=not self.place.is_main)
         if state.step >= self.total or self.clock.spent():  # resumed at the end
             bar.close()
             return self.metrics if self.metrics is not None else self.save_and_validate()
@@ -232,7 +232,7 @@ class TrainLoop:
                 self.epoch, self.offset = self.epoch + 1, 0
             self.losses.append(float(out["loss"]))
             bar.update(1)
-            bar.set_postfix(loss=f"{self.losses[-1]:.3f}", lr=f"{state.lr:.2e}",
+            bar.set_postfix(loss=f"{self.losses[-1]:.3f}", lr=f"{state.lr:.2e}", refresh=False,  # drawn with the count
                             **({"left": f"{self.clock.left_s():.0f}s"} if by_time else {}))
             self.log(out, batch)
             if broadcast_object(self.terminated, self.place):
@@ -244,7 +244,7 @@ class TrainLoop:
             if in_phase and not self.in_phase and self.place.is_main:
                 joins = {"events_first": "the image joins", "image_first": "the events join",
                          "dense_first": "the graph joins"}[self.first_key]
-                print(f"step {state.step}: {joins} (trainer.{self.first_key}={self.first_fraction})", flush=True)
+                say(f"step {state.step}: {joins} (trainer.{self.first_key}={self.first_fraction})")
             if state.step % self.val_every == 0 or state.step == self.total or out_of_time:
                 self.save_and_validate()
             elif self.checkpoint_due():
@@ -276,7 +276,7 @@ class TrainLoop:
         spent = elapsed if self.clock.by_time else elapsed - self.clock.before_s
         over = minutes is not None and spent > 60 * minutes
         if over and self.place.is_main:
-            print(f"trainer.max_minutes={minutes} reached at step {self.state.step}", flush=True)
+            say(f"trainer.max_minutes={minutes} reached at step {self.state.step}")
         return over
 
     def checkpoint_due(self) -> bool:
@@ -339,7 +339,7 @@ class TrainLoop:
             self.save("best.pt")
         if self.place.is_main:
             ages = "  ".join(f"age {a}: mAP {v['mAP']:.4f} AP50 {v['AP50']:.4f}" for a, v in per_age.items())
-            print(f"step {state.step}: val {ages}; operating point {self.operating.describe()}", flush=True)
+            say(f"step {state.step}: val {ages}; operating point {self.operating.describe()}")
         self.metrics = metrics
         return metrics
 

@@ -8,11 +8,11 @@ import torch
 from PIL import Image, ImageDraw
 from torch import nn
 from torch.utils.data import DataLoader
-from tqdm import tqdm
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.collate import Batch
 from dagr_lite.eval.coco import CocoEvaluator
+from dagr_lite.progress import progress_bar
 
 
 def score_model(model: nn.Module, loader: DataLoader, device: torch.device, *, backend: str,
@@ -40,7 +40,7 @@ def detection_sets(model: nn.Module, loader: DataLoader, device: torch.device, s
     was_training = model.training
     model.eval()
     sets: dict = {key: [] for key in settings}
-    for batch in tqdm(loader, desc=desc, leave=False, disable=not progress):
+    for batch in progress_bar(loader, desc=desc, leave=False, disable=not progress):
         batch = batch.to(device)
         raw, shapes, _ = model.outputs(batch)
         height, width = batch.images.shape[-2:]

@@ -33,7 +33,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
@@ -41,6 +40,7 @@ from dagr_lite.data.errors import DatasetFormatError
 from dagr_lite.data.frames import frame_size
 from dagr_lite.data.labels import read_json_object, read_label_file
 from dagr_lite.data.writer import VideoWriter, write_labels, write_text_atomically
+from dagr_lite.progress import progress_bar
 from dagr_lite.synth.dvs import PRESETS, DVSParams, preset
 from dagr_lite.synth.egohands import (EGOHANDS_HEIGHT, EGOHANDS_WIDTH, Labeller, default_split, interpolate_labels,
                                       load_metadata)
@@ -154,7 +154,7 @@ def build(jobs: list[VideoJob], out: Path | str, settings: BuildSettings, *, pro
     """
     out = Path(out)
     info = _start_build(jobs, out, settings)
-    for job in tqdm(jobs, desc="videos", unit="video", disable=not progress):
+    for job in progress_bar(jobs, desc="videos", unit="video", disable=not progress):
         if _finished_split(out, job.name) is not None:
             if job.name not in info["videos"]:  # finished, but the run stopped before recording it
                 info["videos"][job.name] = {"split": job.split, "dvs_model": settings.model_for(job.name)}
@@ -213,8 +213,8 @@ def _emulate_job(job: VideoJob, source, out: Path, settings: BuildSettings, info
     writer = VideoWriter(out, job.split, job.name, num_frames=source.num_frames, height=source.height,
                          width=source.width, fps=settings.fps, compression=settings.compression)
     try:
-        with tqdm(total=source.num_frames - 1, desc=job.name, unit="frame", leave=False,
-                  disable=not progress) as bar:
+        with progress_bar(total=source.num_frames - 1, desc=job.name, unit="frame", leave=False,
+                          disable=not progress) as bar:
             count = emulate_video(source, writer, params=settings.params(model), upsample=settings.upsample,
                                   fps=settings.fps, seed=settings.video_seed(job.name), progress=bar.update)
         if count == 0:

@@ -22,11 +22,11 @@ from typing import Callable
 
 import numpy as np
 from scipy.ndimage import zoom as nd_zoom
-from tqdm import tqdm
 
 from dagr_lite.data import format as fmt
 from dagr_lite.data.writer import VideoWriter, write_labels
 from dagr_lite.graph.compiled import threads_for
+from dagr_lite.progress import progress_bar
 from dagr_lite.synth.dvs import preset
 from dagr_lite.synth.video import emulate_video
 
@@ -273,7 +273,7 @@ def write_scenes(out: Path | str, scene_of: Callable[[int], "HandScene"], prefix
     out = Path(out)
     jobs = [(split, f"{prefix}_{index:03d}", index) for index, split in enumerate(split_of_videos(splits))]
     write = partial(_write_video, out, scene_of=scene_of, upsample=upsample, seed=seed, compression=compression)
-    bar = tqdm(total=len(jobs), desc=f"{prefix} videos", unit="video", disable=not progress)
+    bar = progress_bar(total=len(jobs), desc=f"{prefix} videos", unit="video", disable=not progress)
     labels = {}
     count = generation_workers(len(jobs), workers)
     if count == 1:

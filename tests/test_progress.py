@@ -1,0 +1,48 @@
+"""Progress bars drawn for a terminal or for a log file."""
+from __future__ import annotations
+
+import io
+
+from dagr_lite.progress import LOG_INTERVAL_S, progress_bar
+
+
+class Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_a_bar_in_a_log_file_redraws_at_the_log_interval_and_a_passing_bar_inside_another_is_not_drawn():
+    log = io.StringIO()
+    outer = progress_bar(total=100, desc="training", file=log)
+    assert (outer.mininterval, outer.maxinterval, outer.disable) == (LOG_INTERVAL_S, LOG_INTERVAL_S, False)
+    inner = progress_bar(range(50), desc="validating", leave=False, file=log)
+    assert inner.disable
+    assert list(inner) == list(range(50))  # a bar not drawn still yields every item
+    for _ in range(100):
+        outer.update(1)
+        outer.set_postfix(loss="1.0", refresh=False)
+    outer.close()
+    assert log.getvalue().count("training") <= 3  # the first draw, the last, and at most one between
+    alone = progress_bar(range(3), desc="evaluating", leave=False, file=io.StringIO())
+    assert not alone.disable  # a passing bar with none around it is drawn
+    alone.close()
+
+
+def test_a_bar_on_a_terminal_keeps_tqdms_defaults():
+    screen = Terminal()
+    outer = progress_bar(total=10, desc="training", file=screen)
+    inner = progress_bar(range(5), leave=False, file=screen)
+    assert outer.mininterval == 0.1 and not inner.disable
+    inner.close()
+    outer.close()
+
+
+def test_a_message_while_a_bar_is_drawn_is_a_line_of_its_own(capsys):
+    from dagr_lite.progress import say
+    log = io.StringIO()
+    bar = progress_bar(total=10, desc="training", file=log)
+    bar.update(3)
+    say("step 3: the graph joins")
+    bar.close()
+    assert capsys.readouterr().out == "step 3: the graph joins\n"
+    assert log.getvalue().count("training") >= 2  # the bar is drawn again after the message
