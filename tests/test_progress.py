@@ -38,11 +38,20 @@ def test_a_bar_on_a_terminal_keeps_tqdms_defaults():
 
 
 def test_a_message_while_a_bar_is_drawn_is_a_line_of_its_own(capsys):
+    """The bar on stderr (captured: not a terminal) is cleared before the message and drawn again after it."""
+    import sys
+
     from dagr_lite.progress import say
-    log = io.StringIO()
-    bar = progress_bar(total=10, desc="training", file=log)
-    bar.update(3)
-    say("step 3: the graph joins")
-    bar.close()
-    assert capsys.readouterr().out == "step 3: the graph joins\n"
-    assert log.getvalue().count("training") >= 2  # the bar is drawn again after the message
+
+    def run(message: str | None) -> tuple[str, str]:
+        bar = progress_bar(total=10, desc="training", file=sys.stderr)
+        bar.update(3)
+        if message:
+            say(message)
+        bar.close()
+        return capsys.readouterr()
+
+    quiet, told = run(None), run("step 3: the graph joins")
+    assert told.out == "step 3: the graph joins\n" and quiet.out == ""
+    assert told.err.count("training") == quiet.err.count("training") + 1  # drawn again after the message
+    assert told.err.count("\r") > quiet.err.count("\r")  # and cleared before it

@@ -140,7 +140,10 @@ def added_setting_problem(config_name: str, overrides: list[str]) -> str | None:
     keys = [k for k in keys if "/" not in k and "@" not in k and not (CONF_DIR / k.replace(".", "/")).is_dir()]
     if not keys:  # none, or config groups' options (Hydra checks those)
         return None
-    cfg = compose_config(config_name, [o for o in overrides if o not in added])
+    try:
+        cfg = compose_config(config_name, [o for o in overrides if o not in added])
+    except Exception:  # other overrides reach into what the '+' ones add: Hydra judges the whole line
+        return None
     for key in keys:
         if OmegaConf.select(cfg, key, default=_ABSENT) is not _ABSENT:
             continue  # there already: `+` is Hydra's error to give, `++` sets it

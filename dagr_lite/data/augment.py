@@ -112,11 +112,11 @@ def _taps(first, count, shift, scale, size):  # pragma: no cover - compiled
 
 @numba.njit(**KERNEL)
 def _move_events(events, flip, width, warp, scale, tx, ty, x0, y0, out_width, out_height, out):  # pragma: no cover
-    """Writes to ``out`` the rows of ``events (N, 4)`` float32 as :func:`hflip` (``flip``, a frame
-    ``width`` wide), :func:`zoom_translate` (``warp``: ``scale, tx, ty``, float32) and :func:`crop` (whole
+    """Writes to ``out`` the rows of ``events (N, 4)`` as :func:`hflip` (``flip``, a frame
+    ``width`` wide), :func:`zoom_translate` (``warp``: ``scale, tx, ty``) and :func:`crop` (whole
     offsets ``x0, y0``, an ``out_width x out_height`` frame) leave them, operation for operation in
-    float32: events whose pixel centre lies in the output frame, clamped to its pixels; returns how
-    many."""
+    the events' precision (``scale, tx, ty`` given in it): events whose pixel centre lies in the
+    output frame, clamped to its pixels; returns how many."""
     half = np.float32(0.5)
     mirror = np.float32(width - 1)
     shift_x, shift_y = np.float32(x0), np.float32(y0)
@@ -280,8 +280,9 @@ class TrainAugment:
         scale, tx, ty = warp if warp is not None else (1.0, 0.0, 0.0)
         events = sample.events.contiguous().numpy()
         out = np.empty_like(events)
-        kept = _move_events(events, flip, sample.width, warp is not None, np.float32(scale), np.float32(tx),
-                            np.float32(ty), x0, y0, width, height, out)
+        real = events.dtype.type  # the factors in the events' own precision, as torch applies a Python float
+        kept = _move_events(events, flip, sample.width, warp is not None, real(scale), real(tx), real(ty), x0, y0,
+                            width, height, out)
         boxes = moved.boxes - torch.tensor([x0, y0, x0, y0], dtype=moved.boxes.dtype)  # (M, 4)
         sample = _boxes_inside(moved.replace(image=image, events=torch.from_numpy(out[:kept])), boxes, width,
                                height, self.min_box_size)

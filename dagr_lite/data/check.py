@@ -269,7 +269,7 @@ def convention_lines(conventions: dict[Path, str | None]) -> list[str]:
         return []
     counts: dict[str, int] = {}
     for convention in conventions.values():
-        name = (convention or "not determined").split(" ")[0]
+        name = convention.split(" ")[0] if convention else "not determined"
         counts[name] = counts.get(name, 0) + 1
     known = {"round": "round(1e6 * k / fps), as this package writes", "truncate": "int(1e6 * k / fps), the reference "
              "loader's", "not determined": "timeidx has a problem listed below"}

@@ -231,9 +231,9 @@ class TrainLoop:
             if self.offset >= self.epoch_samples:
                 self.epoch, self.offset = self.epoch + 1, 0
             self.losses.append(float(out["loss"]))
-            bar.update(1)
             bar.set_postfix(loss=f"{self.losses[-1]:.3f}", lr=f"{state.lr:.2e}", refresh=False,  # drawn with the count
                             **({"left": f"{self.clock.left_s():.0f}s"} if by_time else {}))
+            bar.update(1)
             self.log(out, batch)
             if broadcast_object(self.terminated, self.place):
                 self.stop_on_signal(bar)

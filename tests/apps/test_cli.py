@@ -55,5 +55,7 @@ def test_a_key_added_with_a_plus_is_refused_among_settings_and_allowed_among_nam
     # a size of one's own, chosen by name: model.sizes holds named entries only
     assert composition_problem("train", ["+model.sizes.l={image_width:32,event_channels:[24,48,72,96],head_hidden:128}",
                                          "model.size=l"]) is None
+    assert composition_problem("train", ["+model.sizes.l={image_width:32,event_channels:[24,48,72,96],head_hidden:128}",
+                                         "model.sizes.l.head_hidden=64", "model.size=l"]) is None  # into what + adds
     assert composition_problem("train", ["++trainer.max_minutes=5"]) is None  # there already: ++ sets it
     assert "already" in composition_problem("train", ["+trainer.max_minutes=5"])  # Hydra's own refusal

@@ -272,6 +272,40 @@ def test_the_warp_is_torchs_bilinear_grid_sample_within_one_grey_level_and_mirro
                            warp_image(image.flip(-1), scale, tx, ty)[:, 5:25, 3:43])
 
 
+def test_float64_events_move_in_float64_as_the_reference_functions_move_them():
+    aug = TrainAugment(flip_prob=0.5, zoom=(1.0, 1.5), translate=0.1, min_box_size=2.0, image_dropout=0.0,
+                       event_drop=0.0, crop=0.5, crop_multiple=32, crop_boxes=0.75)
+    for seed in range(8):
+        sample = textured_sample(np.random.default_rng(seed), channels=3)
+        sample = sample.replace(events=sample.events.double() + 0.123456789)  # digits float32 would round away
+        fast = aug(sample, np.random.default_rng([seed, 3]))
+        rng = np.random.default_rng([seed, 3])
+        ref = hflip(sample) if rng.random() < 0.5 else sample
+        scale = float(rng.uniform(1.0, 1.5))
+        offsets = [rng.uniform(min(0.0, s * (1 - scale)), max(0.0, s * (1 - scale))) + rng.uniform(-0.1, 0.1) * s
+                   for s in (ref.width, ref.height)]
+        ref = zoom_translate(ref, scale, offsets[0], offsets[1], min_box_size=2.0, image=False, crop_follows=True)
+        x0, y0, w, h = aug._crop_place(ref, rng)
+        ref = crop(ref, x0, y0, w, h, min_box_size=2.0)
+        assert fast.events.dtype == torch.float64 and torch.equal(fast.events, ref.events)
+
+
+def test_boxes_are_clipped_and_thin_ones_dropped_as_a_plain_reference_does():
+    """The NumPy clip and filter against the same steps written out in torch."""
+    rng = np.random.default_rng(11)
+    for _ in range(50):
+        boxes = torch.from_numpy(rng.uniform(-30, 160, (6, 4)).astype(np.float32))
+        boxes[:, 2:] = boxes[:, :2] + torch.from_numpy(rng.uniform(0, 40, (6, 2)).astype(np.float32))
+        sample = textured_sample(rng, channels=3, boxes=6)
+        sample = sample.replace(labels=torch.arange(6))
+        out = zoom_translate(sample.replace(boxes=boxes), 1.0, 0.0, 0.0, min_box_size=2.0)
+        ref = boxes.clone()
+        ref[:, [0, 2]] = ref[:, [0, 2]].clamp(0, 128)
+        ref[:, [1, 3]] = ref[:, [1, 3]].clamp(0, 72)
+        keep = ((ref[:, 2] - ref[:, 0]) >= 2.0) & ((ref[:, 3] - ref[:, 1]) >= 2.0)
+        assert torch.equal(out.boxes, ref[keep]) and torch.equal(out.labels, torch.arange(6)[keep])
+
+
 def test_the_augmentation_of_whole_frames_is_the_reference_functions_to_the_bit():
     """``crop: 1``: a flip, then a zoom and translation of the whole frame (or none)."""
     for zoom, translate in (((1.0, 1.5), 0.1), ((1.0, 1.0), 0.0)):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from dagr_lite.data import format as fmt
-from dagr_lite.data.check import check_dataset, main
+from dagr_lite.data.check import check_dataset, convention_lines, main
 from dagr_lite.data.errors import DatasetFormatError
 from dagr_lite.data.events import EventFile, MAX_CONVENTION_PROBES, probe_frames
 from dagr_lite.data.writer import write_events
@@ -171,6 +171,10 @@ def test_dataset_and_check_use_each_files_own_convention(tmp_path, capsys):
             "in 1 file (int(1e6 * k / fps), the reference loader's). Each file is read in its own convention, so a mix "
             "is no problem\n") in out
     assert written.frames.keys() == videos.keys()
+    undetermined = convention_lines({tmp_path / "a.h5": "round", tmp_path / "b.h5": None})
+    assert undetermined[0].startswith("frame times (timeidx): round in 1 file (round(1e6 * k / fps), as this package "
+                                      "writes); not determined in 1 file (timeidx has a problem listed below).")
+    assert undetermined[1:] == [f"{tmp_path / 'b.h5'}: frame times (timeidx): not determined"]
 
 
 def test_opening_reads_only_a_bounded_part_of_t(tmp_path):
