@@ -26,9 +26,19 @@ def hflip(sample: Sample) -> Sample:
     width = sample.width
     events = sample.events.clone()  # (N, 4)
     events[:, 0] = (width - 1) - events[:, 0]
-    boxes = sample.boxes.clone()  # (M, 4)
-    boxes[:, [0, 2]] = width - sample.boxes[:, [2, 0]]
-    return sample.replace(events=events, image=sample.image.flip(-1), boxes=boxes)
+    return sample.replace(events=events, image=sample.image.flip(-1), boxes=flipped_boxes(sample.boxes, width))
+
+
+def flipped_boxes(boxes: torch.Tensor, width: int) -> torch.Tensor:
+    """``boxes (M, 4)`` xyxy mirrored left-right in a frame ``width`` wide (a new tensor)."""
+    out = boxes.clone()
+    out[:, [0, 2]] = width - boxes[:, [2, 0]]
+    return out
+
+
+def zoomed_boxes(boxes: torch.Tensor, scale: float, tx: float, ty: float) -> torch.Tensor:
+    """``boxes (M, 4)`` xyxy mapped by ``u -> scale * u + (tx, ty)`` (a new tensor, not yet clipped)."""
+    return boxes * scale + torch.tensor([tx, ty, tx, ty], dtype=torch.float32)
 
 
 def zoom_translate(sample: Sample, scale: float, tx: float, ty: float, *, min_box_size: float = 2.0,
@@ -48,7 +58,7 @@ def zoom_translate(sample: Sample, scale: float, tx: float, ty: float, *, min_bo
     events = sample.events.clone()  # (N, 4)
     events[:, 0] = scale * (events[:, 0] + 0.5) + tx - 0.5
     events[:, 1] = scale * (events[:, 1] + 0.5) + ty - 0.5
-    boxes = sample.boxes * scale + torch.tensor([tx, ty, tx, ty], dtype=torch.float32)  # (M, 4)
+    boxes = zoomed_boxes(sample.boxes, scale, tx, ty)  # (M, 4)
     if crop_follows:
         return _boxes_inside(sample.replace(events=events), boxes, width, height, min_box_size)
     return _inside(sample, events, boxes, width, height, min_box_size)
@@ -142,16 +152,10 @@ def _move_events(events, flip, width, warp, scale, tx, ty, x0, y0, out_width, ou
 def _moved_boxes(sample: Sample, flip: bool, warp: tuple[float, float, float] | None, min_box_size: float) -> Sample:
     """The sample's boxes (and labels) as :func:`hflip` and :func:`zoom_translate` leave them (the events
     and the image are left as they were)."""
-    boxes = sample.boxes
-    if flip:
-        boxes = boxes.clone()
-        boxes[:, 0] = sample.width - sample.boxes[:, 2]
-        boxes[:, 2] = sample.width - sample.boxes[:, 0]
+    boxes = flipped_boxes(sample.boxes, sample.width) if flip else sample.boxes
     if warp is None:
         return sample.replace(boxes=boxes)
-    scale, tx, ty = warp
-    boxes = boxes * scale + torch.tensor([tx, ty, tx, ty], dtype=torch.float32)  # (M, 4)
-    return _boxes_inside(sample, boxes, sample.width, sample.height, min_box_size)
+    return _boxes_inside(sample, zoomed_boxes(boxes, *warp), sample.width, sample.height, min_box_size)
 
 
 def _inside(sample: Sample, events: torch.Tensor, boxes: torch.Tensor, width: int, height: int,
