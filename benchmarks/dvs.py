@@ -22,22 +22,27 @@ from dagr_lite.synth.stub import HandScene, generate_stub
 
 
 def plain_clean_events(frames: list[np.ndarray], times: list[float], threshold: float = 0.2):
-    """Reference: the clean model without threshold spread, one numpy pass per event rank."""
+    """Reference: the clean model without threshold spread, one numpy pass per event rank; each
+    event where the difference, linear across the step, crosses its level."""
     memory = lin_log(rgb_to_luma(frames[0]))
+    previous = memory.copy()
     out = []
     for frame, t_prev, t_now in zip(frames[1:], times[:-1], times[1:]):
         level = lin_log(rgb_to_luma(frame))
         change = level - memory
+        start = previous - memory
         counts = np.floor(np.abs(change) / threshold + 1e-9).astype(np.int64)
         xs, ys, ts, ps = [], [], [], []
         for rank in range(1, int(counts.max()) + 1 if counts.size else 1):
             y, x = np.nonzero(counts >= rank)
-            n = counts[y, x]
+            target = np.sign(change[y, x]) * rank * threshold
+            fraction = np.clip((target - start[y, x]) / (change[y, x] - start[y, x]), 0.0, 1.0)
             xs.append(x)
             ys.append(y)
-            ts.append(np.floor(t_prev + (rank - 0.5) / n * (t_now - t_prev)).astype(np.int64))
+            ts.append(np.floor(t_prev + fraction * (t_now - t_prev)).astype(np.int64))
             ps.append((change[y, x] > 0).astype(np.uint8))
         memory = memory + np.sign(change) * counts * threshold
+        previous = level
         if xs:
             t = np.concatenate(ts)
             order = np.argsort(t, kind="stable")

@@ -13,9 +13,13 @@ The model follows the published description of v2e (Hu, Liu, Delbruck, CVPR Work
 5. At each step, a pixel emits ``floor(|L - M| / theta)`` events of the sign of ``L - M``, where
    ``L`` is the filtered log intensity and ``M`` the memorised level; ``M`` moves by the emitted
    events only, so the remainder carries over to the next step.
-6. A pixel's events of one step are spread evenly across the step's interval.
-7. Optional refractory period (events closer than it to the pixel's previous event are not
-   emitted, and ``M`` does not move for them), leak events (``M`` drifts down by
+6. A pixel's events of one step are placed where its level crosses them: across the step the
+   difference ``L - M`` is taken as linear from its value at the step's start to its value at
+   the end (the leak's drift of ``M`` included), and the ``k``-th event of the step is at the
+   moment it reaches ``k`` thresholds, as ESIM places its events between two rendered frames.
+7. Optional refractory period (an event due sooner than that after the pixel's previous one is
+   emitted once the period has passed, if that is still inside the step; otherwise it is not
+   emitted in this step and ``M`` does not move for it, so it comes in a later one), leak events (``M`` drifts down by
    ``leak_rate_hz * theta_on`` per second, with a per-pixel rate spread, giving ON events at about
    ``leak_rate_hz`` per pixel in a static scene) and shot noise (Poisson ON and OFF events at
    ``shot_noise_rate_hz`` per pixel in the dark, falling to a quarter of it at full intensity;
@@ -159,6 +163,7 @@ class DVSEmulator:
         p = self.params
         luma = self._luma(frame)
         log_luma = lin_log(luma, p.lin_log_dn)  # (H, W)
+        before = self.filtered - self.memory  # (H, W) the difference at the step's start
         if p.cutoff_hz > 0:
             intensity = (luma + 20.0) / 275.0
             eps = np.minimum(dt_us * 1e-6 * 2 * math.pi * p.cutoff_hz * intensity, 1.0)
@@ -168,7 +173,7 @@ class DVSEmulator:
         if p.leak_rate_hz > 0:
             self.memory -= self.leak_rate * (dt_us * 1e-6) * self.pos_threshold
         t0 = self.t_us
-        parts = [self._change_events(t0, dt_us)]
+        parts = [self._change_events(t0, dt_us, before)]
         if p.shot_noise_rate_hz > 0:
             parts.append(self._shot_noise(luma, t0, dt_us))
         self.t_us = float(t_us)
@@ -176,7 +181,7 @@ class DVSEmulator:
         order = np.argsort(t, kind="stable")
         return {"x": x[order], "y": y[order], "t": t[order], "p": pol[order]}
 
-    def _change_events(self, t0: float, dt_us: float):
+    def _change_events(self, t0: float, dt_us: float, before: np.ndarray):
         change = self.filtered - self.memory  # (H, W)
         on = change > 0
         threshold = np.where(on, self.pos_threshold, self.neg_threshold)
@@ -186,34 +191,48 @@ class DVSEmulator:
         n = counts[ys, xs]  # (P,)
         j = _repeat_ranges(n)  # (E,) index of each event within its pixel
         pixel = np.repeat(np.arange(len(n)), n)  # (E,)
-        t = t0 + (j + 0.5) / n[pixel] * dt_us  # evenly spread inside the interval
+        sign = np.where(on[ys, xs], 1.0, -1.0)  # (P,)
+        start, end = before[ys, xs], change[ys, xs]  # (P,)
+        slope = end - start
+        level = sign[pixel] * (j + 1) * threshold[ys, xs][pixel]  # (E,) the level each event crosses
+        moving = slope[pixel] != 0
+        fraction = np.zeros(len(j))  # a flat difference: every level it holds was reached before
+        fraction[moving] = (level[moving] - start[pixel][moving]) / slope[pixel][moving]
+        t = t0 + np.clip(fraction, 0.0, 1.0) * dt_us  # (E,) increasing with j within a pixel
         if self.params.refractory_us > 0:
-            keep = self._refractory_keep(ys, xs, n, pixel, j, t0, dt_us)
+            keep = self._refractory_keep(ys, xs, n, t, t0 + dt_us)
         else:
             keep = np.ones(len(t), dtype=bool)
         emitted = np.bincount(pixel[keep], minlength=len(n))  # (P,)
-        sign = np.where(on[ys, xs], 1.0, -1.0)
         self.memory[ys, xs] += sign * emitted * threshold[ys, xs]
         t, pixel = t[keep], pixel[keep]
         if len(t):
             np.maximum.at(self.last_event_us, (ys[pixel], xs[pixel]), t)
-        return (xs[pixel], ys[pixel], np.floor(t).astype(np.int64), on[ys, xs][pixel].astype(np.uint8))
+        # Whole microseconds inside the step, [t0, t0 + dt): an event due at its very end (a level
+        # reached exactly there) is a microsecond earlier, so a frame's events all come before it.
+        stamp = np.minimum(np.floor(t), math.ceil(t0 + dt_us) - 1).astype(np.int64)
+        return (xs[pixel], ys[pixel], stamp, on[ys, xs][pixel].astype(np.uint8))
 
-    def _refractory_keep(self, ys, xs, n, pixel, j, t0: float, dt_us: float) -> np.ndarray:
-        """Which events stay at least ``refractory_us`` after the previous emitted one of their pixel.
-
-        A pixel's ``n`` events of a step are evenly spaced by ``s = dt / n``: the first one kept is
-        the first at least ``refractory_us`` after the pixel's last event, then every ``m``-th with
-        ``m = ceil(refractory_us / s)``.
-        """
+    def _refractory_keep(self, ys, xs, n, t, end_us: float) -> np.ndarray:
+        """The events a pixel emits with a refractory period, their times moved in place: in order
+        (their crossing times ``t`` rise within a pixel), each at its crossing or once the period
+        since the pixel's previous event has passed, whichever is later, while that is inside the
+        step. The rest of the pixel's events wait for a later step (``M`` has not moved for them)."""
         refractory = self.params.refractory_us
-        spacing = dt_us / n  # (P,)
-        last = self.last_event_us[ys, xs]  # (P,)
-        first = np.ceil((last + refractory - t0) / spacing - 0.5 - 1e-9)  # (P,) first index far enough
-        first = np.maximum(np.nan_to_num(first, neginf=0.0), 0).astype(np.int64)
-        every = np.maximum(np.ceil(refractory / spacing - 1e-9), 1).astype(np.int64)  # (P,)
-        offset = j - first[pixel]
-        return (offset >= 0) & (offset % every[pixel] == 0)
+        last = self.last_event_us[ys, xs].copy()  # (P,)
+        keep = np.zeros(len(t), dtype=bool)
+        first = np.cumsum(n) - n  # (P,) index of each pixel's first event
+        open_ = np.ones(len(n), dtype=bool)  # pixels that have not yet run out of the step
+        for step in range(int(n.max()) if len(n) else 0):
+            pixels = np.nonzero((n > step) & open_)[0]
+            events = first[pixels] + step
+            at = np.maximum(t[events], last[pixels] + refractory)
+            ok = at < end_us
+            t[events[ok]] = at[ok]
+            keep[events[ok]] = True
+            last[pixels[ok]] = at[ok]
+            open_[pixels[~ok]] = False
+        return keep
 
     def _shot_noise(self, luma: np.ndarray, t0: float, dt_us: float):
         """Poisson noise events, by thinning: candidates at the dark-pixel rate anywhere in the

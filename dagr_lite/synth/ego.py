@@ -28,7 +28,9 @@ from dagr_lite.synth.stub import Splits, boxes_of, cached_dataset, paint_ellipse
 from dagr_lite.synth.video import choose_dvs_model
 
 # Bump when the generated data changes, so caches made by an older recipe are not reused.
-EGO_VERSION = 3           # 3: 96 training videos, the 48 of version 2 and 48 after its test videos (valid and test
+EGO_VERSION = 4           # 4: version 3's scenes, each event at the moment its pixel's level crosses it
+                          # (synth.dvs), not at the middle of the emulator's step
+                          # 3: 96 training videos, the 48 of version 2 and 48 after its test videos (valid and test
                           # as in version 2); 2: splits of 48 / 4 / 16 (1: 16 / 3 / 4, too few test videos)
 EGO_HEIGHT, EGO_WIDTH = 180, 320
 EGO_SPLITS = (("train", 48), ("valid", 4), ("test", 16), ("train", 48))  # videos ego_000, ... in this order

@@ -31,7 +31,8 @@ from dagr_lite.synth.dvs import preset
 from dagr_lite.synth.video import emulate_video
 
 # Bump when the generated data changes, so caches made by an older recipe are not reused.
-STUB_VERSION = 3
+STUB_VERSION = 4          # 4: version 3's scenes, each event at the moment its pixel's level crosses it
+                          # (synth.dvs), not at the middle of the emulator's step
 STUB_HEIGHT, STUB_WIDTH = 180, 320
 STUB_SPLITS = {"train": 12, "valid": 2, "test": 2}
 STUB_SECONDS = 2.0

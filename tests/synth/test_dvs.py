@@ -36,10 +36,61 @@ def test_log_rise_of_one_gives_exactly_five_on_events_inside_the_interval():
     emulator.reset(np.full((1, 1), 100.0), 0.0)
     events = emulator.step(np.full((1, 1), 100.0 * math.e), 1000.0)  # log intensity +1.0
     assert events["p"].tolist() == [1] * 5
-    assert np.all(events["t"] >= 0) and np.all(events["t"] < 1000) and np.all(np.diff(events["t"]) > 0)
+    # Where the level crosses 0.2, 0.4, ..., 1.0; the last, due at the step's very end, inside it.
+    assert events["t"].tolist() == [200, 400, 600, 800, 999]
     # The remainder carries over: +0.1 more gives nothing, +0.1 again gives one more event.
     assert len(emulator.step(np.full((1, 1), 100.0 * math.exp(1.1)), 2000.0)["t"]) == 0
     assert emulator.step(np.full((1, 1), 100.0 * math.exp(1.2)), 3000.0)["p"].tolist() == [1]
+
+
+def crossing_times_by_search(start, end, threshold, t0, dt_us, samples=200_001):
+    """Reference: walk the difference ``start -> end`` linearly over the step on a fine grid and
+    note the first sample at or past each whole threshold in its direction (us, floored)."""
+    sign = 1.0 if end > 0 else -1.0
+    f = np.linspace(0.0, 1.0, samples)
+    d = sign * (start + f * (end - start))
+    times = []
+    for k in range(1, int(math.floor(abs(end) / threshold + 1e-9)) + 1):
+        reached = np.nonzero(d >= k * threshold - 1e-12)[0]
+        times.append(math.floor(t0 + f[reached[0]] * dt_us))
+    return times
+
+
+def test_events_sit_where_the_linear_level_crosses_each_threshold():
+    """Pixels that rise, fall, reverse, leak and start mid-way: each event's time is the moment the
+    difference, linear across the step, reaches it (a brute-force search over the step)."""
+    theta = 0.2
+    params = preset("clean", sigma_threshold=0.0, leak_rate_hz=0.0)
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        first = rng.uniform(30, 200, (3, 5))
+        second = first * np.exp(rng.uniform(-1.3, 1.3, (3, 5)))
+        third = second * np.exp(rng.uniform(-1.3, 1.3, (3, 5)))
+        emulator = DVSEmulator(3, 5, params, seed=0)
+        emulator.reset(first, 0.0)
+        for frame, t_end in ((second, 1000.0), (third, 3500.0)):
+            t0 = emulator.t_us
+            start = emulator.filtered - emulator.memory  # the difference at the step's start
+            end = lin_log(frame) - emulator.memory  # and at its end, before any event of the step
+            events = emulator.step(frame, t_end)
+            for y in range(3):
+                for x in range(5):
+                    mine = events["t"][(events["x"] == x) & (events["y"] == y)]
+                    expected = crossing_times_by_search(start[y, x], end[y, x], theta, t0, t_end - t0)
+                    assert len(mine) == len(expected)
+                    assert np.abs(mine - np.array(expected, dtype=np.int64)).max(initial=0) <= 1, (mine, expected)
+
+
+def test_a_bigger_rise_reaches_its_first_threshold_sooner_in_the_step():
+    """Ten pixels whose log intensity rises by 0.25 to 2.0 over one step: the first event of each is
+    at 0.2 / rise of the step (the old even spread put a one-event pixel at the step's middle)."""
+    width = 10
+    rise = np.linspace(0.25, 2.0, width)
+    emulator = DVSEmulator(1, width, preset("clean", sigma_threshold=0.0), seed=0)
+    emulator.reset(np.full((1, width), 40.0), 0.0)
+    events = emulator.step(40.0 * np.exp(rise)[None, :], 1000.0)
+    first = np.array([events["t"][events["x"] == x].min() for x in range(width)])
+    np.testing.assert_allclose(first, np.floor(1000.0 * 0.2 / rise), atol=1)
 
 
 def test_falling_ramp_gives_off_events():

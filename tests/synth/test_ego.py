@@ -70,7 +70,7 @@ def test_split_lists_and_worker_counts_are_checked():
     with pytest.raises(ValueError, match="workers must be at least 1"):
         generation_workers(4, 0)
     assert generation_workers(3, 8) == 3 and generation_workers(0, None) == 1 and generation_workers(1, None) == 1
-    assert ego.EGO_VERSION == 3 and split_of_videos(ego.EGO_SPLITS)[:68] == split_of_videos(
+    assert ego.EGO_VERSION == 4 and split_of_videos(ego.EGO_SPLITS)[:68] == split_of_videos(
         {"train": 48, "valid": 4, "test": 16})  # version 2's videos keep their names and splits
 
 
