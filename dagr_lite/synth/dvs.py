@@ -16,10 +16,13 @@ The model follows the published description of v2e (Hu, Liu, Delbruck, CVPR Work
 6. A pixel's events of one step are placed where its level crosses them: across the step the
    difference ``L - M`` is taken as linear from its value at the step's start to its value at
    the end (the leak's drift of ``M`` included), and the ``k``-th event of the step is at the
-   moment it reaches ``k`` thresholds, as ESIM places its events between two rendered frames.
+   moment it reaches ``k`` thresholds, as ESIM places its events between two rendered frames (a
+   level already held at the step's start is due at its start). Times are whole microseconds
+   inside the step, at most one before its end, so a frame's events come before it.
 7. Optional refractory period (an event due sooner than that after the pixel's previous one is
    emitted once the period has passed, if that is still inside the step; otherwise it is not
-   emitted in this step and ``M`` does not move for it, so it comes in a later one), leak events (``M`` drifts down by
+   emitted in this step and ``M`` does not move for it, so it is due at the next step's start
+   while the difference still holds it), leak events (``M`` drifts down by
    ``leak_rate_hz * theta_on`` per second, with a per-pixel rate spread, giving ON events at about
    ``leak_rate_hz`` per pixel in a static scene) and shot noise (Poisson ON and OFF events at
    ``shot_noise_rate_hz`` per pixel in the dark, falling to a quarter of it at full intensity;
@@ -195,9 +198,12 @@ class DVSEmulator:
         start, end = before[ys, xs], change[ys, xs]  # (P,)
         slope = end - start
         level = sign[pixel] * (j + 1) * threshold[ys, xs][pixel]  # (E,) the level each event crosses
-        moving = slope[pixel] != 0
-        fraction = np.zeros(len(j))  # a flat difference: every level it holds was reached before
-        fraction[moving] = (level[moving] - start[pixel][moving]) / slope[pixel][moving]
+        # A level still ahead of the start is crossed on the way (the slope then has its sign and is
+        # not zero); one already held at the start (a refractory period's backlog) is due at once.
+        # (within the counts' own tolerance of 1e-9 thresholds, a level at the start is held).
+        ahead = sign[pixel] * (level - start[pixel]) > 1e-9 * threshold[ys, xs][pixel]
+        fraction = np.zeros(len(j))
+        fraction[ahead] = (level - start[pixel])[ahead] / slope[pixel][ahead]
         t = t0 + np.clip(fraction, 0.0, 1.0) * dt_us  # (E,) increasing with j within a pixel
         if self.params.refractory_us > 0:
             keep = self._refractory_keep(ys, xs, n, t, t0 + dt_us)
@@ -227,7 +233,7 @@ class DVSEmulator:
             pixels = np.nonzero((n > step) & open_)[0]
             events = first[pixels] + step
             at = np.maximum(t[events], last[pixels] + refractory)
-            ok = at < end_us
+            ok = (at <= t[events]) | (at < end_us)  # not held back, or released inside the step
             t[events[ok]] = at[ok]
             keep[events[ok]] = True
             last[pixels[ok]] = at[ok]

@@ -24,7 +24,7 @@ def pair_detections(boxes: np.ndarray, scores: np.ndarray, other_boxes: np.ndarr
     difference of any coordinate or of the score times 1000, each free to stay unpaired at a cost of
     ``leave``: ``(rows, cols)`` of the pairs."""
     n, m = len(boxes), len(other_boxes)
-    cost = np.full((n + m, m + n), 2 * leave)  # dummy to dummy: never cheaper than a real pair
+    cost = np.empty((n + m, m + n))  # every block set below
     cost[:n, :m] = np.maximum(np.abs(boxes[:, None] - other_boxes[None]).max(axis=2),
                               1000 * np.abs(scores[:, None] - other_scores[None]))
     cost[:n, m:] = np.where(np.eye(n, dtype=bool), leave, np.inf)  # detection i left unpaired

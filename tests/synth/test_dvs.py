@@ -160,10 +160,33 @@ def test_refractory_period_spaces_a_pixels_events():
     emulator = DVSEmulator(1, 1, params, seed=0)
     emulator.reset(np.full((1, 1), 100.0), 0.0)
     events = emulator.step(np.full((1, 1), 100.0 * math.e), 1000.0)  # 5 events 200 us apart without it
-    assert len(events["t"]) == 3 and np.all(np.diff(events["t"]) >= 300)
-    # The level moved only by the emitted events: the missing change comes out later.
+    # Each at its crossing or once 300 us have passed since the one before: 200, 500, 800 (1100 is
+    # beyond the step).
+    assert events["t"].tolist() == [200, 500, 800]
+    # The level moved only by the emitted events: the two held back come at the next step, as soon
+    # as the period allows.
     later = emulator.step(np.full((1, 1), 100.0 * math.e), 2000.0)
-    assert len(later["t"]) == 2 and later["t"][0] - events["t"][-1] >= 300
+    assert later["t"].tolist() == [1100, 1400]
+
+
+def test_a_short_refractory_period_keeps_the_event_due_at_the_steps_end():
+    emulator = DVSEmulator(1, 1, preset("clean", sigma_threshold=0.0, refractory_us=1e-3), seed=0)
+    emulator.reset(np.full((1, 1), 100.0), 0.0)
+    events = emulator.step(np.full((1, 1), 100.0 * math.e), 1000.0)  # the fifth level reached at 1000 us
+    assert events["t"].tolist() == [200, 400, 600, 800, 999]
+
+
+def test_events_held_back_are_not_lost_when_the_difference_shrinks_a_little():
+    """A refractory backlog of two OFF events, then a frame that takes back a quarter threshold:
+    the difference (-0.4 to -0.35) still holds one of them all through the step, so it comes as
+    soon as the period allows (400 us after the event at 999.99 us), not at the step's end or never."""
+    params = preset("clean", sigma_threshold=0.0, refractory_us=400.0)
+    emulator = DVSEmulator(1, 1, params, seed=0)
+    emulator.reset(np.full((1, 1), 100.0), 0.0)
+    first = emulator.step(np.full((1, 1), 100.0 * math.exp(-1.0)), 1000.0)  # five due, three emitted
+    assert first["t"].tolist() == [199, 599, 999] and set(first["p"].tolist()) == {0}
+    later = emulator.step(np.full((1, 1), 100.0 * math.exp(-0.95)), 2000.0)
+    assert len(later["t"]) == 1 and abs(int(later["t"][0]) - 1400) <= 1 and later["p"].tolist() == [0]
 
 
 def test_same_seed_same_events_and_noisy_preset_values():
