@@ -195,22 +195,23 @@ class DVSEmulator:
         j = _repeat_ranges(n)  # (E,) index of each event within its pixel
         pixel = np.repeat(np.arange(len(n)), n)  # (E,)
         sign = np.where(on[ys, xs], 1.0, -1.0)  # (P,)
+        theta = threshold[ys, xs]  # (P,)
         start, end = before[ys, xs], change[ys, xs]  # (P,)
-        slope = end - start
-        level = sign[pixel] * (j + 1) * threshold[ys, xs][pixel]  # (E,) the level each event crosses
+        # (E,) how far each event's level, k thresholds, lies beyond the difference at the start
+        gap = sign[pixel] * (j + 1) * theta[pixel] - start[pixel]
         # A level still ahead of the start is crossed on the way (the slope then has its sign and is
-        # not zero); one already held at the start (a refractory period's backlog) is due at once.
-        # (within the counts' own tolerance of 1e-9 thresholds, a level at the start is held).
-        ahead = sign[pixel] * (level - start[pixel]) > 1e-9 * threshold[ys, xs][pixel]
+        # not zero); one already held at the start, within the counts' own tolerance of 1e-9
+        # thresholds (a refractory period's backlog), is due at once.
+        ahead = sign[pixel] * gap > 1e-9 * theta[pixel]
         fraction = np.zeros(len(j))
-        fraction[ahead] = (level - start[pixel])[ahead] / slope[pixel][ahead]
+        fraction[ahead] = gap[ahead] / (end - start)[pixel][ahead]
         t = t0 + np.clip(fraction, 0.0, 1.0) * dt_us  # (E,) increasing with j within a pixel
         if self.params.refractory_us > 0:
             keep = self._refractory_keep(ys, xs, n, t, t0 + dt_us)
         else:
             keep = np.ones(len(t), dtype=bool)
         emitted = np.bincount(pixel[keep], minlength=len(n))  # (P,)
-        self.memory[ys, xs] += sign * emitted * threshold[ys, xs]
+        self.memory[ys, xs] += sign * emitted * theta
         t, pixel = t[keep], pixel[keep]
         if len(t):
             np.maximum.at(self.last_event_us, (ys[pixel], xs[pixel]), t)
