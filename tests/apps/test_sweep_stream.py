@@ -2,6 +2,8 @@
 the sweep's batch evaluation scores, on the same frames and image ages."""
 from __future__ import annotations
 
+import inspect
+
 import numpy as np
 import pytest
 import torch
@@ -12,10 +14,11 @@ from dagr_lite.config import build_dataset, compose_config
 from dagr_lite.engine.loading import make_loader
 from dagr_lite.engine.checkpoint import load_checkpoint, load_model
 from dagr_lite.eval.score import detections_of
+from dagr_lite.nn.head import postprocess
 from dagr_lite.apps.sweep import SweepSamples, streamed_detections, sweep_frames
 
 AGES = (1, 3, 10)
-MAX_DETECTIONS = 100  # what an image's detections are cut to (nn.head's max_detections)
+MAX_DETECTIONS = inspect.signature(postprocess).parameters["max_detections"].default  # an image's detections' cut
 
 
 def pair_detections(boxes: np.ndarray, scores: np.ndarray, other_boxes: np.ndarray, other_scores: np.ndarray,
