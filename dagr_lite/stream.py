@@ -219,7 +219,7 @@ class StreamingDetector:
         self.map_sizes = [(math.ceil(self.height / s), math.ceil(self.width / s)) for s in model.strides]
         spec = model.graph_spec
         # How far back in time a node's features reach through the first stage's edges and degrees.
-        self.reach_us = (len(model.events.first_stage) + 1) * spec.radius / spec.beta
+        self.reach_us = (len(model.events.first_stage) + 1) * spec.radius / spec.time_scale
         self.graph_context_us = sample.graph_context_us
         if 0 < self.graph_context_us < self.reach_us:
             raise UserError(f"sample graph_context_us={self.graph_context_us} is shorter than the "

@@ -15,6 +15,9 @@ import torch
 
 from dagr_lite.graph.radius import radius_graph
 
+# The graph applies beta rounded to a multiple of 2^-TIME_SCALE_BITS (:attr:`EventGraphSpec.time_scale`).
+TIME_SCALE_BITS = 30
+
 
 @dataclass(frozen=True)
 class EventGraphSpec:
@@ -37,10 +40,24 @@ class EventGraphSpec:
                 raise ValueError(f"graph {name} must be a positive number, got {value!r}")
         if isinstance(self.max_neighbors, bool) or not isinstance(self.max_neighbors, int) or self.max_neighbors <= 0:
             raise ValueError(f"graph max_neighbors must be a positive integer, got {self.max_neighbors!r}")
+        if self.beta * 2 ** TIME_SCALE_BITS < 0.5:
+            raise ValueError(f"graph beta must be at least 2^-{TIME_SCALE_BITS + 1} pixels per microsecond (the "
+                             f"graph's time axis rounds it to a multiple of 2^-{TIME_SCALE_BITS}), got {self.beta!r}")
+
+    @property
+    def time_scale(self) -> float:
+        """``beta`` as the positions apply it: rounded to the nearest multiple of ``2^-TIME_SCALE_BITS``
+        (5e-4 becomes 5.0000008e-4). For event times in whole microseconds, below ``2^53 / (time_scale
+        2^TIME_SCALE_BITS)`` (hours at the default beta), ``time_scale * t`` is then exact in float64,
+        and so is the offset between two events' positions: every radius test and ranking decided
+        from it is the same whatever time the events count from (a sample counts from its image's
+        time, a stream from an origin of its own)."""
+        return round(self.beta * 2 ** TIME_SCALE_BITS) / 2 ** TIME_SCALE_BITS
 
     def positions(self, events: torch.Tensor) -> torch.Tensor:
-        """Node positions ``(x, y, beta * t)`` of events ``(N, 4)`` (x, y, t in us, p), in their dtype."""
-        return torch.stack([events[:, 0], events[:, 1], self.beta * events[:, 2]], dim=1)  # (N, 3)
+        """Node positions ``(x, y, time_scale * t)`` of events ``(N, 4)`` (x, y, t in us, p), in their
+        dtype (``time_scale``: ``beta`` rounded so that float64 positions are exact)."""
+        return torch.stack([events[:, 0], events[:, 1], self.time_scale * events[:, 2]], dim=1)  # (N, 3)
 
     def edges(self, events: torch.Tensor, batch: torch.Tensor | None = None, *, workers: int = -1,
               backend: str = "auto") -> torch.Tensor:
@@ -49,7 +66,8 @@ class EventGraphSpec:
         builds a CUDA tensor's graph on its GPU).
 
         Positions are computed in float64 whatever the events' dtype, so every caller (the
-        loader's workers, the model, the streaming detector) gets the same edges.
+        loader's workers, the model, the streaming detector) gets the same edges, and with
+        :attr:`time_scale` the same whatever time the events count from.
         """
         return radius_graph(self.positions(events.detach().double()), self.radius, self.max_neighbors, batch,
                             workers=workers, backend=backend)

@@ -110,7 +110,7 @@ def test_the_loaders_graph_is_the_models_own():
     expected = set()
     for b in range(2):
         a, z = int(batch.ptr[b]), int(batch.ptr[b + 1])
-        pos = np.stack([events[a:z, 0], events[a:z, 1], spec.beta * events[a:z, 2]], 1)
+        pos = np.stack([events[a:z, 0], events[a:z, 1], spec.time_scale * events[a:z, 2]], 1)
         expected |= {(s + a, d + a) for s, d in brute_force_edges(pos, 4.0, 6)}
     assert set(map(tuple, batch.edge_index.t().tolist())) == expected and expected
     with torch.no_grad():
