@@ -153,6 +153,7 @@ class _Segment:
         self.events = _Rows(like.new_zeros((0, 4)))  # x, y, t - origin, p
         self.t_abs = _Rows(np.zeros(0))
         self.pos = _Rows(like.new_zeros((0, 3)))
+        self.exact_pos = _Rows(torch.zeros((0, 3), dtype=torch.float64, device=detector.device))  # for the geometry
         # the input of each first-stage block, then its output
         self.h = [_Rows(like.new_zeros((0, width))) for width in branch.first_stage_widths]
         self.in_degree = _Rows(torch.zeros(0, dtype=torch.int64, device=detector.device))
@@ -520,13 +521,15 @@ class StreamingDetector:
         events = torch.from_numpy(np.stack([x, y, t - segment.origin_us, p], axis=1)).to(self.device, self.dtype)
         spec = self.model.graph_spec
         pos = spec.positions(events)  # (M, 3)
+        exact = spec.positions(events.double())  # float64, exact: the graph's and the geometry's
         with self._part("graph"):
-            edges = segment.graph.insert(spec.positions(events.double())).to(self.device)  # (2, E) global ids
+            edges = segment.graph.insert(exact).to(self.device)  # (2, E) global ids
         old, m = segment.events.n, len(events)
         first_id = segment.base + old
         segment.events.extend(events)
         segment.t_abs.extend(t)
         segment.pos.extend(pos)
+        segment.exact_pos.extend(exact)
         segment.in_degree.extend(torch.bincount(edges[1] - first_id, minlength=m))
         local = edges - segment.base
         # An edge from a node that left the segment (before the earliest window start of any later
@@ -536,7 +539,8 @@ class StreamingDetector:
         rows = torch.arange(old, old + m, device=self.device)
         batch = torch.zeros(m, dtype=torch.int64, device=self.device)
         with self._part("first stage (new nodes)"):
-            features = branch.node_features(events, segment.pos.view, local, first=old)
+            features = branch.node_features(events, segment.exact_pos.view if branch.geometry else segment.pos.view,
+                                            local, first=old)
             segment.h[0].extend(branch.level_input(0, features, pos, batch, self._sampler()))
             op = GraphOperator(local, old + m, in_degree=segment.in_degree.view, rows=rows,
                                **branch.first_stage_offsets(segment.pos.view))
@@ -564,7 +568,7 @@ class StreamingDetector:
         first = int(np.searchsorted(segment.t_abs.view, t_start, side="left"))
         if first < max(1024, segment.events.n // 2):
             return
-        for rows in (segment.events, segment.t_abs, segment.pos, segment.in_degree, *segment.h):
+        for rows in (segment.events, segment.t_abs, segment.pos, segment.exact_pos, segment.in_degree, *segment.h):
             rows.drop_front(first)
         segment.base += first
         segment.cells = None  # its cells hold nodes that left: the horizon's own serve from now on

@@ -199,7 +199,11 @@ class EventBranch(nn.Module):
         """``(N, 3)`` polarity in {-1, 1}, x / W, y / H; with ``geometry`` then the ten columns of
         :func:`neighbourhood_geometry` (which need the nodes' positions ``pos`` and graph
         ``edge_index``; ``events`` are then the nodes from ``first`` on, ``pos`` every node); with a
-        time scale last the time since the image, ``t / time_scale_us``.
+        time scale last the time since the image, ``t / time_scale_us``. The geometry is computed in
+        ``pos``'s dtype and cast to the events': float64 positions of whole microseconds
+        (:attr:`~dagr_lite.graph.spec.EventGraphSpec.time_scale`) give exact offsets, so features
+        that do not depend on where time counts from (the batch model and the streaming detector
+        pass them).
 
         Each depends on the event alone, its causal neighbourhood and the image's time, never on a
         window's start or on the time of a query, so a node's features are fixed once its event has
@@ -271,7 +275,9 @@ class EventBranch(nn.Module):
             edge_index = self.spec.edges(events, batch)
         edge_index = edge_index.to(events.device)  # (2, E)
         pos = self.spec.positions(events)  # (N, 3)
-        features = self.node_features(events, pos, edge_index)
+        # the geometry reads exact float64 offsets: the same features whatever time the events count from
+        exact = self.spec.positions(events.detach().double()) if self.geometry else pos
+        features = self.node_features(events, exact, edge_index)
         return self._stage(0, features, pos, batch, edge_index, image_sampler), pos, edge_index
 
     def level_input(self, level: int, x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor,

@@ -167,3 +167,29 @@ def test_dense_pooled_stages_refuse_image_features_after_the_input_level_and_odd
         with pytest.raises(ValueError, match=f"event_dense must be 0 or the first stride 8 halved .*got {cell}"):
             EventBranch(height=48, width=64, channels=(8, 8, 8, 8), strides=STRIDES, graph=SPEC,
                         time_scale_us=1e5, blocks=1, dense=cell)
+
+
+def test_an_events_only_branch_answers_the_same_whatever_time_counts_from():
+    # A sample counts times from its image's time, the streaming detector from an origin of its own:
+    # an events-only branch (no time feature) must give the same maps, to the bit in float32. Events in
+    # whole pixels and microseconds, with pairs exactly the radius apart (2 px and 4,000 us at radius 3).
+    torch.manual_seed(0)
+    spec = EventGraphSpec(radius=3.0, beta=5e-4, max_neighbors=8)
+    branch = EventBranch(height=48, width=64, channels=(8, 8, 8, 8), strides=STRIDES, graph=spec,
+                         time_scale_us=None, blocks=1, geometry=True).eval()
+    rows = []
+    for i in range(40):
+        x, y, t = 3 + 7 * (i % 8), 3 + 8 * (i // 8), 100 + 53 * i
+        rows += [(x, y, t, 1), (x + 2, y + 1, t + 4_000, 0), (x, y + 2, t + 4_000, 1), (x + 1, y, t + 5_000, 0)]
+    events = events_of(400, 5)
+    events[:, 2] = events[:, 2].round()
+    events = torch.cat([events, torch.tensor(rows, dtype=torch.float32)])
+    events = events[torch.sort(events[:, 2], stable=True).indices]
+    batch = torch.zeros(len(events), dtype=torch.long)
+    with torch.no_grad():
+        reference = branch(events, batch, batch_size=1)
+        for shift in (300_000, 633_333, 4_000_037):
+            shifted = events.clone()
+            shifted[:, 2] += shift  # whole microseconds, exact in float32 below 2^24
+            for m_ref, m in zip(reference, branch(shifted, batch, batch_size=1)):
+                assert torch.equal(m_ref, m), shift
