@@ -26,7 +26,8 @@ after the towers, in 1x1 layers over every cell. Image features (and a ``late_qu
 image towers) are computed once per image. Once
 events leave the horizon, the nodes near its start, whose edges or whose neighbours'
 in-degrees reached the events that left, are recomputed from the events of the horizon (a
-prefix of ``(event_blocks + 1) * radius / beta`` microseconds), and the pooled graph is
+prefix of ``(event_blocks + 1) * radius / time_scale`` microseconds, ``time_scale`` being beta as
+the graph applies it), and the pooled graph is
 rebuilt from the horizon's nodes. With a sample's graph context of at least that reach
 (``graph_context_us``), no node is ever recomputed: an answer pools the cached nodes of its horizon.
 """
@@ -224,7 +225,7 @@ class StreamingDetector:
         self.graph_context_us = sample.graph_context_us
         if 0 < self.graph_context_us < self.reach_us:
             raise UserError(f"sample graph_context_us={self.graph_context_us} is shorter than the "
-                            f"{self.reach_us:g} us a node's features reach back ((event_blocks + 1) * radius / beta): "
+                            f"{self.reach_us:g} us a node's features reach back ((event_blocks + 1) * radius / beta, the graph's rounded beta): "
                             "the streaming detector answers exactly with 0 or at least that")
         self.timings: dict[str, float] | None = None  # a dict: seconds spent in each part, summed (profiling)
         self.reset()
@@ -543,7 +544,7 @@ class StreamingDetector:
                                             local, first=old)
             segment.h[0].extend(branch.level_input(0, features, pos, batch, self._sampler()))
             op = GraphOperator(local, old + m, in_degree=segment.in_degree.view, rows=rows,
-                               **branch.first_stage_offsets(segment.pos.view))
+                               **branch.first_stage_offsets(segment.exact_pos.view))
             for b, block in enumerate(branch.first_stage):
                 segment.h[b + 1].extend(block(segment.h[b].view, op))
         with self._part("cells + recency times"):

@@ -40,7 +40,7 @@ class EventGraphSpec:
                 raise ValueError(f"graph {name} must be a positive number, got {value!r}")
         if isinstance(self.max_neighbors, bool) or not isinstance(self.max_neighbors, int) or self.max_neighbors <= 0:
             raise ValueError(f"graph max_neighbors must be a positive integer, got {self.max_neighbors!r}")
-        if self.beta * 2 ** TIME_SCALE_BITS < 0.5:
+        if round(self.beta * 2 ** TIME_SCALE_BITS) < 1:
             raise ValueError(f"graph beta must be at least 2^-{TIME_SCALE_BITS + 1} pixels per microsecond (the "
                              f"graph's time axis rounds it to a multiple of 2^-{TIME_SCALE_BITS}), got {self.beta!r}")
 

@@ -275,10 +275,11 @@ class EventBranch(nn.Module):
             edge_index = self.spec.edges(events, batch)
         edge_index = edge_index.to(events.device)  # (2, E)
         pos = self.spec.positions(events)  # (N, 3)
-        # the geometry reads exact float64 offsets: the same features whatever time the events count from
-        exact = self.spec.positions(events.detach().double()) if self.geometry else pos
+        # the geometry and the directional offsets read exact float64 positions: the same whatever time
+        # the events count from
+        exact = self.spec.positions(events.detach().double()) if self.geometry or self.directional else pos
         features = self.node_features(events, exact, edge_index)
-        return self._stage(0, features, pos, batch, edge_index, image_sampler), pos, edge_index
+        return self._stage(0, features, pos, batch, edge_index, image_sampler, offset_pos=exact), pos, edge_index
 
     def level_input(self, level: int, x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor,
                     image_sampler: ImageSampler | None) -> torch.Tensor:
@@ -291,9 +292,11 @@ class EventBranch(nn.Module):
         return torch.cat([x, image_sampler(pos[:, :2], batch, level)], dim=1)
 
     def _stage(self, level: int, x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge_index: torch.Tensor,
-               image_sampler: ImageSampler | None) -> torch.Tensor:
+               image_sampler: ImageSampler | None, offset_pos: torch.Tensor | None = None) -> torch.Tensor:
+        """``offset_pos``: the positions the first stage's directional offsets read (default ``pos``)."""
         x = self.level_input(level, x, pos, batch, image_sampler)
-        op = GraphOperator(edge_index, len(x), **(self.first_stage_offsets(pos) if level == 0 else {}))
+        offsets = self.first_stage_offsets(pos if offset_pos is None else offset_pos) if level == 0 else {}
+        op = GraphOperator(edge_index, len(x), **offsets)
         for block in self.stages[level]:
             x = block(x, op)
         return x

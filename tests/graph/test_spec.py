@@ -32,8 +32,10 @@ def test_time_scale_is_beta_rounded_to_a_dyadic_step():
     z = spec.positions(events)[:, 2]
     for t, value in zip(events[:, 2].tolist(), z.tolist()):  # exact: a whole number of microseconds times the step
         assert Fraction(value) == Fraction(int(t)) * Fraction(spec.time_scale)
-    with pytest.raises(ValueError, match="beta"):
-        EventGraphSpec(radius=5.0, beta=1e-10, max_neighbors=16)
+    for too_small in (1e-10, 2.0 ** -(TIME_SCALE_BITS + 1)):  # would round to a time scale of 0
+        with pytest.raises(ValueError, match="beta"):
+            EventGraphSpec(radius=5.0, beta=too_small, max_neighbors=16)
+    assert EventGraphSpec(radius=5.0, beta=2.0 ** -TIME_SCALE_BITS, max_neighbors=16).time_scale == 2.0 ** -TIME_SCALE_BITS
 
 
 @pytest.mark.parametrize("radius,beta", [(3.0, 5e-4), (5.0, 5e-4)])

@@ -169,14 +169,15 @@ def test_dense_pooled_stages_refuse_image_features_after_the_input_level_and_odd
                         time_scale_us=1e5, blocks=1, dense=cell)
 
 
-def test_an_events_only_branch_answers_the_same_whatever_time_counts_from():
+@pytest.mark.parametrize("geometry,directional", [(True, False), (False, True), (True, True)])
+def test_an_events_only_branch_answers_the_same_whatever_time_counts_from(geometry, directional):
     # A sample counts times from its image's time, the streaming detector from an origin of its own:
     # an events-only branch (no time feature) must give the same maps, to the bit in float32. Events in
     # whole pixels and microseconds, with pairs exactly the radius apart (2 px and 4,000 us at radius 3).
     torch.manual_seed(0)
     spec = EventGraphSpec(radius=3.0, beta=5e-4, max_neighbors=8)
     branch = EventBranch(height=48, width=64, channels=(8, 8, 8, 8), strides=STRIDES, graph=spec,
-                         time_scale_us=None, blocks=1, geometry=True).eval()
+                         time_scale_us=None, blocks=1, geometry=geometry, directional=directional).eval()
     rows = []
     for i in range(40):
         x, y, t = 3 + 7 * (i % 8), 3 + 8 * (i // 8), 100 + 53 * i
