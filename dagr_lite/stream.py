@@ -225,8 +225,9 @@ class StreamingDetector:
         self.graph_context_us = sample.graph_context_us
         if 0 < self.graph_context_us < self.reach_us:
             raise UserError(f"sample graph_context_us={self.graph_context_us} is shorter than the "
-                            f"{self.reach_us:g} us a node's features reach back ((event_blocks + 1) * radius / beta, the graph's rounded beta): "
-                            "the streaming detector answers exactly with 0 or at least that")
+                            f"{self.reach_us:g} us a node's features reach back ((event_blocks + 1) * radius / beta, "
+                            "beta as the graph rounds it): the streaming detector answers exactly with 0 or at "
+                            "least that")
         self.timings: dict[str, float] | None = None  # a dict: seconds spent in each part, summed (profiling)
         self.reset()
 
@@ -540,8 +541,7 @@ class StreamingDetector:
         rows = torch.arange(old, old + m, device=self.device)
         batch = torch.zeros(m, dtype=torch.int64, device=self.device)
         with self._part("first stage (new nodes)"):
-            features = branch.node_features(events, segment.exact_pos.view if branch.geometry else segment.pos.view,
-                                            local, first=old)
+            features = branch.node_features(events, segment.exact_pos.view, local, first=old)
             segment.h[0].extend(branch.level_input(0, features, pos, batch, self._sampler()))
             op = GraphOperator(local, old + m, in_degree=segment.in_degree.view, rows=rows,
                                **branch.first_stage_offsets(segment.exact_pos.view))
