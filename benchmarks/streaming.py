@@ -158,10 +158,10 @@ def stream_run(model: Detector, rec: Recording, update_us: float, t0: float, t1:
             "seconds": (t1 - t0) * 1e-6}
 
 
-def full_pass(model: Detector, rec: Recording, t_query: float, *, sample: SampleSpec,
-              repeats: int = 2) -> tuple[float, int, int]:
-    """Seconds (best of ``repeats``) of one batch pass on the sample at ``t_query``, its GCN
-    multiply-adds and its event count (its graph context included)."""
+def sample_at(model: Detector, rec: Recording, t_query: float, *, sample: SampleSpec) -> Sample:
+    """The batch sample a query at ``t_query`` reads: the latest frame (a model with an image), the
+    events of its horizon (and graph context), and a carry branch's picture of every event since the
+    image."""
     k = frame_at(rec, t_query)
     t_image = rec.frame_times[k]
     t = rec.events["t"]
@@ -178,12 +178,19 @@ def full_pass(model: Detector, rec: Recording, t_query: float, *, sample: Sample
         since = slice(int(np.searchsorted(t, carry.reads_from_us)), keep.stop)
         carry.add(*(rec.events[key][since] for key in ("x", "y", "t", "p")))
         parts.append(carry.picture(t_query))
-    sample = Sample(events=events, image=torch.from_numpy(channels_first(parts)),
-                    boxes=torch.zeros((0, 4)), labels=torch.zeros(0, dtype=torch.int64), video=rec.video, frame=k,
-                    image_frame=k, t_start_us=int(begin), t_end_us=int(t_query), t_image_us=int(t_image))
+    return Sample(events=events, image=torch.from_numpy(channels_first(parts)),
+                  boxes=torch.zeros((0, 4)), labels=torch.zeros(0, dtype=torch.int64), video=rec.video, frame=k,
+                  image_frame=k, t_start_us=int(begin), t_end_us=int(t_query), t_image_us=int(t_image))
+
+
+def full_pass(model: Detector, rec: Recording, t_query: float, *, sample: SampleSpec,
+              repeats: int = 2) -> tuple[float, int, int]:
+    """Seconds (best of ``repeats``) of one batch pass on the sample at ``t_query``, its GCN
+    multiply-adds and its event count (its graph context included)."""
+    one = sample_at(model, rec, t_query, sample=sample)
     best, macs = np.inf, 0
     for _ in range(repeats):
-        batch = collate([sample])
+        batch = collate([one])
         counter = MacCounter(model)
         tic = time.perf_counter()
         with torch.no_grad():
@@ -192,7 +199,7 @@ def full_pass(model: Detector, rec: Recording, t_query: float, *, sample: Sample
         best = min(best, time.perf_counter() - tic)
         counter.close()
         macs = counter.total
-    return best, macs, len(events)
+    return best, macs, len(one.events)
 
 
 def bench_scene(state: Checkpoint, name: str, rec: Recording, args) -> tuple[float, dict[float, dict]]:

@@ -1,0 +1,221 @@
+"""The floor of a streaming answer's cost: the multiply-adds each part of the model must redo from
+one answer to the next, and the real-time factor they leave on this machine.
+
+    python benchmarks/answer_floor.py --ckpt <hybrid>/checkpoints/best.pt [<events_only>/checkpoints/best.pt]
+                                      [--updates-ms 5] [--answers 24] [--camera 320x240]
+                                      [--set late_query=true carry_width=0]
+
+For each checkpoint and scene (the stub's first test video at 320x180; with ``--camera``, the
+camera-rate scene of ``benchmarks/streaming.py``), the batch model answers at ``--answers`` moments
+``--updates-ms`` apart, on the samples the streaming detector answers (``streaming.sample_at``).
+Every convolution's output map is kept. Between two answers with the same image, a cell of a
+layer's output that differs (exact equality) is one that any exact answer must compute again,
+however it is computed: an answer that reuses every other cell is the best that "an answer that
+costs what changed" can do. Per part of the model (image branch, carry branch, the event branch's
+dense stages, fusion, head) it prints the convolutions' multiply-adds in a full pass and the
+median share of them whose output changed, then:
+  * the convolutions' throughput here: their multiply-adds over their time in full passes, each
+    convolution timed alone (hooks before and after it; the best of five passes);
+  * the floor of an answer: the changed multiply-adds at that throughput, nothing else counted
+    (no graph, no GCN layer, no normalisation or activation, no decoding), and the real-time factor
+    such an answer would allow, ``update / floor``, beside the one a full pass allows.
+An answer whose image is new is left out (the image's side runs once a frame). ``--set key=value``
+rebuilds the checkpoint's architecture with changed settings (``DetectorConfig`` fields) and
+untrained weights, to price a design before training it: which cells change depends on the events
+and on where the query time enters, hardly on the weights.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+from torch import nn
+
+from dagr_lite.data.collate import collate
+from dagr_lite.engine.checkpoint import load_checkpoint
+from dagr_lite.nn.detector import Detector
+from streaming import camera_recording, frame_at, model_at, recording, sample_at, size_of, streamed
+
+PARTS = (("image.", "image branch"), ("carry.", "carry branch"), ("events.", "event branch (dense stages)"),
+         ("to_nodes.", "fusion"), ("fuse.", "fusion"), ("attend.", "fusion"), ("event_head.", "event head"),
+         ("head.", "head"))
+
+
+def part_of(name: str) -> str:
+    """The part of the model that the module called ``name`` belongs to."""
+    return next((part for prefix, part in PARTS if name.startswith(prefix)), "other")
+
+
+def conv_macs_per_cell(conv: nn.Conv2d) -> int:
+    """Multiply-adds of one output cell of ``conv``: every output channel reads its group's input channels
+    over the kernel."""
+    kh, kw = conv.kernel_size
+    return conv.out_channels * (conv.in_channels // conv.groups) * kh * kw
+
+
+def changed_cells(before: torch.Tensor, after: torch.Tensor) -> int:
+    """Cells of a ``(1, C, H, W)`` map where any channel differs."""
+    return int((before != after).any(dim=1).sum())
+
+
+class ConvRecorder:
+    """Keeps every convolution's output of one pass and, when asked, times each convolution alone."""
+
+    def __init__(self, model: nn.Module):
+        self.convs = {name: m for name, m in model.named_modules() if isinstance(m, nn.Conv2d)}
+        self.outputs: dict[str, torch.Tensor] = {}
+        self.seconds: dict[str, float] = {}
+        self._tic: dict[str, float] = {}
+        self.handles = []
+        for name, conv in self.convs.items():
+            self.handles.append(conv.register_forward_pre_hook(self._before(name)))
+            self.handles.append(conv.register_forward_hook(self._after(name)))
+
+    def _before(self, name: str):
+        def hook(module, args):
+            self._tic[name] = time.perf_counter()
+        return hook
+
+    def _after(self, name: str):
+        def hook(module, args, output):
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - self._tic[name]
+            self.outputs[name] = output.detach().clone()
+        return hook
+
+    def close(self) -> None:
+        for handle in self.handles:
+            handle.remove()
+
+
+def answer(model: Detector, recorder: ConvRecorder, one) -> dict[str, torch.Tensor]:
+    """Every convolution's output map on the sample ``one`` (a batch of one)."""
+    recorder.outputs = {}
+    batch = collate([one])
+    with torch.no_grad():
+        if model.events is not None:
+            batch.edge_index = model.graph_spec.edges(batch.events, batch.batch_index)
+        model(batch, conf_threshold=0.25, nms_threshold=0.65)
+    return recorder.outputs
+
+
+def built(state, height: int, width: int, settings: dict) -> tuple[Detector, str]:
+    """The checkpoint's model, or with ``settings`` its architecture changed and untrained."""
+    if not settings:
+        return model_at(state, height, width), state.model_name
+    cfg = dataclasses.replace(state.detector, height=height, width=width, **settings)
+    torch.manual_seed(0)
+    changes = " ".join(f"{k}={v}" for k, v in settings.items())
+    return Detector(cfg).eval(), f"{state.model_name} with {changes} (untrained)"
+
+
+def floor_scene(state, rec, scene: str, args, settings: dict) -> dict:
+    """Prints one checkpoint's table on one scene; returns the real-time factors its floor and a full pass allow,
+    the changed share of each part and the pairs of answers compared."""
+    model, name = built(state, rec.height, rec.width, settings)
+    sample = state.sample
+    t0, t1, rate = streamed(rec, args.seconds)
+    update_us = args.updates_ms * 1e3
+    moments = [t0 + 2_000 + k * update_us for k in range(args.answers + 1)]
+    moments = [m for m in moments if m < t1]
+    recorder = ConvRecorder(model)
+    # throughput: every convolution of a full pass timed alone, the best of five passes
+    one = sample_at(model, rec, moments[0], sample=sample)
+    best_seconds, best_total = {}, np.inf
+    for _ in range(5):
+        recorder.seconds = {}
+        tic = time.perf_counter()
+        answer(model, recorder, one)
+        total = time.perf_counter() - tic
+        if total < best_total:
+            best_total, best_seconds = total, dict(recorder.seconds)
+    repeat = answer(model, recorder, one)
+    again = answer(model, recorder, one)
+    unstable = sum(changed_cells(repeat[k], again[k]) for k in repeat)
+    macs = {k: conv_macs_per_cell(recorder.convs[k]) * out.shape[-2] * out.shape[-1] for k, out in repeat.items()}
+    conv_seconds = sum(best_seconds.values())
+    throughput = sum(macs.values()) / conv_seconds
+    per_part_full: dict[str, float] = {}
+    for k, m in macs.items():
+        per_part_full[part_of(k)] = per_part_full.get(part_of(k), 0) + m
+    changed: list[dict[str, float]] = []
+    previous, previous_frame = None, None
+    for m in moments:
+        outputs = answer(model, recorder, sample_at(model, rec, m, sample=sample))
+        frame = frame_at(rec, m) if model.image is not None else None
+        if previous is not None and frame == previous_frame:
+            row: dict[str, float] = {}
+            for k, out in outputs.items():
+                cells = changed_cells(previous[k], out)
+                row[part_of(k)] = row.get(part_of(k), 0) + cells * conv_macs_per_cell(recorder.convs[k])
+            changed.append(row)
+        previous, previous_frame = outputs, frame
+    recorder.close()
+    print(f"\n{name}, {scene}: {rec.width}x{rec.height}, {rate / 1e3:.0f}k events/s; {len(changed)} pairs of answers "
+          f"{args.updates_ms:g} ms apart with the same image; a repeated answer changes {unstable} cells")
+    header = f"  {'part':<30}{'full pass, M MACs':>20}{'changed, M MACs':>18}{'share':>8}"
+    print(header + "\n  " + "-" * (len(header) - 2))
+    total_full = total_changed = 0.0
+    shares = {}
+    for part in sorted(per_part_full, key=lambda p: -per_part_full[p]):
+        full = per_part_full[part]
+        moved = float(np.median([row.get(part, 0.0) for row in changed])) if changed else float("nan")
+        total_full, total_changed = total_full + full, total_changed + moved
+        shares[part] = moved / full
+        print(f"  {part:<30}{full / 1e6:>20.1f}{moved / 1e6:>18.1f}{moved / full:>8.0%}")
+    print(f"  {'all convolutions':<30}{total_full / 1e6:>20.1f}{total_changed / 1e6:>18.1f}"
+          f"{total_changed / total_full:>8.0%}")
+    floor_ms = 1e3 * total_changed / throughput
+    full_ms = 1e3 * total_full / throughput
+    print(f"  convolutions here: {throughput / 1e9:.1f} G MACs/s ({1e3 * conv_seconds:.1f} ms of a {1e3 * best_total:.1f} ms "
+          f"full pass)")
+    print(f"  floor of an answer: {floor_ms:.2f} ms of changed convolutions (a full pass's: {full_ms:.2f} ms); "
+          f"{args.updates_ms:g} ms updates: real-time factor at most {args.updates_ms / floor_ms:.2f} "
+          f"(every cell recomputed: {args.updates_ms / full_ms:.2f})")
+    return {"floor": args.updates_ms / floor_ms, "full": args.updates_ms / full_ms, "shares": shares,
+            "pairs": len(changed)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--ckpt", nargs="+", required=True, help="trained checkpoints (hybrid and/or events-only)")
+    parser.add_argument("--updates-ms", type=float, default=5.0, help="time between two answers")
+    parser.add_argument("--answers", type=int, default=24, help="answers per scene")
+    parser.add_argument("--seconds", type=float, default=0.5, help="recording used per scene")
+    parser.add_argument("--camera", default="none", help="size of the camera-rate scene, e.g. 320x240 ('none': skip)")
+    parser.add_argument("--camera-rate", type=float, default=450_000, help="least events/s of the camera-rate scene")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="DetectorConfig fields changed (the model then untrained)")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    settings = {}
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        if not sep:
+            parser.error(f"--set takes KEY=VALUE, got {item!r}")
+        settings[key] = yaml.safe_load(value)
+    print(f"torch {torch.__version__}, {args.threads} threads")
+    summary = []
+    with tempfile.TemporaryDirectory() as workdir:
+        scenes = [recording((180, 320), args.seconds, Path(workdir)) + ("stub",)]
+        if args.camera != "none":
+            scenes.append(camera_recording(size_of(args.camera), args.seconds, args.camera_rate, Path(workdir))
+                          + ("camera",))
+        for path in args.ckpt:
+            state = load_checkpoint(path)
+            for scene, rec, kind in scenes:
+                result = floor_scene(state, rec, scene, args, settings)
+                summary.append(f"{args.updates_ms:g} ms updates, {kind}, {state.model_name}: real-time factor at most "
+                               f"{result['floor']:.2f} (every cell recomputed: {result['full']:.2f})")
+    print()
+    print("\n".join(summary))
+
+
+if __name__ == "__main__":
+    main()
