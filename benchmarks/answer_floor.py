@@ -18,7 +18,10 @@ median share of them whose output changed, then:
     convolution timed alone (hooks before and after it; the best of five passes);
   * the floor of an answer: the changed multiply-adds at that throughput, nothing else counted
     (no graph, no GCN layer, no normalisation or activation, no decoding), and the real-time factor
-    such an answer would allow, ``update / floor``, beside the one a full pass allows.
+    such an answer would allow, ``update / floor``, beside the one a full pass allows;
+  * the same at the machine's matrix-product throughput (a 1024 x 1024 float32 product, the best
+    of ten): what the changed convolutions would leave if they ran as fast as the library's largest
+    products, the most any kernel of this arithmetic gets from these cores.
 An answer whose image is new is left out (the image's side runs once a frame). ``--set key=value``
 rebuilds the checkpoint's architecture with changed settings (``DetectorConfig`` fields) and
 untrained weights, to price a design before training it: which cells change depends on the events
@@ -93,6 +96,19 @@ class ConvRecorder:
             handle.remove()
 
 
+def product_throughput() -> float:
+    """Multiply-adds per second of a 1024 x 1024 float32 matrix product (the best of ten)."""
+    a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
+    for _ in range(3):
+        a @ b
+    best = np.inf
+    for _ in range(10):
+        tic = time.perf_counter()
+        a @ b
+        best = min(best, time.perf_counter() - tic)
+    return 1024 ** 3 / best
+
+
 def answer(model: Detector, recorder: ConvRecorder, one) -> dict[str, torch.Tensor]:
     """Every convolution's output map on the sample ``one`` (a batch of one)."""
     recorder.outputs = {}
@@ -114,7 +130,7 @@ def built(state, height: int, width: int, settings: dict) -> tuple[Detector, str
     return Detector(cfg).eval(), f"{state.model_name} with {changes} (untrained)"
 
 
-def floor_scene(state, rec, scene: str, args, settings: dict) -> dict:
+def floor_scene(state, rec, scene: str, args, settings: dict, peak: float | None = None) -> dict:
     """Prints one checkpoint's table on one scene; returns the real-time factors its floor and a full pass allow,
     the changed share of each part and the pairs of answers compared."""
     model, name = built(state, rec.height, rec.width, settings)
@@ -177,8 +193,14 @@ def floor_scene(state, rec, scene: str, args, settings: dict) -> dict:
     print(f"  floor of an answer: {floor_ms:.2f} ms of changed convolutions (a full pass's: {full_ms:.2f} ms); "
           f"{args.updates_ms:g} ms updates: real-time factor at most {args.updates_ms / floor_ms:.2f} "
           f"(every cell recomputed: {args.updates_ms / full_ms:.2f})")
-    return {"floor": args.updates_ms / floor_ms, "full": args.updates_ms / full_ms, "shares": shares,
-            "pairs": len(changed)}
+    result = {"floor": args.updates_ms / floor_ms, "full": args.updates_ms / full_ms, "shares": shares,
+              "pairs": len(changed)}
+    if peak is not None:
+        peak_ms = 1e3 * total_changed / peak
+        print(f"  at the matrix product's {peak / 1e9:.1f} G MACs/s: {peak_ms:.2f} ms; real-time factor at most "
+              f"{args.updates_ms / peak_ms:.2f}")
+        result["peak"] = args.updates_ms / peak_ms
+    return result
 
 
 def main() -> None:
@@ -200,7 +222,9 @@ def main() -> None:
         if not sep:
             parser.error(f"--set takes KEY=VALUE, got {item!r}")
         settings[key] = yaml.safe_load(value)
-    print(f"torch {torch.__version__}, {args.threads} threads")
+    peak = product_throughput()
+    print(f"torch {torch.__version__}, {args.threads} threads; a 1024 x 1024 float32 matrix product: "
+          f"{peak / 1e9:.1f} G multiply-adds/s")
     summary = []
     with tempfile.TemporaryDirectory() as workdir:
         scenes = [recording((180, 320), args.seconds, Path(workdir)) + ("stub",)]
@@ -210,9 +234,10 @@ def main() -> None:
         for path in args.ckpt:
             state = load_checkpoint(path)
             for scene, rec, kind in scenes:
-                result = floor_scene(state, rec, scene, args, settings)
+                result = floor_scene(state, rec, scene, args, settings, peak)
                 summary.append(f"{args.updates_ms:g} ms updates, {kind}, {state.model_name}: real-time factor at most "
-                               f"{result['floor']:.2f} (every cell recomputed: {result['full']:.2f})")
+                               f"{result['floor']:.2f} (every cell recomputed: {result['full']:.2f}; at the matrix "
+                               f"product's throughput: {result['peak']:.2f})")
     print()
     print("\n".join(summary))
 
