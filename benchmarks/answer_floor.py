@@ -9,19 +9,20 @@ For each checkpoint and scene (the stub's first test video at 320x180; with ``--
 camera-rate scene of ``benchmarks/streaming.py``), the batch model answers at ``--answers`` moments
 ``--updates-ms`` apart, on the samples the streaming detector answers (``streaming.sample_at``).
 Every convolution's output map is kept. Between two answers with the same image, a cell of a
-layer's output that differs (exact equality) is one that any exact answer must compute again,
-however it is computed: an answer that reuses every other cell is the best that "an answer that
-costs what changed" can do. Per part of the model (image branch, carry branch, the event branch's
+layer's output that differs (exact equality) is one that an exact answer must compute again: an
+answer that recomputes those cells and reuses every other is the best that "an answer that costs
+what changed" can do by recomputing cells (an update of a linear layer by the difference of its
+inputs alone could cost less; the activation after each layer still needs the cell's new value). Per part of the model (image branch, carry branch, the event branch's
 dense stages, fusion, head) it prints the convolutions' multiply-adds in a full pass and the
-median share of them whose output changed, then:
+mean share of them whose output changed over the pairs, then:
   * the convolutions' throughput here: their multiply-adds over their time in full passes, each
     convolution timed alone (hooks before and after it; the best of five passes);
-  * the floor of an answer: the changed multiply-adds at that throughput, nothing else counted
-    (no graph, no GCN layer, no normalisation or activation, no decoding), and the real-time factor
-    such an answer would allow, ``update / floor``, beside the one a full pass allows;
-  * the same at the machine's matrix-product throughput (a 1024 x 1024 float32 product, the best
-    of ten): what the changed convolutions would leave if they ran as fast as the library's largest
-    products, the most any kernel of this arithmetic gets from these cores.
+  * the floor of an answer: each convolution's time scaled by the share of its cells that changed,
+    nothing else counted (no graph, no GCN layer, no normalisation or activation, no decoding), and
+    the real-time factor such an answer would allow, ``update / floor``, beside the one of every
+    cell recomputed;
+  * the changed multiply-adds at the throughput of a 1024 x 1024 float32 matrix product (the best of
+    ten): a reference for convolutions that ran as fast as the library's large products.
 An answer whose image is new is left out (the image's side runs once a frame). ``--set key=value``
 rebuilds the checkpoint's architecture with changed settings (``DetectorConfig`` fields) and
 untrained weights, to price a design before training it: which cells change depends on the events
@@ -42,7 +43,7 @@ from torch import nn
 
 from dagr_lite.data.collate import collate
 from dagr_lite.engine.checkpoint import load_checkpoint
-from dagr_lite.nn.detector import Detector
+from dagr_lite.nn.detector import Detector, DetectorConfig
 from streaming import camera_recording, frame_at, model_at, recording, sample_at, size_of, streamed
 
 PARTS = (("image.", "image branch"), ("carry.", "carry branch"), ("events.", "event branch (dense stages)"),
@@ -120,6 +121,41 @@ def answer(model: Detector, recorder: ConvRecorder, one) -> dict[str, torch.Tens
     return recorder.outputs
 
 
+def detector_settings(items: list[str]) -> dict:
+    """``KEY=VALUE`` items as :class:`DetectorConfig` fields, each value of its field's type (a list for a
+    tuple field); an unknown key, the input size (the scene's) or a value of the wrong type is an error
+    naming it."""
+    defaults = {f.name: f for f in dataclasses.fields(DetectorConfig)}
+    settings = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep:
+            raise ValueError(f"--set takes KEY=VALUE, got {item!r}")
+        if key not in defaults or key in ("height", "width", "graph"):
+            known = sorted(set(defaults) - {"height", "width", "graph"})
+            raise ValueError(f"--set {key}: not a detector setting that can be priced; one of {known}")
+        value = yaml.safe_load(text)
+        kind = defaults[key].type
+        kind = kind if isinstance(kind, str) else getattr(kind, "__name__", str(kind))
+        if kind.startswith("bool") and isinstance(value, bool):
+            pass
+        elif kind.startswith("int") and isinstance(value, int) and not isinstance(value, bool):
+            pass
+        elif kind.startswith("float") and isinstance(value, (int, float, str)) and not isinstance(value, bool):
+            try:
+                value = float(value)  # YAML reads 1e5 as a string
+            except ValueError:
+                raise ValueError(f"--set {key}={text}: expected a number, got {value!r}") from None
+        elif kind.startswith("tuple") and isinstance(value, list):
+            value = tuple(value)
+        elif kind.startswith("str") and isinstance(value, str):
+            pass
+        else:
+            raise ValueError(f"--set {key}={text}: expected a value of type {kind}, got {value!r}")
+        settings[key] = value
+    return settings
+
+
 def built(state, height: int, width: int, settings: dict) -> tuple[Detector, str]:
     """The checkpoint's model, or with ``settings`` its architecture changed and untrained."""
     if not settings:
@@ -130,17 +166,25 @@ def built(state, height: int, width: int, settings: dict) -> tuple[Detector, str
     return Detector(cfg).eval(), f"{state.model_name} with {changes} (untrained)"
 
 
+def rtf(update_ms: float, ms: float) -> float:
+    """The real-time factor of answers ``update_ms`` apart that each take ``ms`` (infinite at 0 ms)."""
+    return update_ms / ms if ms > 0 else float("inf")
+
+
 def floor_scene(state, rec, scene: str, args, settings: dict, peak: float | None = None) -> dict:
-    """Prints one checkpoint's table on one scene; returns the real-time factors its floor and a full pass allow,
-    the changed share of each part and the pairs of answers compared."""
+    """Prints one checkpoint's table on one scene; returns the model's name, the real-time factors its
+    floor and a full pass allow (``floor``, ``full``; ``peak``: the floor at ``peak`` multiply-adds a
+    second), the changed share of each part and the pairs of answers compared."""
     model, name = built(state, rec.height, rec.width, settings)
     sample = state.sample
     t0, t1, rate = streamed(rec, args.seconds)
     update_us = args.updates_ms * 1e3
-    moments = [t0 + 2_000 + k * update_us for k in range(args.answers + 1)]
-    moments = [m for m in moments if m < t1]
+    moments = [m for m in (t0 + 2_000 + k * update_us for k in range(args.answers + 1)) if m < t1]
+    if len(moments) < 2:
+        raise ValueError(f"{scene}: {(t1 - t0) / 1e3:.0f} ms streamed hold fewer than two answers "
+                         f"{args.updates_ms:g} ms apart (--seconds, --updates-ms)")
     recorder = ConvRecorder(model)
-    # throughput: every convolution of a full pass timed alone, the best of five passes
+    # each convolution's time in a full pass (timed alone), the best of five passes
     one = sample_at(model, rec, moments[0], sample=sample)
     best_seconds, best_total = {}, np.inf
     for _ in range(5):
@@ -153,53 +197,55 @@ def floor_scene(state, rec, scene: str, args, settings: dict, peak: float | None
     repeat = answer(model, recorder, one)
     again = answer(model, recorder, one)
     unstable = sum(changed_cells(repeat[k], again[k]) for k in repeat)
-    macs = {k: conv_macs_per_cell(recorder.convs[k]) * out.shape[-2] * out.shape[-1] for k, out in repeat.items()}
-    conv_seconds = sum(best_seconds.values())
-    throughput = sum(macs.values()) / conv_seconds
-    per_part_full: dict[str, float] = {}
-    for k, m in macs.items():
-        per_part_full[part_of(k)] = per_part_full.get(part_of(k), 0) + m
-    changed: list[dict[str, float]] = []
+    cells = {k: out.shape[-2] * out.shape[-1] for k, out in repeat.items()}
+    macs = {k: conv_macs_per_cell(recorder.convs[k]) * cells[k] for k in repeat}
+    changed = {k: 0 for k in repeat}  # changed output cells of each convolution, summed over the pairs
+    pairs = 0
     previous, previous_frame = None, None
     for m in moments:
         outputs = answer(model, recorder, sample_at(model, rec, m, sample=sample))
         frame = frame_at(rec, m) if model.image is not None else None
         if previous is not None and frame == previous_frame:
-            row: dict[str, float] = {}
+            pairs += 1
             for k, out in outputs.items():
-                cells = changed_cells(previous[k], out)
-                row[part_of(k)] = row.get(part_of(k), 0) + cells * conv_macs_per_cell(recorder.convs[k])
-            changed.append(row)
+                changed[k] += changed_cells(previous[k], out)
         previous, previous_frame = outputs, frame
     recorder.close()
-    print(f"\n{name}, {scene}: {rec.width}x{rec.height}, {rate / 1e3:.0f}k events/s; {len(changed)} pairs of answers "
+    print(f"\n{name}, {scene}: {rec.width}x{rec.height}, {rate / 1e3:.0f}k events/s; {pairs} pairs of answers "
           f"{args.updates_ms:g} ms apart with the same image; a repeated answer changes {unstable} cells")
+    if not pairs:
+        print("  no two answers share an image: nothing to compare (a longer --seconds or shorter --updates-ms)")
+        nan = float("nan")
+        return {"name": name, "floor": nan, "full": nan, "peak": nan, "shares": {}, "pairs": 0}
+    share = {k: changed[k] / pairs / cells[k] for k in repeat}  # mean share of the map that changed
     header = f"  {'part':<30}{'full pass, M MACs':>20}{'changed, M MACs':>18}{'share':>8}"
     print(header + "\n  " + "-" * (len(header) - 2))
-    total_full = total_changed = 0.0
-    shares = {}
-    for part in sorted(per_part_full, key=lambda p: -per_part_full[p]):
-        full = per_part_full[part]
-        moved = float(np.median([row.get(part, 0.0) for row in changed])) if changed else float("nan")
-        total_full, total_changed = total_full + full, total_changed + moved
-        shares[part] = moved / full
+    parts: dict[str, list[float]] = {}
+    for k in repeat:
+        totals = parts.setdefault(part_of(k), [0.0, 0.0])
+        totals[0] += macs[k]
+        totals[1] += macs[k] * share[k]
+    for part, (full, moved) in sorted(parts.items(), key=lambda item: -item[1][0]):
         print(f"  {part:<30}{full / 1e6:>20.1f}{moved / 1e6:>18.1f}{moved / full:>8.0%}")
+    total_full, total_changed = sum(v[0] for v in parts.values()), sum(v[1] for v in parts.values())
     print(f"  {'all convolutions':<30}{total_full / 1e6:>20.1f}{total_changed / 1e6:>18.1f}"
           f"{total_changed / total_full:>8.0%}")
-    floor_ms = 1e3 * total_changed / throughput
-    full_ms = 1e3 * total_full / throughput
-    print(f"  convolutions here: {throughput / 1e9:.1f} G MACs/s ({1e3 * conv_seconds:.1f} ms of a {1e3 * best_total:.1f} ms "
-          f"full pass)")
-    print(f"  floor of an answer: {floor_ms:.2f} ms of changed convolutions (a full pass's: {full_ms:.2f} ms); "
-          f"{args.updates_ms:g} ms updates: real-time factor at most {args.updates_ms / floor_ms:.2f} "
-          f"(every cell recomputed: {args.updates_ms / full_ms:.2f})")
-    result = {"floor": args.updates_ms / floor_ms, "full": args.updates_ms / full_ms, "shares": shares,
-              "pairs": len(changed)}
+    # each convolution's own time, scaled by the share of its map that changed
+    conv_ms = 1e3 * sum(best_seconds.values())
+    floor_ms = 1e3 * sum(best_seconds[k] * share[k] for k in repeat)
+    print(f"  convolutions here: {total_full / conv_ms / 1e6:.1f} G MACs/s ({conv_ms:.1f} ms of a "
+          f"{1e3 * best_total:.1f} ms full pass with these hooks)")
+    print(f"  floor of an answer: {floor_ms:.2f} ms, each convolution's time times the share of its cells that "
+          f"changed; {args.updates_ms:g} ms updates: real-time factor at most {rtf(args.updates_ms, floor_ms):.2f} "
+          f"(every cell recomputed: {rtf(args.updates_ms, conv_ms):.2f})")
+    result = {"name": name, "floor": rtf(args.updates_ms, floor_ms), "full": rtf(args.updates_ms, conv_ms),
+              "shares": {part: moved / full for part, (full, moved) in parts.items()}, "pairs": pairs,
+              "peak": float("nan")}
     if peak is not None:
         peak_ms = 1e3 * total_changed / peak
         print(f"  at the matrix product's {peak / 1e9:.1f} G MACs/s: {peak_ms:.2f} ms; real-time factor at most "
-              f"{args.updates_ms / peak_ms:.2f}")
-        result["peak"] = args.updates_ms / peak_ms
+              f"{rtf(args.updates_ms, peak_ms):.2f}")
+        result["peak"] = rtf(args.updates_ms, peak_ms)
     return result
 
 
@@ -216,12 +262,10 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    settings = {}
-    for item in args.set:
-        key, sep, value = item.partition("=")
-        if not sep:
-            parser.error(f"--set takes KEY=VALUE, got {item!r}")
-        settings[key] = yaml.safe_load(value)
+    try:
+        settings = detector_settings(args.set)
+    except ValueError as err:
+        parser.error(str(err))
     peak = product_throughput()
     print(f"torch {torch.__version__}, {args.threads} threads; a 1024 x 1024 float32 matrix product: "
           f"{peak / 1e9:.1f} G multiply-adds/s")
@@ -235,7 +279,7 @@ def main() -> None:
             state = load_checkpoint(path)
             for scene, rec, kind in scenes:
                 result = floor_scene(state, rec, scene, args, settings, peak)
-                summary.append(f"{args.updates_ms:g} ms updates, {kind}, {state.model_name}: real-time factor at most "
+                summary.append(f"{args.updates_ms:g} ms updates, {kind}, {result['name']}: real-time factor at most "
                                f"{result['floor']:.2f} (every cell recomputed: {result['full']:.2f}; at the matrix "
                                f"product's throughput: {result['peak']:.2f})")
     print()

@@ -67,3 +67,23 @@ def test_a_hybrids_image_branch_is_unchanged_and_its_head_changes_everywhere(flo
     assert result["shares"]["image branch"] == 0.0
     assert result["shares"]["head"] > 0.99  # a cell may round to the same value by chance
     assert result["floor"] > result["full"] > 0
+
+
+def test_an_events_only_model_compares_every_pair(floor, trained_checkpoints):
+    """Without an image every two consecutive answers are a pair; a part's changed share is a share."""
+    state = load_checkpoint(trained_checkpoints["events_only"])
+    _, rec = floor.recording((180, 320), 0.5, Path("unused"))
+    result = floor.floor_scene(state, rec, "stub", argparse.Namespace(updates_ms=5.0, answers=3, seconds=0.5), {})
+    assert result["pairs"] == 3 and result["name"] == "events_only"
+    assert result["shares"] and all(0.0 <= share <= 1.0 for share in result["shares"].values())
+    assert result["floor"] >= result["full"] > 0
+
+
+def test_priced_settings_are_checked_and_typed(floor):
+    assert floor.detector_settings(["late_query=true", "carry_width=0", "time_scale_us=1e5",
+                                    "strides=[16, 32]"]) == {
+        "late_query": True, "carry_width": 0, "time_scale_us": 100000.0, "strides": (16, 32)}
+    for item, named in (("no_such_key=1", "no_such_key"), ("height=90", "height"), ("late_query=2", "late_query"),
+                        ("carry_width=0.5", "carry_width"), ("late_query", "KEY=VALUE")):
+        with pytest.raises(ValueError, match=named):
+            floor.detector_settings([item])
