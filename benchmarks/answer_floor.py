@@ -12,9 +12,10 @@ Every convolution's output map is kept. Between two answers with the same image,
 layer's output that differs (exact equality) is one that an exact answer must compute again: an
 answer that recomputes those cells and reuses every other is the best that "an answer that costs
 what changed" can do by recomputing cells (an update of a linear layer by the difference of its
-inputs alone could cost less; the activation after each layer still needs the cell's new value). Per part of the model (image branch, carry branch, the event branch's
-dense stages, fusion, head) it prints the convolutions' multiply-adds in a full pass and the
-mean share of them whose output changed over the pairs, then:
+inputs alone could cost less; the activation after each layer still needs the cell's new value).
+Per part of the model (image branch, carry branch, the event branch's dense stages, fusion, head)
+it prints the convolutions' multiply-adds in a full pass and those whose output changed (the mean
+over the pairs), then:
   * the convolutions' throughput here: their multiply-adds over their time in full passes, each
     convolution timed alone (hooks before and after it; the best of five passes);
   * the floor of an answer: each convolution's time scaled by the share of its cells that changed,
