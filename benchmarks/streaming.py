@@ -183,6 +183,15 @@ def sample_at(model: Detector, rec: Recording, t_query: float, *, sample: Sample
                   image_frame=k, t_start_us=int(begin), t_end_us=int(t_query), t_image_us=int(t_image))
 
 
+def batch_pass(model: Detector, batch) -> None:
+    """The batch model's answer to ``batch``: its event graph built (a model with events), the model,
+    decoding and NMS."""
+    with torch.no_grad():
+        if model.events is not None:
+            batch.edge_index = model.graph_spec.edges(batch.events, batch.batch_index)
+        model(batch, conf_threshold=0.25, nms_threshold=0.65)
+
+
 def full_pass(model: Detector, rec: Recording, t_query: float, *, sample: SampleSpec,
               repeats: int = 2) -> tuple[float, int, int]:
     """Seconds (best of ``repeats``) of one batch pass on the sample at ``t_query``, its GCN
@@ -193,9 +202,7 @@ def full_pass(model: Detector, rec: Recording, t_query: float, *, sample: Sample
         batch = collate([one])
         counter = MacCounter(model)
         tic = time.perf_counter()
-        with torch.no_grad():
-            batch.edge_index = model.graph_spec.edges(batch.events, batch.batch_index)
-            model(batch, conf_threshold=0.25, nms_threshold=0.65)
+        batch_pass(model, batch)
         best = min(best, time.perf_counter() - tic)
         counter.close()
         macs = counter.total
