@@ -136,6 +136,7 @@ _RULES = {
     "data.carry_recent_us": ("an integer >= 0 (microseconds; 0: no recent channel)", lambda v: is_integer(v) and v >= 0),
     "data.carry_confirm_us": ("an integer >= 0 (microseconds; 0: no confirmed channels)",
                               lambda v: is_integer(v) and v >= 0),
+    "data.carry_align_us": ("an integer >= 0 (microseconds; 0: no moved frame)", lambda v: is_integer(v) and v >= 0),
     "data.max_events": ("a positive integer or null", lambda v: v is None or (is_integer(v) and v > 0)),
     "loader.batch_size": ("a positive integer", lambda v: is_integer(v) and v > 0),
     "loader.num_workers": ("an integer >= 0", lambda v: is_integer(v) and v >= 0),
@@ -261,6 +262,7 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
                           event_picture=picture, carry_picture=bool(data.get("carry_picture", False)),
                           carry_recent_us=int(data.get("carry_recent_us", 0)),
                           carry_confirm_us=int(data.get("carry_confirm_us", 0)),
+                          carry_align_us=int(data.get("carry_align_us", 0)),
                           frames=with_image or not train)  # a frameless model's training skips the frames
     if not len(built) and built.videos and first_frame is None:  # (the sweep says its own)
         lengths = [built.num_frames(v) for v in range(len(built.videos))]
@@ -305,7 +307,8 @@ def detector_config(cfg: DictConfig, *, height: int, width: int) -> DetectorConf
     size = model.sizes[model.size]
     picture, carry = bool(cfg.data.get("carry_picture", False)), int(model.carry_width)
     channels = carry_channels(int(cfg.data.get("carry_recent_us", 0)) if picture else 0,  # the carry picture's
-                              int(cfg.data.get("carry_confirm_us", 0)) if picture else 0)
+                              int(cfg.data.get("carry_confirm_us", 0)) if picture else 0,
+                              int(cfg.data.get("carry_align_us", 0)) if picture else 0)
     if carry and not picture:
         raise ConfigError(f"model.carry_width={carry} reads the picture of the events since the image: it needs "
                           "data.carry_picture=true")

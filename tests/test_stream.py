@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from dagr_lite.data.align import background_shift, frame_gradients, max_shift_px, shifted_frame
 from dagr_lite.data.collate import collate
 from dagr_lite.data.dataset import Sample, event_picture, sample_start_us
 from dagr_lite.data.denoise import support_keep_reference
@@ -25,18 +26,21 @@ H, W = 48, 64
 CONTEXT_US, WINDOW_US = 10_000, 33_333
 RECENT_US = 12_000  # a four-channel carry picture's recent window
 CONFIRM_US = 15_000  # a carry picture's confirmation (six or seven channels): longer than the context
+ALIGN_US = 8_000  # the recent window a moved frame is aligned with (three more channels)
 
 
 def streaming(model: Detector, *, refractory_us: int = 0, score: float = 0.0,
-              graph_context_us: int = 0, support_us: int = 0) -> StreamingDetector:
-    """The streaming detector on this module's sample, answering every box of ``score`` or more."""
+              graph_context_us: int = 0, support_us: int = 0, carry_align_us: int = 0) -> StreamingDetector:
+    """The streaming detector on this module's sample, answering every box of ``score`` or more;
+    a carry picture's channels say which of its windows it has (less three with ``carry_align_us``)."""
+    picture = model.cfg.carry_channels - (3 if carry_align_us else 0)
     return StreamingDetector(model, SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=refractory_us,
                                                max_events=None, event_picture=False,
                                                graph_context_us=graph_context_us,
                                                carry_picture=model.carry is not None,
-                                               carry_recent_us=RECENT_US if model.cfg.carry_channels in (4, 7) else 0,
-                                               carry_confirm_us=CONFIRM_US if model.cfg.carry_channels >= 6 else 0,
-                                               support_us=support_us),
+                                               carry_recent_us=RECENT_US if picture in (4, 7) else 0,
+                                               carry_confirm_us=CONFIRM_US if picture >= 6 else 0,
+                                               support_us=support_us, carry_align_us=carry_align_us),
                              OperatingPoint(score=score, nms_iou=EVAL["nms_threshold"]))
 
 
@@ -119,6 +123,14 @@ def check_against_batch(stream: StreamingDetector, model: Detector, events: dict
                                                stream.sample.carry_confirm_us, W, H) & (kept_events["t"] >= t_image)
             pictures.append(event_picture(*(v[confirmed] for v in kept_events.values()), t_query,
                                           max(t_query - t_image, 1.0), H, W))
+        if stream.sample.carry_align_us:  # and the frame moved by the shift the recently fired pixels give
+            signs, last = np.zeros((H, W)), np.full((H, W), -np.inf)  # each pixel's latest event since the image
+            for i in np.nonzero(since)[0]:
+                signs[events["y"][i], events["x"][i]] = 1.0 if events["p"][i] == 1 else -1.0
+                last[events["y"][i], events["x"][i]] = max(last[events["y"][i], events["x"][i]], t[i])
+            signs[last < t_query - stream.sample.carry_align_us] = 0.0  # where recent
+            shift = background_shift(frame_gradients(image), signs, max_shift_px(t_query - t_image))
+            pictures.append(shifted_frame(image, *shift))
         image = np.concatenate(pictures, axis=2)
     origin = t_image if hybrid else stream.origin_us
     sample = sample_of(image, tuple(v[:upto][keep] for v in events.values()), origin, t_query, math.ceil(start))
@@ -146,11 +158,13 @@ def brute_refractory(events: dict, upto: int, refractory_us: int) -> np.ndarray:
 
 def replay(model: Detector, events: dict, images: list, seed: int, *, detect_prob: float = 0.4,
            sizes=(0, 1, 1, 2, 5, 40, 300), refractory_us: int = 0,
-           graph_context_us: int = 0, support_us: int = 0) -> tuple[int, int, StreamingDetector]:
+           graph_context_us: int = 0, support_us: int = 0, carry_align_us: int = 0
+           ) -> tuple[int, int, StreamingDetector]:
     """Push ``events`` in random sizes (0, 1 and more), images at their times, and check random
     detect calls (at the latest event or a little later) against the batch model."""
     rng = np.random.default_rng(seed)
-    stream = streaming(model, refractory_us=refractory_us, graph_context_us=graph_context_us, support_us=support_us)
+    stream = streaming(model, refractory_us=refractory_us, graph_context_us=graph_context_us, support_us=support_us,
+                       carry_align_us=carry_align_us)
     n, i, checks, largest = len(events["t"]), 0, 0, 0
     pending = sorted(images, key=lambda item: item[1])
     image, t_image = None, None
@@ -560,6 +574,22 @@ def test_streaming_with_a_carry_branch_equals_the_batch_model(refractory_us, car
         assert 0 < stream._carry.confirmed[0].sum() < 0.9 * stream._carry.counts.sum()
 
 
+@pytest.mark.parametrize(("carry_channels", "refractory_us"), [(7, 0), (10, 3_000)])
+def test_streaming_with_a_moved_frame_equals_the_batch_model(carry_channels, refractory_us):
+    """A carry picture with the frame moved by the camera's motion (``carry_align_us``): its shift,
+    found at each answer from the pixels the kept events fired in the last ``ALIGN_US``, and so
+    the answer, are the batch model's; the shift moves as events arrive."""
+    model = small_model("hybrid", seed=9, carry_width=4, carry_channels=carry_channels, carry_frame=True)
+    rng = np.random.default_rng(29)
+    events = random_stream(rng, 2500, 250_000)
+    images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 190_000)]
+    checks, largest, stream = replay(model, events, images, seed=13, refractory_us=refractory_us, detect_prob=0.9,
+                                     carry_align_us=ALIGN_US)
+    assert checks >= 20 and largest >= 300
+    shifts = {stream._carry.shift(t) for t in range(200_000, 250_001, 5_000)}
+    assert len(shifts) > 1  # the moved frame is not the frame itself at every answer
+
+
 def test_a_confirmation_longer_than_the_context_serves_close_and_late_images():
     """The log keeps ``CONFIRM_US`` before each image, so a second image 4 ms after the first and an
     image pushed 30 ms after newer events both read the events that confirm their first ones."""
@@ -590,7 +620,7 @@ def test_a_model_reading_a_picture_of_events_is_refused_by_its_key():
     model = small_model("hybrid")
     for key in ("event_picture", "carry_picture"):
         spec = SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=0, support_us=0, max_events=None,
-                          graph_context_us=0, carry_recent_us=0, carry_confirm_us=0,
+                          graph_context_us=0, carry_recent_us=0, carry_confirm_us=0, carry_align_us=0,
                           **{"event_picture": False, "carry_picture": False, key: True})
         with pytest.raises(UserError, match=f"data.{key}"):
             StreamingDetector(model, spec, OperatingPoint(score=0.0, nms_iou=EVAL["nms_threshold"]))
@@ -601,9 +631,9 @@ def test_a_carry_branch_is_refused_a_picture_of_other_channels():
     model = small_model("hybrid", carry_width=4, carry_channels=4)
     spec = SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=0, support_us=0, max_events=None,
                       graph_context_us=0, event_picture=False, carry_picture=True, carry_recent_us=0,
-                      carry_confirm_us=0)
-    with pytest.raises(UserError, match="reads pictures of 4 channels, but data.carry_recent_us=0 and "
-                                        "data.carry_confirm_us=0 make pictures of 3"):
+                      carry_confirm_us=0, carry_align_us=0)
+    with pytest.raises(UserError, match="reads pictures of 4 channels, but data.carry_recent_us=0, "
+                                        "data.carry_confirm_us=0 and data.carry_align_us=0 make pictures of 3"):
         StreamingDetector(model, spec, OperatingPoint(score=0.0, nms_iou=EVAL["nms_threshold"]))
 
 

@@ -20,6 +20,7 @@ from torch.utils.data import Dataset
 
 from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
+from dagr_lite.data.align import add_polarities, background_shift, frame_gradients, max_shift_px, shifted_frame
 from dagr_lite.data.errors import DatasetFormatError, Problem
 from dagr_lite.data.events import EventFile
 from dagr_lite.data.denoise import support_keep
@@ -45,10 +46,12 @@ def picture_channels(recent_us: float) -> int:
     return PICTURE_CHANNELS + (1 if recent_us > 0 else 0)
 
 
-def carry_channels(recent_us: float, confirm_us: float) -> int:
+def carry_channels(recent_us: float, confirm_us: float, align_us: float = 0) -> int:
     """The channels of a carry picture (:class:`CarryPicture`): an event picture's
-    (:func:`picture_channels`), and with ``confirm_us > 0`` three more of the confirmed events."""
-    return picture_channels(recent_us) + (PICTURE_CHANNELS if confirm_us > 0 else 0)
+    (:func:`picture_channels`), with ``confirm_us > 0`` three more of the confirmed events, and with
+    ``align_us > 0`` three more of the frame moved by the camera's motion since it."""
+    return (picture_channels(recent_us) + (PICTURE_CHANNELS if confirm_us > 0 else 0)
+            + (RGB_CHANNELS if align_us > 0 else 0))
 
 
 def event_picture(x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray, t_end_us: float, window_us: float,
@@ -118,11 +121,25 @@ class CarryPicture:
     alone, so the confirmed channels show where edges moved even where noise covers the frame.
     Deciding needs the events of ``confirm_us`` before the image too: :meth:`add` them all
     (:attr:`reads_from_us`); those before the image only confirm.
+
+    With ``align_us > 0`` three more channels follow: the camera ``frame`` moved by the
+    background's displacement since it (:meth:`shift`), found by laying the frame's edges over
+    the pixels that fired in the last ``align_us`` (:mod:`~dagr_lite.data.align`): the background
+    as it should look now, beside where the events are.
     """
 
-    def __init__(self, height: int, width: int, t_image_us: float, recent_us: float = 0, confirm_us: float = 0):
+    def __init__(self, height: int, width: int, t_image_us: float, recent_us: float = 0, confirm_us: float = 0,
+                 align_us: float = 0, frame: np.ndarray | None = None):
         self.height, self.width = int(height), int(width)
         self.t_image_us, self.recent_us, self.confirm_us = float(t_image_us), float(recent_us), float(confirm_us)
+        self.align_us = float(align_us)
+        if self.align_us > 0:
+            if frame is None or frame.shape != (self.height, self.width, RGB_CHANNELS):
+                raise ValueError(f"a carry picture with align_us > 0 moves the camera frame: expected an "
+                                 f"({self.height}, {self.width}, 3) frame, got "
+                                 f"{None if frame is None else frame.shape}")
+            self.frame, self.gradients = frame, frame_gradients(frame)
+            self.signs = np.zeros(self.height * self.width)  # each pixel's latest polarity since the image, +-1
         self.counts, self.last = picture_state(self.height, self.width)
         if self.confirm_us > 0:
             self.confirmed = picture_state(self.height, self.width)
@@ -135,7 +152,7 @@ class CarryPicture:
 
     @property
     def channels(self) -> int:
-        return carry_channels(self.recent_us, self.confirm_us)
+        return carry_channels(self.recent_us, self.confirm_us, self.align_us)
 
     def add(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> None:
         """Adds events sorted by ``t``, later than any added before (integer pixels in the frame)."""
@@ -144,6 +161,8 @@ class CarryPicture:
         x, y, t, p = np.asarray(x), np.asarray(y), np.asarray(t), np.asarray(p)
         since = first_at_or_after(t, self.t_image_us)
         add_to_picture(self.counts, self.last, x[since:], y[since:], t[since:], p[since:], self.width)
+        if self.align_us > 0:
+            add_polarities(self.signs, x[since:], y[since:], p[since:], self.width)
         if self.confirm_us > 0:
             add_confirmed(*self.confirmed, self.seen, x, y, t, p, self.t_image_us, self.confirm_us, self.width,
                           self.height)
@@ -152,10 +171,19 @@ class CarryPicture:
         """``(H, W, channels)`` uint8 at query time ``t_end_us``."""
         span = max(t_end_us - self.t_image_us, 1)
         picture = picture_of(self.counts, self.last, t_end_us, span, self.height, self.width, self.recent_us)
-        if self.confirm_us <= 0:
-            return picture
-        confirmed = picture_of(*self.confirmed, t_end_us, span, self.height, self.width)
-        return np.concatenate([picture, confirmed], axis=2)
+        parts = [picture]
+        if self.confirm_us > 0:
+            parts.append(picture_of(*self.confirmed, t_end_us, span, self.height, self.width))
+        if self.align_us > 0:
+            parts.append(shifted_frame(self.frame, *self.shift(t_end_us)))
+        return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=2)
+
+    def shift(self, t_end_us: float) -> tuple[int, int]:
+        """The background's whole-pixel displacement ``(dx, dy)`` from the frame to ``t_end_us``
+        (:func:`~dagr_lite.data.align.background_shift` over the pixels whose latest event since
+        the image is less than ``align_us`` before ``t_end_us``, each with that event's polarity)."""
+        signs = np.where(self.last >= t_end_us - self.align_us, self.signs, 0.0).reshape(self.height, self.width)
+        return background_shift(self.gradients, signs, max_shift_px(t_end_us - self.t_image_us))
 
 
 def refractory_keep(x: np.ndarray, y: np.ndarray, t: np.ndarray, refractory_us: float, width: int,
@@ -273,6 +301,8 @@ class Sample:
             the boxes are for (``t(k)``, or between frames in a sweep). With a graph context
             (``graph_context_us``), ``events`` also hold earlier ones, which the graph reads and never pools.
         t_image_us: the image's time ``t(k - a)``.
+        moved_frame: the image's last three channels are the frame moved by the camera's motion
+            since it (a carry picture with ``carry_align_us``): a blanked frame blanks them too.
     """
 
     events: torch.Tensor
@@ -285,6 +315,7 @@ class Sample:
     t_start_us: int
     t_end_us: int
     t_image_us: int
+    moved_frame: bool = False
 
     @property
     def age_us(self) -> int:
@@ -306,6 +337,8 @@ class Sample:
         """This sample with its camera frame mid-grey (a picture of events beside it, ``carry_picture``, kept)."""
         image = self.image.clone()
         image[:RGB_CHANNELS] = 128
+        if self.moved_frame:
+            image[-RGB_CHANNELS:] = 128
         return replace(self, image=image)
 
 
@@ -361,6 +394,9 @@ class EventEgoHands(Dataset):
             ``carry_recent_us`` (where the events are now; ``(7, H, W)`` images); 0: three.
         carry_confirm_us: > 0: the carry picture gains three channels of the events a neighbouring
             pixel confirms within this long (:class:`CarryPicture`); 0: none.
+        carry_align_us: > 0: the carry picture gains three channels, the frame moved by the
+            camera's motion since it, found from the pixels that fired in the last ``carry_align_us``
+            (:mod:`~dagr_lite.data.align`); 0: none.
         graph_context_us: > 0: a sample's events also hold those of this long before its start
             (for ``event_span="image"`` not from before ``t(k - a) - context_us``), which the event
             graph reads as neighbours and never pools (:class:`~dagr_lite.data.spec.SampleSpec`);
@@ -379,7 +415,8 @@ class EventEgoHands(Dataset):
                  clip_boxes: bool = False, labelled_only: bool = False, seed: int = 0, age_power: float = 0.0,
                  age_ramp: int = 0,
                  graph_context_us: int, event_picture: bool = False, carry_picture: bool = False,
-                 carry_recent_us: int = 0, frames: bool = True, support_us: int, carry_confirm_us: int = 0):
+                 carry_recent_us: int = 0, frames: bool = True, support_us: int, carry_confirm_us: int = 0,
+                 carry_align_us: int = 0):
         if split not in fmt.SPLITS:
             raise UserError(f"split must be one of {fmt.SPLITS}, got {split!r}")
         self.age_range = age_range(image_age)
@@ -407,6 +444,11 @@ class EventEgoHands(Dataset):
         if not is_integer(carry_confirm_us) or carry_confirm_us < 0:
             raise UserError(f"carry_confirm_us must be an integer >= 0, got {carry_confirm_us!r}")
         self.carry_confirm_us = int(carry_confirm_us)
+        if not is_integer(carry_align_us) or carry_align_us < 0:
+            raise UserError(f"carry_align_us must be an integer >= 0, got {carry_align_us!r}")
+        if carry_align_us and carry_picture and not frames:
+            raise UserError("carry_align_us moves the camera frame: a frameless sample (frames=False) has none")
+        self.carry_align_us = int(carry_align_us)
         if context_us < 0:
             raise UserError(f"context_us must be >= 0, got {context_us}")
         if refractory_us < 0:
@@ -458,7 +500,7 @@ class EventEgoHands(Dataset):
                           max_events=self.max_events, event_picture=self.event_picture,
                           graph_context_us=self.graph_context_us, carry_picture=self.carry_picture,
                           carry_recent_us=self.carry_recent_us, support_us=self.support_us,
-                          carry_confirm_us=self.carry_confirm_us)
+                          carry_confirm_us=self.carry_confirm_us, carry_align_us=self.carry_align_us)
 
     def _open_video(self, video: str, labels: dict[int, np.ndarray], clip_boxes: bool):
         frames_dir = fmt.frames_dir(self.root, self.split, video)
@@ -562,10 +604,11 @@ class EventEgoHands(Dataset):
         t_start = int(sample_start_us(t_end, self.window_us, with_image, self.context_us))
         t_graph = int(sample_start_us(t_end, self.window_us + self.graph_context_us, with_image, self.context_us))
         height, width = self.image_size
+        frame = self.image_of(v, image_frame) if self.frames and not self.event_picture else None  # (H, W, 3)
         # One read serves the graph's events and, with a carry picture, every event since the image (and
         # those confirm_us before it, which confirm).
-        carry = CarryPicture(height, width, t_image, self.carry_recent_us, self.carry_confirm_us) \
-            if self.carry_picture else None
+        carry = CarryPicture(height, width, t_image, self.carry_recent_us, self.carry_confirm_us, self.carry_align_us,
+                             frame) if self.carry_picture else None
         kept = self._kept_events(v, min(t_graph, math.floor(carry.reads_from_us)) if carry else t_graph, t_end)
         graph_from = int(np.searchsorted(kept["t"], t_graph, side="left"))
         raw = {key: values[graph_from:] for key, values in kept.items()}
@@ -582,7 +625,7 @@ class EventEgoHands(Dataset):
             image = event_picture(*(raw[key][pooled:] for key in ("x", "y", "t", "p")), t_end, self.window_us,
                                   height, width)
         elif self.frames:
-            image = self.image_of(v, image_frame)  # (H, W, 3)
+            image = frame
         else:
             image = np.zeros((height, width, 0), np.uint8)  # no frame: (H, W, 0)
         parts = [image]
@@ -594,7 +637,8 @@ class EventEgoHands(Dataset):
                         image=torch.from_numpy(channels_first(parts)),  # (3, H, W), with a picture (6 or 7, H, W)
                         boxes=torch.from_numpy(np.array(boxes, dtype=np.float32).reshape(-1, 4)),
                         labels=torch.zeros(len(boxes), dtype=torch.int64), video=video, frame=k,
-                        image_frame=image_frame, t_start_us=t_start, t_end_us=t_end, t_image_us=t_image)
+                        image_frame=image_frame, t_start_us=t_start, t_end_us=t_end, t_image_us=t_image,
+                        moved_frame=bool(self.carry_picture and self.carry_align_us))
         if self.transform is not None:
             sample = self.transform(sample, rng)
         return sample

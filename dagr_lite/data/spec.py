@@ -59,6 +59,9 @@ class SampleSpec:
         carry_confirm_us: > 0: the carry picture gains three channels, a picture of the events since
             the image that a neighbouring pixel confirms (an event of one of its 8 neighbours less than
             this long before; :class:`~dagr_lite.data.dataset.CarryPicture`); 0: none.
+        carry_align_us: > 0: the carry picture gains three channels, the camera frame moved by the
+            background's displacement since it, found from the pixels that fired in the last
+            ``carry_align_us`` (:mod:`~dagr_lite.data.align`); 0: none.
         graph_context_us: > 0: the event graph's first stage also reads the events of this long
             before the sample's start (for a model with an image, not from before ``image time -
             context_us``): they are neighbours of the sample's nodes, never pooled, so a node's
@@ -75,6 +78,7 @@ class SampleSpec:
     carry_recent_us: int
     support_us: int
     carry_confirm_us: int
+    carry_align_us: int
 
     def __post_init__(self):
         checks = {"window_us": (is_integer(self.window_us) and self.window_us > 0, "a positive integer"),
@@ -83,6 +87,7 @@ class SampleSpec:
                   "support_us": (is_integer(self.support_us) and self.support_us >= 0, "an integer >= 0"),
                   "carry_confirm_us": (is_integer(self.carry_confirm_us) and self.carry_confirm_us >= 0,
                                        "an integer >= 0"),
+                  "carry_align_us": (is_integer(self.carry_align_us) and self.carry_align_us >= 0, "an integer >= 0"),
                   "max_events": (self.max_events is None or (is_integer(self.max_events) and self.max_events > 0),
                                  "a positive integer or None"),
                   "event_picture": (isinstance(self.event_picture, bool), "true or false"),

@@ -77,7 +77,8 @@ DETECTOR_ADDED_LATER = {"event_head_weight": 0.0, "event_answers": False, "image
                         "carry_width": 0, "carry_channels": 3,
                         "carry_frame": False, "carry_attend": 0, "event_dense": 0}
 SAMPLE_ADDED_LATER = {"refractory_us": 0, "event_picture": False, "graph_context_us": 0, "carry_picture": False,
-                      "carry_recent_us": 0, "support_us": 0, "carry_confirm_us": 0}
+                      "carry_recent_us": 0, "support_us": 0, "carry_confirm_us": 0,
+                      "carry_align_us": 0}
 
 
 def upgrade(state: dict) -> dict:

@@ -5,7 +5,7 @@ from dagr_lite.errors import UserError
 
 SAMPLE = {"window_us": 33_333, "context_us": 10_000, "refractory_us": 0, "max_events": 100_000,
           "event_picture": False, "graph_context_us": 0, "carry_picture": False, "carry_recent_us": 0,
-          "support_us": 0, "carry_confirm_us": 0}
+          "support_us": 0, "carry_confirm_us": 0, "carry_align_us": 0}
 
 
 def test_a_sample_spec_round_trips_and_ignores_other_data_keys():
@@ -21,7 +21,8 @@ def test_a_sample_spec_round_trips_and_ignores_other_data_keys():
                                                         ("event_picture", "no", "true or false"),
                                                         ("carry_recent_us", -5, "an integer >= 0"),
                                                         ("support_us", -1, "an integer >= 0"),
-                                                        ("carry_confirm_us", -1, "an integer >= 0")])
+                                                        ("carry_confirm_us", -1, "an integer >= 0"),
+                                                        ("carry_align_us", -1, "an integer >= 0")])
 def test_a_bad_value_is_named(key, value, expected):
     with pytest.raises(UserError, match=f"sample {key} must be {expected}, got {value!r}"):
         SampleSpec(**{**SAMPLE, key: value})
