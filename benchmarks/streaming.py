@@ -181,7 +181,8 @@ def sample_at(model: Detector, rec: Recording, t_query: float, *, sample: Sample
         parts.append(carry.picture(t_query))
     return Sample(events=events, image=torch.from_numpy(channels_first(parts)),
                   boxes=torch.zeros((0, 4)), labels=torch.zeros(0, dtype=torch.int64), video=rec.video, frame=k,
-                  image_frame=k, t_start_us=int(begin), t_end_us=int(t_query), t_image_us=int(t_image))
+                  image_frame=k, t_start_us=int(begin), t_end_us=int(t_query), t_image_us=int(t_image),
+                  moved_frame=bool(model.carry is not None and sample.carry_align_us))
 
 
 def batch_pass(model: Detector, batch) -> None:

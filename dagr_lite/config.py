@@ -407,6 +407,10 @@ def trainer_settings(cfg: DictConfig) -> TrainerSettings:
         raise ConfigError(f"trainer.image_first={first['image_first']} needs model.late_query=false and "
                           f"model.event_head_weight=0 (got {cfg.model.late_query} and {cfg.model.event_head_weight}): "
                           "the events must reach the output through the fusion alone")
+    if first["events_first"] and cfg.data.get("carry_picture", False) and int(cfg.data.get("carry_align_us", 0)):
+        raise ConfigError(f"trainer.events_first={first['events_first']} hides the image from the model, but "
+                          f"data.carry_align_us={cfg.data.carry_align_us} shows the carry branch the frame moved by "
+                          "the camera's motion: set one of them to 0")
     if first["dense_first"] and float(cfg.model.event_head_weight) > 0:
         raise ConfigError(f"trainer.dense_first={first['dense_first']} needs model.event_head_weight=0 (got "
                           f"{cfg.model.event_head_weight}): the event graph must reach the output through the fusion alone")

@@ -7,10 +7,12 @@ events where it falls, so the polarity of each recently fired pixel, laid over t
 gradient moved by ``d``, correlates with one direction of motion: the score of a shift ``d`` is
 ``C_x(d)^2 + C_y(d)^2``, ``C(d) = sum_x s(x) grad L(x - d)`` over the recently fired pixels ``x``
 with polarity ``s(x) = +-1`` (the best direction of motion, ``v ~ -C``, need not be known). A
-hand that moved on its own does not follow ``d``; a flicker fires the same polarity everywhere and
-cancels against the zero-mean gradient. :func:`background_shift` searches every shift within the
-fastest motion searched at a quarter of the resolution (cross-correlations by FFT), then the 9x9
-shifts around the best one at full resolution (a compiled sum over the fired pixels).
+hand that moved on its own does not follow ``d``. :func:`background_shift` searches every shift
+within the fastest motion searched at a quarter of the resolution (cross-correlations by FFT),
+then the 9x9 shifts around the best one at full resolution (a compiled sum over the fired pixels).
+It always answers a shift: where the fired pixels are not the background's moving edges (a still
+camera with a moving hand, a flicker that fires one polarity everywhere, noise) the shift is the
+best of no good ones, and the carry branch must learn when to trust it.
 
 The carry picture gains the frame moved by ``d`` (``data.carry_align_us``): the background as it
 should look now, beside the picture of the events since the image, so that the carry branch can
@@ -177,9 +179,11 @@ def _fired(signs, cell, coarse):  # pragma: no cover - compiled
 def background_shift(gradients: Gradients, signs: np.ndarray, max_shift: int) -> tuple[int, int]:
     """The whole-pixel displacement ``(dx, dy)`` of the background since the frame whose
     :func:`frame_gradients` are ``gradients``, given ``signs`` ``(H, W)``: +1 or -1, the polarity
-    of each recently fired pixel's latest event, 0 elsewhere. The shift with ``dx^2 + dy^2 <=
-    max_shift^2`` maximising ``C_x^2 + C_y^2`` (the module's docstring), searched coarsely then
-    finely. ``(0, 0)`` when no pixel fired."""
+    of each recently fired pixel's latest event, 0 elsewhere. The best shift with ``dx^2 + dy^2
+    <= max_shift^2`` of the 9x9 around the coarse search's best (the module's docstring): the
+    maximum of ``C_x^2 + C_y^2`` over every shift when its peak stands out, as a moving
+    background's does (``tests/data/test_align.py``), not always otherwise. ``(0, 0)`` when no
+    pixel fired."""
     gx, gy = gradients.gx, gradients.gy
     if gx.shape != signs.shape or gy.shape != signs.shape:
         raise ValueError(f"gradients {gx.shape} and signs {signs.shape} differ in shape")

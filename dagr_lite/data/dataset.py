@@ -138,7 +138,8 @@ class CarryPicture:
                 raise ValueError(f"a carry picture with align_us > 0 moves the camera frame: expected an "
                                  f"({self.height}, {self.width}, 3) frame, got "
                                  f"{None if frame is None else frame.shape}")
-            self.frame, self.gradients = frame, frame_gradients(frame)
+            self.frame = np.array(frame, copy=True)  # a camera's buffer may be reused for its next frame
+            self.gradients = frame_gradients(self.frame)
             self.signs = np.zeros(self.height * self.width)  # each pixel's latest polarity since the image, +-1
         self.counts, self.last = picture_state(self.height, self.width)
         if self.confirm_us > 0:
@@ -181,7 +182,8 @@ class CarryPicture:
     def shift(self, t_end_us: float) -> tuple[int, int]:
         """The background's whole-pixel displacement ``(dx, dy)`` from the frame to ``t_end_us``
         (:func:`~dagr_lite.data.align.background_shift` over the pixels whose latest event since
-        the image is less than ``align_us`` before ``t_end_us``, each with that event's polarity)."""
+        the image is at most ``align_us`` before ``t_end_us``, each with that event's polarity).
+        Every event added must be earlier than ``t_end_us``, as for :meth:`picture`."""
         signs = np.where(self.last >= t_end_us - self.align_us, self.signs, 0.0).reshape(self.height, self.width)
         return background_shift(self.gradients, signs, max_shift_px(t_end_us - self.t_image_us))
 

@@ -406,6 +406,9 @@ def test_dense_first_learns_without_the_graph_then_the_graph_joins(tmp_path, mon
         train(small(tmp_path / "both", "trainer.dense_first=0.5", "trainer.image_first=0.5"))
     with pytest.raises(ConfigError, match=r"trainer\.dense_first=0\.5 needs model\.event_head_weight=0"):
         train(small(tmp_path / "head", "trainer.dense_first=0.5", "model.event_head_weight=0.5"))
+    with pytest.raises(ConfigError, match=r"trainer\.events_first=0\.5 hides the image .* data\.carry_align_us=5000"):
+        train(small(tmp_path / "moved", "trainer.events_first=0.5", "trainer.dense_first=0",
+                    "data.carry_align_us=5000"))
 
 
 def test_a_hybrid_with_its_graph_weights_zeroed_answers_what_it_answers_without_its_graph():
