@@ -123,9 +123,9 @@ class CarryPicture:
     (:attr:`reads_from_us`); those before the image only confirm.
 
     With ``align_us > 0`` three more channels follow: the camera ``frame`` moved by the
-    background's displacement since it (:meth:`shift`), found by laying the frame's edges over
-    the pixels that fired in the last ``align_us`` (:mod:`~dagr_lite.data.align`): the background
-    as it should look now, beside where the events are.
+    background's displacement since it (:meth:`shift`), found by laying the frame's log-luma
+    gradient over the polarities of the pixels that fired in the last ``align_us``
+    (:mod:`~dagr_lite.data.align`): the background as it should look now, beside where the events are.
     """
 
     def __init__(self, height: int, width: int, t_image_us: float, recent_us: float = 0, confirm_us: float = 0,
