@@ -35,7 +35,7 @@ from dagr_lite.engine.loading import make_loader
 from dagr_lite.engine.runs import resolve_device, run_folder
 from dagr_lite.data.writer import write_text_atomically
 from dagr_lite.data.spec import SampleSpec
-from dagr_lite.engine.checkpoint import Checkpoint, load_checkpoint, load_model, override
+from dagr_lite.engine.checkpoint import Checkpoint, check_picture_layout, load_checkpoint, load_model, override
 from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.eval.score import detections_of, score_entries
 from dagr_lite.nn.detector import Detector
@@ -229,6 +229,7 @@ def sweep_checkpoint(cfg: DictConfig, checkpoint: Checkpoint, frames: list[tuple
     overrides: dict = {}
     data = checkpoint.sample_settings
     data.update({key: override("data", key, data[key], cfg.data.get(key), overrides) for key in OVERRIDABLE})
+    check_picture_layout(path, checkpoint.sample_settings, data)
     run_cfg = OmegaConf.merge(cfg, {"data": data})
     largest = max(cfg.ages)
     dataset = build_dataset(run_cfg, cfg.split, train=False, with_image=detector.use_image, image_age=largest,

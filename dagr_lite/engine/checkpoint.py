@@ -153,12 +153,38 @@ def override(section: str, key: str, trained, given, overrides: dict):
     return given
 
 
+# The keys that say which channels a model's input picture has (a picture in place of the frame, a
+# carry picture, and each of the carry picture's optional windows): an evaluation may change a
+# window's length, never whether the model's input holds it.
+PICTURE_KEYS = ("event_picture", "carry_picture")
+CARRY_WINDOW_KEYS = ("carry_recent_us", "carry_confirm_us", "carry_align_us")
+
+
+def check_picture_layout(path, trained: dict, used: dict) -> None:
+    """Refuse (:class:`~dagr_lite.errors.ConfigError`) data settings ``used`` whose pictures hold
+    other channels than those the checkpoint at ``path`` was ``trained`` with: the weights read
+    each channel as what it was in training, and two layouts of one count (a carry picture's
+    confirmed channels or its moved frame) would pass a check of the count alone."""
+    for key in PICTURE_KEYS:
+        if bool(used[key]) != bool(trained[key]):
+            raise ConfigError(f"{path}: data.{key}={used[key]} changes the model's input (it was trained with "
+                              f"data.{key}={trained[key]}); leave it null (the checkpoint's)")
+    if not trained["carry_picture"]:
+        return
+    for key in CARRY_WINDOW_KEYS:
+        if (used[key] > 0) != (trained[key] > 0):
+            raise ConfigError(f"{path}: data.{key}={used[key]} {'adds' if used[key] > 0 else 'removes'} carry "
+                              f"picture channels the model was not trained with (data.{key}={trained[key]}): an "
+                              "evaluation may change a window's length, not whether the picture holds it")
+
+
 def settings(cfg: DictConfig, checkpoint: "Checkpoint") -> tuple[dict, DetectorConfig, dict]:
     """The data settings, the detector and the overrides of an evaluation of ``checkpoint``."""
     detector = checkpoint.detector
     overrides: dict = {}
     data = {key: override("data", key, trained, cfg.data[key], overrides)
             for key, trained in checkpoint.sample_settings.items()}
+    check_picture_layout(checkpoint.path, checkpoint.sample_settings, data)
     given_graph = {key: value for key, value in cfg.graph.items() if value is not None}
     if given_graph and detector.graph is None:
         raise ConfigError(f"{cfg.ckpt}: graph.{next(iter(given_graph))}={next(iter(given_graph.values()))!r} "

@@ -122,6 +122,11 @@ def test_the_sweep_writes_its_table_plot_and_rows(tmp_path, capsys, monkeypatch)
         sweep(compose_config("sweep", [f"ckpt=[{ckpts[0]}]", "split=valid", "ages=[1,100]", f"out={tmp_path / 'none'}",
                                        "loader.num_workers=0"]))
     assert not (tmp_path / "none").exists()
+    # a picture the model was not trained on: refused by its key before anything is written
+    with pytest.raises(ConfigError, match=r"data\.carry_picture=True changes the model's input"):
+        sweep(compose_config("sweep", [f"ckpt=[{ckpts[0]}]", "split=valid", "ages=[1]", f"out={tmp_path / 'pic'}",
+                                       "loader.num_workers=0", "data.carry_picture=true"]))
+    assert not (tmp_path / "pic").exists()
     # a truncated checkpoint after a good one: refused by name before anything is scored
     truncated = tmp_path / "truncated.pt"
     truncated.write_bytes(open(ckpts[1], "rb").read()[:5000])

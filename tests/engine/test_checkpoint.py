@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from dagr_lite.data.spec import SampleSpec
-from dagr_lite.engine.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
+from dagr_lite.config import ConfigError
+from dagr_lite.engine.checkpoint import Checkpoint, check_picture_layout, load_checkpoint, save_checkpoint
 from dagr_lite.eval.operating import NMS_IOUS, UNMEASURED
 from dagr_lite.nn.detector import Detector
 
@@ -50,3 +51,22 @@ def test_a_checkpoint_that_cannot_be_read_is_named(trained_checkpoints, tmp_path
     (tmp_path / "other.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match=r"other\.pt: cannot read as a dagr_lite checkpoint"):
         load_checkpoint(tmp_path / "other.pt")
+
+
+def test_an_evaluation_may_change_a_pictures_window_length_not_its_channels():
+    """Two carry pictures of 7 channels (recent window + moved frame, recent window + confirmed
+    events) have one count; the layout check names the key that would swap them."""
+    trained = {"event_picture": False, "carry_picture": True, "carry_recent_us": 20_000, "carry_confirm_us": 0,
+               "carry_align_us": 5_000}
+    check_picture_layout("m.pt", trained, {**trained, "carry_recent_us": 10_000, "carry_align_us": 3_000})
+    with pytest.raises(ConfigError, match=r"m\.pt: data\.carry_confirm_us=5000 adds carry picture channels the model "
+                                          r"was not trained with \(data\.carry_confirm_us=0\)"):
+        check_picture_layout("m.pt", trained, {**trained, "carry_confirm_us": 5_000, "carry_align_us": 0})
+    with pytest.raises(ConfigError, match=r"data\.carry_align_us=0 removes carry picture channels"):
+        check_picture_layout("m.pt", trained, {**trained, "carry_align_us": 0})
+    with pytest.raises(ConfigError, match=r"data\.event_picture=True changes the model's input"):
+        check_picture_layout("m.pt", trained, {**trained, "event_picture": True})
+    plain = {**trained, "carry_picture": False}  # no carry picture: its windows are read by nothing
+    check_picture_layout("m.pt", plain, {**plain, "carry_confirm_us": 5_000})
+    with pytest.raises(ConfigError, match=r"data\.carry_picture=True changes the model's input"):
+        check_picture_layout("m.pt", plain, {**plain, "carry_picture": True})

@@ -516,6 +516,8 @@ def test_evaluation_refuses_what_the_model_cannot_take(tmp_path, dataset):
                         f"dataset.root={dataset.root}", "loader.num_workers=0"))
     with pytest.raises(ConfigError, match=r"graph\.radius=3\.0 was given, but the checkpoint's model has no event branch"):
         evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'b'}", "graph.radius=3.0"))
+    with pytest.raises(ConfigError, match=r"data\.event_picture=True changes the model's input"):
+        evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'b'}", "data.event_picture=true"))
     at_data = evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'c'}", "dataset=custom",
                               f"dataset.root={dataset.root}", "loader.num_workers=0", "model_size=data"))
     assert at_data["metrics"]["overrides"] == {"model_size": {"checkpoint": [320, 180], "used": [64, 48]}}
