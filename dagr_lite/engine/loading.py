@@ -112,7 +112,8 @@ def make_loader(dataset: EventEgoHands, *, batch_size: int, num_workers: int, sa
 
 
 def prepare_worker(_worker_id: int, nice: int = 0) -> None:
-    """A loader worker shares the machine with the step: one thread, and ``nice`` lower priority.
+    """A loader worker shares the machine with the step: one thread, and ``nice`` lower priority;
+    it runs in a process group of its own (below).
 
     On few cores the step's threads wait for each other at every parallel region, so a worker
     holding a core slows the whole step; at a lower priority (Unix ``nice``) the workers take the
@@ -121,3 +122,8 @@ def prepare_worker(_worker_id: int, nice: int = 0) -> None:
     torch.set_num_threads(1)
     if nice and hasattr(os, "nice"):  # not on Windows
         os.nice(nice)
+    if hasattr(os, "setpgrp"):  # not on Windows
+        # A process group of its own: a signal to the trainer's group (a scheduler's or `timeout`'s
+        # SIGTERM, a terminal's Ctrl-C) reaches the main process alone, which stops after its step,
+        # saves last.pt and shuts the workers down; a worker killed by it first would fail the save.
+        os.setpgrp()
