@@ -420,7 +420,7 @@ class EventEgoHands(Dataset):
                  carry_recent_us: int = 0, frames: bool = True, support_us: int, carry_confirm_us: int = 0,
                  carry_align_us: int = 0):
         if split not in fmt.SPLITS:
-            raise UserError(f"split must be one of {fmt.SPLITS}, got {split!r}")
+            raise UserError(f"split must be one of {', '.join(fmt.SPLITS)}, got {split!r}")
         self.age_range = age_range(image_age)
         if not (np.isfinite(age_power) and age_power >= 0):
             raise UserError(f"age_power must be a number >= 0, got {age_power!r}")

@@ -241,7 +241,7 @@ class VideoWriter(_Transaction):
     def __init__(self, root: Path | str, split: str, video: str, *, num_frames: int, height: int, width: int,
                  fps: float = fmt.DEFAULT_FPS, compression: str | None = "blosc", overwrite: bool = False):
         if split not in fmt.SPLITS:
-            raise UserError(f"split must be one of {fmt.SPLITS}, got {split!r}")
+            raise UserError(f"split must be one of {', '.join(fmt.SPLITS)}, got {split!r}")
         if num_frames <= 0:
             raise UserError(f"{fmt.frames_dir(root, split, video)}: a video needs at least one frame, "
                              f"got num_frames={num_frames}")

@@ -33,12 +33,12 @@ def evaluate(cfg: DictConfig) -> dict:
     print(OmegaConf.to_yaml(cfg), flush=True)
     for key, change in overrides.items():
         print(f"override: {key}={change['used']!r} (the checkpoint was trained with {change['checkpoint']!r})")
-    run_dir = run_folder(cfg, "evaluate")
     device = resolve_device(cfg.device)
     dataset = build_dataset(cfg, cfg.split, train=False, with_image=detector.use_image)
     print(describe_dataset(dataset), flush=True)
     detector = at_model_size(cfg.model_size, detector, dataset.image_size, overrides)
     model = load_model(checkpoint, detector, dataset.image_size).to(device)
+    run_dir = run_folder(cfg, "evaluate")  # once everything the evaluation reads is found good
     loader = make_loader(dataset, batch_size=cfg.loader.batch_size, num_workers=cfg.loader.num_workers,
                          graph=model.graph_spec, worker_nice=cfg.loader.worker_nice)
     metrics, evaluator = score_model(model, loader, device, backend=cfg.eval.backend,

@@ -19,6 +19,7 @@ from dagr_lite.engine.schedule import warmup_cosine
 from dagr_lite.engine.starting import ResumeError
 from dagr_lite.engine.train import train
 from dagr_lite.eval.operating import NMS_IOUS
+from dagr_lite.errors import UserError
 from dagr_lite.synth.stub import stub_root
 from dagr_lite.data.collate import collate
 from dagr_lite.nn.detector import Detector
@@ -518,6 +519,9 @@ def test_evaluation_refuses_what_the_model_cannot_take(tmp_path, dataset):
         evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'b'}", "graph.radius=3.0"))
     with pytest.raises(ConfigError, match=r"data\.event_picture=True changes the model's input"):
         evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'b'}", "data.event_picture=true"))
+    with pytest.raises(UserError, match="split must be one of train, valid, test, got 'tset'"):
+        evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 's'}", "split=tset"))
+    assert not (tmp_path / "s").exists()  # refused before its run folder was made
     at_data = evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'c'}", "dataset=custom",
                               f"dataset.root={dataset.root}", "loader.num_workers=0", "model_size=data"))
     assert at_data["metrics"]["overrides"] == {"model_size": {"checkpoint": [320, 180], "used": [64, 48]}}
