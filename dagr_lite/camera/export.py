@@ -64,7 +64,7 @@ def _write(recording, path: Path, target: str) -> None:
             faery.file_encoder.events_to_file(_faery_packets(recording), source, dimensions=recording.size)
             (faery.events_stream_from_file(source).regularize(frequency_hz=RENDER_FPS)
              .render(decay="exponential", tau=RENDER_TAU, colormap=faery.colormaps.starry_night)
-             .to_file(Path(tmp) / "render.mp4"))
+             .to_file(Path(tmp) / "render.mp4", frame_rate=RENDER_FPS))  # real time: a frame every 1 / RENDER_FPS s
             shutil.move(Path(tmp) / "render.mp4", path)  # faery's own temporaries stay in tmp
     else:
         version = {"evt2": "evt2", "evt3": "evt3"}.get(target)

@@ -293,7 +293,7 @@ def test_unknown_missing_and_mismatched_inputs_are_refused(tmp_path):
 
 
 def test_export_writes_every_format_that_reads_back_the_dataset(dataset, tmp_path):
-    from dagr_lite.camera.export import export_dataset
+    from dagr_lite.camera.export import RENDER_FPS, export_dataset
 
     video = next(iter(dataset.events))
     written = export_dataset(dataset.root, tmp_path / "out", ["aedat4", "evt3", "csv", "mp4"], videos=[video])
@@ -305,7 +305,14 @@ def test_export_writes_every_format_that_reads_back_the_dataset(dataset, tmp_pat
             np.testing.assert_array_equal(got[key], dataset.events[video][key], err_msg=f"{path.name} {key}")
     frames = list(open_recording(written[0]).frames())
     assert len(frames) == len(dataset.frames[video])
-    assert written[3].stat().st_size > 0
+    import av
+
+    with av.open(str(written[3])) as video_file:  # the events in real time, a frame every 1 / RENDER_FPS s
+        stream = video_file.streams.video[0]
+        shown = sum(1 for _ in video_file.decode(stream))
+        assert float(stream.average_rate) == pytest.approx(RENDER_FPS)
+    span_s = (dataset.events[video]["t"][-1] - dataset.events[video]["t"][0]) / 1e6
+    assert abs(shown / RENDER_FPS - span_s) <= 2 / RENDER_FPS
     before = {p: p.read_bytes() for p in written}
     assert export_dataset(dataset.root, tmp_path / "out", ["csv", "es"], videos=[video]) == [written[2].with_suffix(".es")]
     assert all(p.read_bytes() == data for p, data in before.items())  # kept, not written again
