@@ -527,7 +527,7 @@ def test_from_checkpoint_matches_the_batch_model_in_float32(trained_checkpoints,
         torch.testing.assert_close(raw, expected, rtol=1e-5, atol=1e-5)
 
 
-def test_demo_writes_a_playable_animation_and_a_strip(hybrid_checkpoint, tmp_path):
+def test_demo_writes_a_playable_animation_and_a_strip(hybrid_checkpoint, tmp_path, monkeypatch):
     from PIL import Image
 
     from dagr_lite.config import ConfigError
@@ -551,6 +551,12 @@ def test_demo_writes_a_playable_animation_and_a_strip(hybrid_checkpoint, tmp_pat
         with pytest.raises(ConfigError, match=rf"seconds must be a positive number of seconds .*got {seconds}"):
             demo(config("demo", f"ckpt={hybrid_checkpoint}", f"out={tmp_path / 'c.gif'}", f"seconds={seconds}"))
     assert not (tmp_path / "c.gif").exists()
+    with pytest.raises(FileNotFoundError, match="checkpoint file is missing"):  # named before any output
+        demo(config("demo", f"ckpt={tmp_path / 'nope.pt'}", f"out={out}"))
+    monkeypatch.chdir(tmp_path)  # no out=: each demo in a folder of its own under runs/demo/
+    short = ("rate_hz=50", "seconds=0.1", "strip_frame=1", "strip_moments=2", "device=cpu")
+    first, second = (demo(config("demo", f"ckpt={hybrid_checkpoint}", *short))["out"] for _ in range(2))
+    assert first != second and first.is_file() and second.is_file() and first.parts[:2] == ("runs", "demo")
 
 
 @pytest.mark.parametrize(("refractory_us", "carry_channels", "carry_frame", "carry_attend"),

@@ -1,7 +1,7 @@
 """Run the streaming detector over one recording and write a video a person can play.
 
     python -m dagr_lite.apps.demo ckpt=runs/train/<run>/checkpoints/best.pt [video=<name>] [split=test]
-        [rate_hz=300] [out=runs/demo/<video>.webp] [seconds=null] [dataset=...]
+        [rate_hz=300] [out=runs/demo/<date>/<time>/<video>.webp] [seconds=null] [dataset=...]
 
 Images reach the detector at the camera's rate, events in updates of ``1 / rate_hz`` seconds,
 and the detector answers after every update. Each frame of the animation (WebP or GIF, by the
@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import time
+from datetime import datetime
 from pathlib import Path
 
 import numpy as np
@@ -101,10 +102,12 @@ def demo(cfg: DictConfig) -> dict:
     print(OmegaConf.to_yaml(cfg), flush=True)
     check_values(cfg)
     rec = Recording(dataset_root(cfg.dataset), cfg.split, cfg.video)
-    out = Path(cfg.out if cfg.out is not None else f"runs/demo/{rec.video}.webp")
-    check_output(out)
     stream = StreamingDetector.from_checkpoint(cfg.ckpt, device=resolve_device(cfg.device),
                                                score=cfg.operating.score, nms_iou=cfg.operating.nms_iou)
+    # Like every run, a folder of its own unless out= is given: a second demo never meets the first's files.
+    out = Path(cfg.out if cfg.out is not None
+               else f"runs/demo/{datetime.now():%Y-%m-%d}/{datetime.now():%H-%M-%S-%f}/{rec.video}.webp")
+    check_output(out)
     print(f"{cfg.ckpt}: answers at {stream.operating.describe()}", flush=True)
     if rec.frames[0].shape[:2] != (stream.height, stream.width):
         raise ConfigError(f"{cfg.ckpt}: the model takes {stream.width}x{stream.height} frames, the video "
