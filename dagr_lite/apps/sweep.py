@@ -294,6 +294,7 @@ def sweep(cfg: DictConfig) -> dict:
     write_results(out, rows, split=cfg.split, between=cfg.between, blank_image=cfg.blank_image, overrides=overrides,
                   stream=cfg.stream)
     print(format_table(rows), flush=True)
+    print(f"wrote {out / 'sweep.json'}, sweep.csv and sweep.png", flush=True)
     return {"results": rows, "frames": frames, "out": out, "overrides": overrides}
 
 

@@ -44,8 +44,9 @@ def train(cfg: DictConfig) -> dict:
     per-step training losses. Launched by ``torchrun``, every process runs this together."""
     cfg = resolve_config(resumed_config(cfg))
     check_values(cfg)
-    if cfg.get("init_from") is not None and not Path(cfg.init_from).is_file():  # before the run folder is made
-        raise FileNotFoundError(f"init_from={cfg.init_from}: checkpoint file is missing")
+    for key in ("init_from", "resume"):  # before the datasets are opened and the run folder is made
+        if cfg.get(key) is not None and not Path(cfg[key]).is_file():
+            raise FileNotFoundError(f"{key}={cfg[key]}: checkpoint file is missing")
     place = Distributed.from_environment()
     device = setup(place, resolve_device(cfg.device))
     try:

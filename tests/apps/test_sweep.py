@@ -99,6 +99,7 @@ def test_the_sweep_writes_its_table_plot_and_rows(tmp_path, capsys, monkeypatch)
     assert (out / "sweep.png").stat().st_size > 10_000
     printed = capsys.readouterr().out
     assert "AP50" in printed and "image_only image_only/last.pt" in printed  # each run named by its folder
+    assert f"wrote {out / 'sweep.json'}, sweep.csv and sweep.png" in printed
     assert json.loads((out / "sweep.json").read_text())["overrides"] == {}
     with pytest.raises(FileExistsError, match="earlier sweep"):
         sweep(compose_config("sweep", [f"ckpt=[{ckpts[0]}]", f"out={out}"]))

@@ -138,8 +138,9 @@ def test_init_from_starts_a_new_run_only():
     check_values(OmegaConf.create({"init_from": "ev.pt", "resume": None}))
 
 
-def test_a_missing_init_from_is_refused_before_the_run_folder_is_made(tmp_path):
-    cfg = compose_config("train", [f"run_dir={tmp_path / 'run'}", f"init_from={tmp_path / 'nope.pt'}"])
-    with pytest.raises(FileNotFoundError, match="init_from=.*nope.pt: checkpoint file is missing"):
+@pytest.mark.parametrize("key", ["init_from", "resume"])
+def test_a_missing_start_checkpoint_is_refused_before_the_run_folder_is_made(tmp_path, key):
+    cfg = compose_config("train", [f"run_dir={tmp_path / 'run'}", f"{key}={tmp_path / 'nope.pt'}"])
+    with pytest.raises(FileNotFoundError, match=f"{key}=.*nope.pt: checkpoint file is missing"):
         train(cfg)
     assert not (tmp_path / "run").exists()
