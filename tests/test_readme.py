@@ -152,3 +152,10 @@ def test_the_version_table_is_the_builders():
         made = VERSIONS[version]
         assert (int(upsample), int(scale), dvs_model) == (made["upsample"], made["scale"], made["dvs_model"])
         assert (int(width), int(height)) == (EGOHANDS_WIDTH // made["scale"], EGOHANDS_HEIGHT // made["scale"])
+
+
+def test_the_stub_root_the_readme_names_is_the_one_made():
+    from dagr_lite.synth.stub import STUB_VERSION
+
+    named = set(re.findall(r"stub-v(\d+)", README))
+    assert named == {str(STUB_VERSION)}
