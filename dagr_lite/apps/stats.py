@@ -281,7 +281,8 @@ def main(argv: list[str] | None = None) -> int:
               f"ON {row['on_fraction']:.2f}, {row['boxes']:,} boxes on {row['labelled_frames']:,} labelled frames")
         stale = stats["stale_labels"].get(split)
         if stale:
-            print("  boxes a frames old as the answer, AP50: "
+            print("  AP50 of frame k - a's boxes taken as frame k's (the best a detector reading only an image "
+                  "a frames old can do): "
                   + ", ".join(f"a={age} {row['AP50']:.3f}" for age, row in stale.items()))
     print(f"written to {args.out} (open index.html)")
     return 0
