@@ -101,12 +101,13 @@ def demo(cfg: DictConfig) -> dict:
     paths and the update latencies (seconds)."""
     print(OmegaConf.to_yaml(cfg), flush=True)
     check_values(cfg)
+    if cfg.out is not None and Path(cfg.out).suffix.lower() not in FORMATS:  # before the work below
+        check_output(Path(cfg.out))
     rec = Recording(dataset_root(cfg.dataset), cfg.split, cfg.video)
     stream = StreamingDetector.from_checkpoint(cfg.ckpt, device=resolve_device(cfg.device),
                                                score=cfg.operating.score, nms_iou=cfg.operating.nms_iou)
     # Like every run, a folder of its own unless out= is given: a second demo never meets the first's files.
-    out = Path(cfg.out if cfg.out is not None
-               else f"runs/demo/{datetime.now():%Y-%m-%d}/{datetime.now():%H-%M-%S-%f}/{rec.video}.webp")
+    out = Path(cfg.out if cfg.out is not None else f"runs/demo/{datetime.now():%Y-%m-%d/%H-%M-%S-%f}/{rec.video}.webp")
     check_output(out)
     print(f"{cfg.ckpt}: answers at {stream.operating.describe()}", flush=True)
     if rec.frames[0].shape[:2] != (stream.height, stream.width):

@@ -229,7 +229,6 @@ def sweep_checkpoint(cfg: DictConfig, checkpoint: Checkpoint, frames: list[tuple
     overrides: dict = {}
     data = checkpoint.sample_settings
     data.update({key: override("data", key, data[key], cfg.data.get(key), overrides) for key in OVERRIDABLE})
-    check_picture_layout(path, checkpoint.sample_settings, data)
     run_cfg = OmegaConf.merge(cfg, {"data": data})
     largest = max(cfg.ages)
     dataset = build_dataset(run_cfg, cfg.split, train=False, with_image=detector.use_image, image_age=largest,
@@ -285,6 +284,11 @@ def sweep(cfg: DictConfig) -> dict:
     device = resolve_device(cfg.device)
     rows, frames, overrides = [], None, {}
     checkpoints = [load_checkpoint(path) for path in cfg.ckpt]  # every one, before any is scored
+    for checkpoint in checkpoints:  # and its data settings with the overrides: values, then the picture's channels
+        used = {**checkpoint.sample_settings, **{key: cfg.data[key] for key in OVERRIDABLE
+                                                 if cfg.data.get(key) is not None}}
+        SampleSpec.from_dict(used)
+        check_picture_layout(checkpoint.path, checkpoint.sample_settings, used)
     for checkpoint in checkpoints:
         ckpt_rows, frames, changed = sweep_checkpoint(cfg, checkpoint, frames, device)
         rows += ckpt_rows

@@ -161,10 +161,11 @@ CARRY_WINDOW_KEYS = ("carry_recent_us", "carry_confirm_us", "carry_align_us")
 
 
 def check_picture_layout(path, trained: dict, used: dict) -> None:
-    """Refuse (:class:`~dagr_lite.errors.ConfigError`) data settings ``used`` whose pictures hold
-    other channels than those the checkpoint at ``path`` was ``trained`` with: the weights read
-    each channel as what it was in training, and two layouts of one count (a carry picture's
-    confirmed channels or its moved frame) would pass a check of the count alone."""
+    """Refuse (:class:`~dagr_lite.errors.ConfigError`) data settings ``used`` (values already
+    checked) whose pictures hold other channels than those the checkpoint at ``path`` was
+    ``trained`` with: the weights read each channel as what it was in training, and two layouts of
+    one count (a carry picture's confirmed channels or its moved frame) would pass a check of the
+    count alone."""
     for key in PICTURE_KEYS:
         if bool(used[key]) != bool(trained[key]):
             raise ConfigError(f"{path}: data.{key}={used[key]} changes the model's input (it was trained with "
@@ -184,7 +185,6 @@ def settings(cfg: DictConfig, checkpoint: "Checkpoint") -> tuple[dict, DetectorC
     overrides: dict = {}
     data = {key: override("data", key, trained, cfg.data[key], overrides)
             for key, trained in checkpoint.sample_settings.items()}
-    check_picture_layout(checkpoint.path, checkpoint.sample_settings, data)
     given_graph = {key: value for key, value in cfg.graph.items() if value is not None}
     if given_graph and detector.graph is None:
         raise ConfigError(f"{cfg.ckpt}: graph.{next(iter(given_graph))}={next(iter(given_graph.values()))!r} "

@@ -3,7 +3,8 @@
 The checkpoint defines the model (its architecture and event graph) and what one sample is
 (image age, event window and context, event cap). A value given in ``data.*`` or ``graph.*`` overrides the
 checkpoint's: it is printed as an override and recorded in ``metrics.json``, beside the data and
-graph settings the evaluation actually used.
+graph settings the evaluation actually used. One that changes which channels the model's input
+picture holds is refused (:func:`~dagr_lite.engine.checkpoint.check_picture_layout`).
 """
 from __future__ import annotations
 
@@ -13,8 +14,8 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from dagr_lite.config import ConfigError, build_dataset, check_values, resolve_config
-from dagr_lite.engine.checkpoint import (MODEL_SIZES, at_model_size, describe_dataset, load_checkpoint, load_model,
-                                         settings)
+from dagr_lite.engine.checkpoint import (MODEL_SIZES, at_model_size, check_picture_layout, describe_dataset,
+                                         load_checkpoint, load_model, settings)
 from dagr_lite.engine.loading import make_loader
 from dagr_lite.engine.runs import resolve_device, run_folder
 from dagr_lite.eval.coco import METRIC_KEYS, format_metrics
@@ -28,6 +29,7 @@ def evaluate(cfg: DictConfig) -> dict:
     data, detector, overrides = settings(cfg, checkpoint)
     cfg = OmegaConf.merge(cfg, {"data": data})
     check_values(cfg)
+    check_picture_layout(checkpoint.path, checkpoint.sample_settings, data)
     if cfg.model_size not in MODEL_SIZES:
         raise ConfigError(f"model_size={cfg.model_size!r}: expected one of {MODEL_SIZES}")
     print(OmegaConf.to_yaml(cfg), flush=True)

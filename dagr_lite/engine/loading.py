@@ -124,6 +124,7 @@ def prepare_worker(_worker_id: int, nice: int = 0) -> None:
         os.nice(nice)
     if hasattr(os, "setpgrp"):  # not on Windows
         # A process group of its own: a signal to the trainer's group (a scheduler's or `timeout`'s
-        # SIGTERM, a terminal's Ctrl-C) reaches the main process alone, which stops after its step,
-        # saves last.pt and shuts the workers down; a worker killed by it first would fail the save.
+        # SIGTERM) reaches the main process alone, which stops after its step, saves last.pt and
+        # shuts the workers down; a worker killed by it first would fail the save. (A terminal's
+        # Ctrl-C then reaches the main process alone too, which stops without saving.)
         os.setpgrp()

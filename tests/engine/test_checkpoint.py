@@ -70,3 +70,29 @@ def test_an_evaluation_may_change_a_pictures_window_length_not_its_channels():
     check_picture_layout("m.pt", plain, {**plain, "carry_confirm_us": 5_000})
     with pytest.raises(ConfigError, match=r"data\.carry_picture=True changes the model's input"):
         check_picture_layout("m.pt", plain, {**plain, "carry_picture": True})
+
+
+def test_evaluate_and_the_sweep_check_an_overrides_value_before_the_pictures_channels(trained_checkpoints, tmp_path):
+    """A bad value is named as a bad value (not as a change of the picture's channels), and a sweep
+    of two checkpoints refuses the second's override before it scores the first."""
+    from dagr_lite.apps.sweep import sweep
+    from dagr_lite.config import compose_config
+    from dagr_lite.engine.evaluate import evaluate
+    from dagr_lite.errors import UserError
+
+    hybrid = trained_checkpoints["hybrid"]
+    with pytest.raises(ConfigError, match=r"data\.carry_recent_us must be an integer >= 0 .*got 'abc'"):
+        evaluate(compose_config("evaluate", [f"ckpt={hybrid}", f"run_dir={tmp_path / 'e'}", "data.carry_recent_us=abc"]))
+    with pytest.raises(UserError, match=r"sample carry_recent_us must be an integer >= 0, got -5"):
+        sweep(compose_config("sweep", [f"ckpt=[{hybrid}]", f"out={tmp_path / 's'}", "data.carry_recent_us=-5"]))
+    scored = []
+    import dagr_lite.apps.sweep as sweep_module
+    real = sweep_module.sweep_checkpoint
+    sweep_module.sweep_checkpoint = lambda *args, **kwargs: scored.append(1) or real(*args, **kwargs)
+    try:  # the events-only model reads no carry picture: turning one on is refused for it, before anything is scored
+        with pytest.raises(ConfigError, match=r"events_only.*data\.carry_picture=True changes the model's input"):
+            sweep(compose_config("sweep", [f"ckpt=[{hybrid},{trained_checkpoints['events_only']}]",
+                                           f"out={tmp_path / 't'}", "data.carry_picture=true"]))
+    finally:
+        sweep_module.sweep_checkpoint = real
+    assert not scored and not (tmp_path / "t").exists()

@@ -688,7 +688,7 @@ def test_a_sigterm_to_the_whole_process_group_still_saves_last(tmp_path):
         while not last.exists() and proc.poll() is None and waited < 600:
             time.sleep(0.2)
             waited += 0.2
-        assert last.exists(), "no step was taken"
+        assert last.exists(), proc.communicate()[0] if proc.poll() is not None else "no step was taken"
         os.killpg(proc.pid, signal.SIGTERM)
         out, _ = proc.communicate(timeout=300)
     finally:
