@@ -117,6 +117,11 @@ def composition_problem(config_name: str, overrides: list[str]) -> str | None:
         return one_line(text)
     except ConfigCompositionException as err:
         key = re.search(r"Could not override '([^']+)'", str(err))
+        if key and "No match in the defaults list" in str(err) and (CONF_DIR / key.group(1)).is_dir():
+            # a config group that this command does not compose (Hydra's advice, '+group=', would add one)
+            given = next((o for o in overrides if o.split("=", 1)[0] == key.group(1)), f"{key.group(1)}=...")
+            source = "; the model comes from the checkpoint (ckpt=)" if key.group(1) == "model" else ""
+            return f"{given}: conf/{config_name}.yaml takes no {key.group(1)} option{source}"
         if key and "not in struct" in str(err.__cause__ or ""):
             return (f"{key.group(1)}: no such setting in conf/{config_name}.yaml "
                     f"(`--cfg job` prints every setting)")

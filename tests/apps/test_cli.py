@@ -45,6 +45,15 @@ def test_the_sweep_without_out_is_a_users_mistake_not_hydras_trace(tmp_path):
     assert not (tmp_path / "runs").exists()
 
 
+def test_a_config_group_the_command_does_not_compose_is_named():
+    from dagr_lite.apps.cli import composition_problem
+
+    assert composition_problem("evaluate", ["ckpt=x.pt", "model=events_only"]) == (
+        "model=events_only: conf/evaluate.yaml takes no model option; the model comes from the checkpoint (ckpt=)")
+    assert composition_problem("sweep", ["ckpt=[x.pt]", "optim=sgd"]) == "optim=sgd: conf/sweep.yaml takes no optim option"
+    assert composition_problem("train", ["model=events_only"]) is None
+
+
 def test_a_key_added_with_a_plus_is_refused_among_settings_and_allowed_among_named_entries():
     from dagr_lite.apps.cli import composition_problem
     for override in ("+loader.batchsize=8", "+sed=1", "++trainer.max_minute=5", "+nothing.here=1", "+model.sizes.s.x=1"):
