@@ -218,6 +218,17 @@ def score_point(cfg: DictConfig, model, dataset: EventEgoHands, frames: list[tup
 OVERRIDABLE = SampleSpec.keys()
 
 
+def checkpoint_data(cfg: DictConfig, checkpoint: Checkpoint) -> tuple[dict, dict]:
+    """The data settings a checkpoint is swept with (its own, ``data.*`` overriding them) and the
+    overrides; a bad value, or one that changes the model's input picture's channels, is refused."""
+    overrides: dict = {}
+    data = checkpoint.sample_settings
+    data.update({key: override("data", key, data[key], cfg.data.get(key), overrides) for key in OVERRIDABLE})
+    SampleSpec.from_dict(data)  # the values, before the channels they make
+    check_picture_layout(checkpoint.path, checkpoint.sample_settings, data)
+    return data, overrides
+
+
 def sweep_checkpoint(cfg: DictConfig, checkpoint: Checkpoint, frames: list[tuple[int, int]] | None,
                      device: torch.device, entries_out: dict | None = None
                      ) -> tuple[list[dict], list[tuple[int, int]], dict]:
@@ -226,9 +237,7 @@ def sweep_checkpoint(cfg: DictConfig, checkpoint: Checkpoint, frames: list[tuple
     every later checkpoint. Also returns the overrides (``{"data.key": {"checkpoint", "used"}}``).
     ``entries_out``: see :func:`score_point`."""
     detector, path = checkpoint.detector, str(checkpoint.path)
-    overrides: dict = {}
-    data = checkpoint.sample_settings
-    data.update({key: override("data", key, data[key], cfg.data.get(key), overrides) for key in OVERRIDABLE})
+    data, overrides = checkpoint_data(cfg, checkpoint)
     run_cfg = OmegaConf.merge(cfg, {"data": data})
     largest = max(cfg.ages)
     dataset = build_dataset(run_cfg, cfg.split, train=False, with_image=detector.use_image, image_age=largest,
@@ -284,11 +293,8 @@ def sweep(cfg: DictConfig) -> dict:
     device = resolve_device(cfg.device)
     rows, frames, overrides = [], None, {}
     checkpoints = [load_checkpoint(path) for path in cfg.ckpt]  # every one, before any is scored
-    for checkpoint in checkpoints:  # and its data settings with the overrides: values, then the picture's channels
-        used = {**checkpoint.sample_settings, **{key: cfg.data[key] for key in OVERRIDABLE
-                                                 if cfg.data.get(key) is not None}}
-        SampleSpec.from_dict(used)
-        check_picture_layout(checkpoint.path, checkpoint.sample_settings, used)
+    for checkpoint in checkpoints:  # and the data settings of every one
+        checkpoint_data(cfg, checkpoint)
     for checkpoint in checkpoints:
         ckpt_rows, frames, changed = sweep_checkpoint(cfg, checkpoint, frames, device)
         rows += ckpt_rows

@@ -665,23 +665,23 @@ def test_a_dataset_with_truncated_frame_times_passes_check_and_trains(tmp_path):
     assert result["step"] == 2 and METRIC_KEYS <= set(result["metrics"])
 
 
-def test_a_sigterm_to_the_whole_process_group_still_saves_last(tmp_path):
-    """What ``timeout`` and many schedulers do: SIGTERM to every process of the run's group. The
-    loader's workers are in groups of their own, so the main process stops after its step, saves
-    last.pt and exits with 143 (a worker killed by the signal first made the save fail)."""
+def train_until_saved_then(stop, run, *, workers: int):
+    """``python train.py`` of an events-only model in ``run`` (a process group of its own, saving
+    last.pt after every step) until its first last.pt, then ``stop(proc)``; the finished process and
+    its output."""
     import os
     import signal
     import subprocess
     import sys
     import time
 
-    stub_root()
-    run = tmp_path / "run"
+    stub_root()  # made here, not inside the timed wait below
     last = run / "checkpoints" / "last.pt"
     args = [sys.executable, str(CONF.parent / "train.py"), f"run_dir={run}", "device=cpu", "trainer.amp=false",
-            "loader.batch_size=4", "loader.num_workers=2", "trainer.max_steps=100000", "trainer.max_epochs=null",
-            "trainer.max_minutes=null", "trainer.schedule_by=steps", "trainer.checkpoint_every=1",
-            "trainer.val_every=100000", "trainer.image_every=0", "data.window_us=20000", "model=events_only"]
+            "loader.batch_size=4", f"loader.num_workers={workers}", "trainer.max_steps=100000",
+            "trainer.max_epochs=null", "trainer.max_minutes=null", "trainer.schedule_by=steps",
+            "trainer.checkpoint_every=1", "trainer.val_every=100000", "trainer.image_every=0", "data.window_us=20000",
+            "model=events_only"]
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     try:
         waited = 0.0
@@ -689,11 +689,24 @@ def test_a_sigterm_to_the_whole_process_group_still_saves_last(tmp_path):
             time.sleep(0.2)
             waited += 0.2
         assert last.exists(), proc.communicate()[0] if proc.poll() is not None else "no step was taken"
-        os.killpg(proc.pid, signal.SIGTERM)
+        stop(proc)
         out, _ = proc.communicate(timeout=300)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
+    return proc, out
+
+
+def test_a_sigterm_to_the_whole_process_group_still_saves_last(tmp_path):
+    """What ``timeout`` and many schedulers do: SIGTERM to every process of the run's group. The
+    loader's workers are in groups of their own, so the main process stops after its step, saves
+    last.pt and exits with 143 (a worker killed by the signal first made the save fail)."""
+    import os
+    import signal
+
+    run = tmp_path / "run"
+    last = run / "checkpoints" / "last.pt"
+    proc, out = train_until_saved_then(lambda proc: os.killpg(proc.pid, signal.SIGTERM), run, workers=2)
     assert proc.returncode == 143, out
     step = load_checkpoint(last).training["step"]
     assert f"SIGTERM: stopped after step {step} and saved {last}" in out and "could not be written" not in out
@@ -706,27 +719,10 @@ def test_sigterm_saves_last_and_the_run_resumes_from_it(tmp_path):
     import signal
     import subprocess
     import sys
-    import time
 
-    stub_root()  # made here, not inside the timed wait below
     run = tmp_path / "run"
     last = run / "checkpoints" / "last.pt"
-    args = [sys.executable, str(CONF.parent / "train.py"), f"run_dir={run}", "device=cpu", "trainer.amp=false",
-            "loader.batch_size=4", "loader.num_workers=0", "trainer.max_steps=100000", "trainer.max_epochs=null",
-            "trainer.max_minutes=null", "trainer.schedule_by=steps", "trainer.checkpoint_every=1",
-            "trainer.val_every=100000", "trainer.image_every=0", "data.window_us=20000", "model=events_only"]
-    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        waited = 0.0
-        while not last.exists() and proc.poll() is None and waited < 600:
-            time.sleep(0.2)
-            waited += 0.2
-        assert last.exists(), "no step was taken"
-        proc.send_signal(signal.SIGTERM)
-        out, _ = proc.communicate(timeout=300)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    proc, out = train_until_saved_then(lambda proc: proc.send_signal(signal.SIGTERM), run, workers=0)
     assert proc.returncode == 143, out
     step = load_checkpoint(last).training["step"]
     assert step >= 1
