@@ -145,3 +145,61 @@ def causal_triplets(src, dst, scale):
         value[n] = scale[i] * scale[i]
         n += 1
     return row, col, value
+
+
+@numba.njit(**KERNEL)
+def distinct_in_degree(src, dst, num_nodes):
+    """Each node's count of distinct sources among the edges into it, self-loops left out:
+    ``torch.bincount(torch.unique(dst * N + src) // N, minlength=N)`` over the edges with ``src != dst``."""
+    stamp = np.full(num_nodes, -1, dtype=np.int64)  # the source a destination's count last took
+    order = counting_order(src, num_nodes)  # edges grouped by source: a repeat of (src, dst) is seen in its group
+    degree = np.zeros(num_nodes, dtype=np.int64)
+    for e in order:
+        s, d = src[e], dst[e]
+        if s != d and stamp[d] != s:
+            stamp[d] = s
+            degree[d] += 1
+    return degree
+
+
+@numba.njit(**KERNEL)
+def norm_triplets(src, dst, rows, scale):
+    """The general form of ``nn.gcn.gcn_norm``'s triplets: for the output rows ``rows (R,)`` (node
+    ids, distinct), each row's distinct sources among the edges into its node and the node itself
+    (self-loops in the edges left out), sorted by (row, col), with the value ``scale[node] *
+    scale[col]``; ``scale (N,)`` float64 is every node's ``d^-1/2``."""
+    num_nodes, num_rows = len(scale), len(rows)
+    position = np.full(num_nodes, -1, dtype=np.int64)
+    for i in range(num_rows):
+        position[rows[i]] = i
+    start = np.zeros(num_rows + 1, dtype=np.int64)
+    for e in range(len(src)):
+        if src[e] != dst[e] and position[dst[e]] >= 0:
+            start[position[dst[e]] + 1] += 1
+    for i in range(num_rows):
+        start[i + 1] += start[i] + 1  # and one self-loop a row
+    cols = np.empty(start[num_rows], dtype=np.int64)
+    fill = start[:-1].copy()
+    for i in range(num_rows):
+        cols[fill[i]] = rows[i]
+        fill[i] += 1
+    for e in range(len(src)):
+        if src[e] != dst[e] and position[dst[e]] >= 0:
+            i = position[dst[e]]
+            cols[fill[i]] = src[e]
+            fill[i] += 1
+    row = np.empty(len(cols), dtype=np.int64)
+    col = np.empty(len(cols), dtype=np.int64)
+    value = np.empty(len(cols), dtype=np.float64)
+    n = 0
+    for i in range(num_rows):
+        segment = cols[start[i]:start[i + 1]]
+        segment.sort()
+        node = rows[i]
+        for k in range(len(segment)):
+            c = segment[k]
+            if k == 0 or c != segment[k - 1]:  # a repeated edge counts once
+                row[n], col[n] = i, c
+                value[n] = scale[node] * scale[c]
+                n += 1
+    return row[:n].copy(), col[:n].copy(), value[:n].copy()

@@ -13,7 +13,8 @@ import warnings
 import torch
 from torch import nn
 
-from dagr_lite.graph.sparse import causal_triplets, compiled_for, transpose_triplets
+from dagr_lite.graph.sparse import (causal_triplets, compiled_for, distinct_in_degree, norm_triplets,
+                                    transpose_triplets)
 
 
 def gcn_norm(edge_index: torch.Tensor, num_nodes: int, *, in_degree: torch.Tensor | None = None,
@@ -37,6 +38,14 @@ def gcn_norm(edge_index: torch.Tensor, num_nodes: int, *, in_degree: torch.Tenso
     src, dst = edge_index[0], edge_index[1]
     if rows is None and _sorted_causal(src, dst, num_nodes):
         return _norm_sorted_causal(src, dst, num_nodes, in_degree)
+    if compiled_for(src):  # one compiled pass each, the same triplets (graph/sparse.py)
+        src_np, dst_np = src.contiguous().numpy(), dst.contiguous().numpy()
+        if in_degree is None:
+            in_degree = torch.from_numpy(distinct_in_degree(src_np, dst_np, num_nodes))
+        deg_inv_sqrt = (1.0 + in_degree.to(torch.float64)).rsqrt()
+        kept = torch.arange(num_nodes) if rows is None else rows
+        return tuple(torch.from_numpy(a) for a in norm_triplets(src_np, dst_np, kept.contiguous().numpy(),
+                                                                deg_inv_sqrt.contiguous().numpy()))
     keep = src != dst
     src, dst = src[keep], dst[keep]
     if in_degree is None:

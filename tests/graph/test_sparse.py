@@ -6,7 +6,8 @@ import torch
 from dagr_lite.graph.pool import voxel_max_pool
 from dagr_lite.graph.radius import radius_graph
 from dagr_lite.graph import sparse
-from dagr_lite.graph.sparse import causal_triplets, counting_order, transpose_triplets, unique_inverse, unique_pairs
+from dagr_lite.graph.sparse import (causal_triplets, counting_order, distinct_in_degree, transpose_triplets,
+                                    unique_inverse, unique_pairs)
 from dagr_lite.nn.gcn import GraphOperator, gcn_norm
 
 
@@ -124,3 +125,35 @@ def test_graph_operator_transposes_agree_with_and_without_the_compiled_passes(mo
         assert torch.equal(a.crow_indices(), b.crow_indices())
         assert torch.equal(a.col_indices(), b.col_indices())
         assert torch.equal(a.values(), b.values())
+
+
+@pytest.mark.parametrize("e, n", [(0, 4), (1, 1), (300, 40), (5000, 700)])
+@pytest.mark.parametrize("rows_kind", ["all", "some", "shuffled"])
+@pytest.mark.parametrize("degree_given", [False, True])
+def test_general_gcn_norm_is_the_tensor_expression(monkeypatch, e, n, rows_kind, degree_given):
+    """Edges in any order, from later nodes too, repeated and with self-loops: the compiled
+    triplets (and in-degrees) are the tensor expression's to the bit."""
+    rng = np.random.default_rng(e + n)
+    src, dst = (torch.from_numpy(rng.integers(0, n, e)) for _ in range(2))
+    if e > 10:  # some repeats and self-loops
+        src[:5], dst[:5] = src[5:10], dst[5:10]
+        src[10] = dst[10]
+    edge_index = torch.stack([src, dst])
+    rows = {"all": None, "some": torch.arange(n // 3, n - n // 4),
+            "shuffled": torch.from_numpy(rng.permutation(n)[: max(1, n // 2)])}[rows_kind]
+    in_degree = torch.from_numpy(rng.integers(0, 9, n)) if degree_given else None
+    got = {}
+    for arm in (True, False):
+        monkeypatch.setattr(sparse, "USE_COMPILED", arm)
+        got[arm] = gcn_norm(edge_index, n, in_degree=in_degree, rows=rows)
+    for a, b in zip(got[True], got[False]):
+        assert a.dtype == b.dtype
+        assert torch.equal(a, b)
+    if e > 10 and rows is None and in_degree is None:  # the general path (unsorted, repeated edges) was taken
+        assert len(got[True][0]) < e + n
+
+
+def test_distinct_in_degree_counts_each_source_once():
+    src = np.array([0, 0, 1, 2, 2, 3, 1], dtype=np.int64)
+    dst = np.array([1, 1, 1, 2, 0, 0, 3], dtype=np.int64)  # (0 -> 1) twice, a self-loop at 1 and at 2
+    assert distinct_in_degree(src, dst, 4).tolist() == [2, 1, 0, 1]
