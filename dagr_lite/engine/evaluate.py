@@ -22,6 +22,19 @@ from dagr_lite.eval.coco import METRIC_KEYS, format_metrics
 from dagr_lite.eval.score import save_pictures, score_model
 
 
+TRAINING_ONLY = ("train_image_age", "train_image_age_power", "train_image_age_ramp", "augment")
+
+
+def used_config(cfg: DictConfig, detector) -> DictConfig:
+    """``cfg`` as the evaluation uses it, to print: the event graph the model reads (the
+    checkpoint's, or an override's), none for a model without one, and no training-only data keys."""
+    shown = OmegaConf.to_container(cfg)
+    shown["graph"] = None if detector.graph is None else detector.graph.as_dict()
+    for key in TRAINING_ONLY:
+        shown["data"].pop(key, None)
+    return OmegaConf.create(shown)
+
+
 def evaluate(cfg: DictConfig) -> dict:
     """Score a checkpoint's EMA weights on ``cfg.split``; writes ``metrics.json`` and ``detections.json``."""
     cfg = resolve_config(cfg)
@@ -32,7 +45,7 @@ def evaluate(cfg: DictConfig) -> dict:
     check_picture_layout(checkpoint.path, checkpoint.sample_settings, data)
     if cfg.model_size not in MODEL_SIZES:
         raise ConfigError(f"model_size={cfg.model_size!r}: expected one of {MODEL_SIZES}")
-    print(OmegaConf.to_yaml(cfg), flush=True)
+    print(OmegaConf.to_yaml(used_config(cfg, detector)), flush=True)
     for key, change in overrides.items():
         print(f"override: {key}={change['used']!r} (the checkpoint was trained with {change['checkpoint']!r})")
     device = resolve_device(cfg.device)

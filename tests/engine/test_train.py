@@ -7,6 +7,7 @@ import pytest
 import numpy as np
 import torch
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 import dagr_lite.engine.clock as clock_module
 import dagr_lite.engine.loop as loop_module
@@ -491,6 +492,7 @@ def test_evaluation_takes_the_data_and_graph_settings_from_the_checkpoint(tmp_pa
     train(small(tmp_path / "run", "model=events_only", "trainer.max_steps=1", "data.window_us=20000",
                 "data.image_age=2", "model.graph.radius=4"))
     ckpt = tmp_path / "run" / "checkpoints" / "last.pt"
+    capsys.readouterr()
     evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'e'}", "loader.num_workers=0", "split=valid"))
     out = json.loads((tmp_path / "e" / "metrics.json").read_text())
     assert out["data"] == {"image_age": 2, "window_us": 20000, "context_us": 10000, "refractory_us": 0,
@@ -499,7 +501,9 @@ def test_evaluation_takes_the_data_and_graph_settings_from_the_checkpoint(tmp_pa
                            "carry_confirm_us": 0, "carry_align_us": 0}
     assert out["graph"] == {"radius": 4.0, "beta": 5e-4, "max_neighbors": 8} and out["overrides"] == {}
     assert out["num_images"] == len(sample_set(stub_root(), "valid", image_age=2))
-    capsys.readouterr()
+    printed = OmegaConf.create(capsys.readouterr().out.split("\n\n")[0])  # the config, as the evaluation uses it
+    assert printed.graph == out["graph"] and printed.data.window_us == 20000
+    assert "augment" not in printed.data and "train_image_age" not in printed.data  # training's alone
     evaluate(config("evaluate", f"ckpt={ckpt}", f"run_dir={tmp_path / 'o'}", "loader.num_workers=0", "split=valid",
                     "data.window_us=33333", "graph.radius=5"))
     assert "override: data.window_us=33333 (the checkpoint was trained with 20000)" in capsys.readouterr().out
