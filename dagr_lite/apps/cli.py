@@ -88,6 +88,10 @@ def hydra_command(config_name: str, run: Callable[[DictConfig], object]) -> Call
 
     def command() -> None:
         arguments = sys.argv[1:]
+        if "--help" in arguments or "-h" in arguments:
+            with user_errors():
+                print(command_help(config_name, [a for a in arguments if a not in ("--help", "-h")]))
+            return
         # Hydra's own flags (--cfg, --help, -m) and its settings (hydra.*) go to Hydra as they are.
         plain = not any(a.startswith("-") or a.lstrip("+~").startswith("hydra") for a in arguments)
         if plain and os.environ.get("HYDRA_FULL_ERROR") != "1":
@@ -98,6 +102,46 @@ def hydra_command(config_name: str, run: Callable[[DictConfig], object]) -> Call
         main()
 
     return command
+
+
+def command_help(config_name: str, overrides: list[str]) -> str:
+    """``--help``: the usage from ``conf/<config_name>.yaml``'s opening comments, the config groups
+    that file composes with their options, and its settings composed with ``overrides`` (Hydra's own
+    help would list every group of ``conf/``, those the command ignores too)."""
+    from dagr_lite.config import compose_config
+    problem = composition_problem(config_name, overrides)
+    if problem:
+        raise UserError(problem)
+    text = (CONF_DIR / f"{config_name}.yaml").read_text()
+    usage = []
+    for line in text.splitlines():
+        if not line.startswith("#"):
+            break
+        usage.append(line[1:].strip())
+    lines = [*usage, "", "Config groups (group=option; conf/<group>/<option>.yaml):"]
+    for group in composed_groups(text):
+        options = sorted(path.stem for path in (CONF_DIR / group).glob("*.yaml"))
+        lines.append(f"  {group}: {', '.join(options)}")
+    cfg = compose_config(config_name, overrides)
+    lines += ["", "Settings (key=value; `--cfg job` prints them, `--hydra-help` Hydra's flags):",
+              OmegaConf.to_yaml(cfg).rstrip()]
+    return "\n".join(lines)
+
+
+def composed_groups(config_text: str) -> list[str]:
+    """The config groups a command's config file composes: the entries of its defaults list
+    (``- group: option``, ``- optional group: ...``), not ``_self_`` nor Hydra's own overrides."""
+    groups, inside = [], False
+    for line in config_text.splitlines():
+        if line.startswith("defaults:"):
+            inside = True
+            continue
+        if inside and not line.startswith((" ", "\t")) and line.strip():
+            break
+        entry = re.match(r"\s*-\s*(?:optional\s+)?([\w/]+)\s*:", line) if inside else None
+        if entry and entry.group(1) != "override" and not line.split("-", 1)[1].strip().startswith("override"):
+            groups.append(entry.group(1))
+    return groups
 
 
 def composition_problem(config_name: str, overrides: list[str]) -> str | None:

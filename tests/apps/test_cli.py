@@ -68,3 +68,35 @@ def test_a_key_added_with_a_plus_is_refused_among_settings_and_allowed_among_nam
                                          "model.sizes.l.head_hidden=64", "model.size=l"]) is None  # into what + adds
     assert composition_problem("train", ["++trainer.max_minutes=5"]) is None  # there already: ++ sets it
     assert "already" in composition_problem("train", ["+trainer.max_minutes=5"])  # Hydra's own refusal
+
+
+@pytest.mark.parametrize("name, groups", [("train", ["dataset", "model", "optim", "data", "loader", "eval", "recipe"]),
+                                          ("evaluate", ["dataset", "data", "loader", "eval"]),
+                                          ("sweep", ["dataset", "data", "loader", "eval"]),
+                                          ("demo", ["dataset", "operating"]), ("detect", ["operating"])])
+def test_help_lists_the_groups_the_command_composes(name, groups):
+    from omegaconf import OmegaConf
+
+    from dagr_lite.apps.cli import command_help
+    from dagr_lite.config import compose_config
+    text = command_help(name, ["loader.batch_size=3"] if "loader" in groups else [])
+    listed = text.split("Config groups")[1].split("\n\n")[0].splitlines()[1:]
+    assert [line.split(":")[0].strip() for line in listed] == groups
+    assert "  dataset: custom, ego, stub, v1, v2, v3, v4, v5, v6" in listed or "dataset" not in groups
+    assert text.splitlines()[0].startswith("python ")  # the usage line of conf/<name>.yaml
+    settings = OmegaConf.create(text.split("Hydra's flags):\n", 1)[1])
+    expected = compose_config(name, ["loader.batch_size=3"] if "loader" in groups else [])
+    assert OmegaConf.to_container(settings) == OmegaConf.to_container(expected)  # overrides given with --help apply
+
+
+def test_help_runs_as_a_command_and_names_a_bad_override(tmp_path):
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-m", "dagr_lite.apps.sweep", "--help"], capture_output=True, text=True,
+                         cwd=tmp_path, timeout=300)
+    assert run.returncode == 0 and "\n  eval: default\n" in run.stdout and "\n  model: " not in run.stdout
+    run = subprocess.run([sys.executable, "-m", "dagr_lite.apps.sweep", "--help", "model=hybrid"], capture_output=True,
+                         text=True, cwd=tmp_path, timeout=300)
+    assert run.returncode == 1 and run.stderr.startswith("error: model=hybrid: conf/sweep.yaml takes no model option")
+    assert not (tmp_path / "runs").exists()
