@@ -62,10 +62,15 @@ def score_entries(entries: list[tuple], *, backend: str) -> tuple[dict, CocoEval
     return evaluator.compute(), evaluator
 
 
+CAPTION_HEIGHT = 14  # pixels of the caption bar above a sample's picture
+TRUTH, ANSWER = (0, 200, 0), (255, 150, 0)  # the true boxes' colour, the predicted boxes' (and their scores')
+
+
 def render_sample(batch: Batch, index: int, detections: dict | None = None, *, score_threshold: float = 0.3
                   ) -> np.ndarray:
-    """``(H, 2W, 3)`` uint8: the frame with true (green) and predicted (red) boxes, beside the events
-    (ON red, OFF blue on white) with the same boxes."""
+    """``(14 + H, 2W, 3)`` uint8: the frame with true (green) and predicted (orange, with their scores)
+    boxes, beside the events of the sample's window (ON red, OFF blue on white) with the same boxes,
+    under a caption that names the sample and says so."""
     image = batch.images[index, :3].permute(1, 2, 0).cpu().numpy()  # the frame (or picture) alone
     height, width = image.shape[:2]
     if not image.shape[2]:  # a frameless sample: a grey frame
@@ -77,24 +82,29 @@ def render_sample(batch: Batch, index: int, detections: dict | None = None, *, s
         xs = np.clip(events[:, 0].astype(int), 0, width - 1)
         ys = np.clip(events[:, 1].astype(int), 0, height - 1)
         canvas[ys, xs] = np.where(events[:, 3:4] > 0.5, [220, 30, 30], [30, 60, 220])
-    panels = []
-    for array in (image, canvas):
+    picture = Image.new("RGB", (2 * width, height + CAPTION_HEIGHT), (0, 0, 0))
+    for i, array in enumerate((image, canvas)):
         panel = Image.fromarray(np.ascontiguousarray(array))
         draw = ImageDraw.Draw(panel)
         for box in batch.boxes[index].cpu().tolist():
-            draw.rectangle(box, outline=(0, 200, 0))
+            draw.rectangle(box, outline=TRUTH)
         if detections is not None:
             for box, score in zip(detections["boxes"].cpu().tolist(), detections["scores"].cpu().tolist()):
                 if score >= score_threshold:
-                    draw.rectangle(box, outline=(255, 0, 0))
-        panels.append(np.asarray(panel))
-    return np.concatenate(panels, axis=1)
+                    draw.rectangle(box, outline=ANSWER)
+                    draw.text((box[0] + 2, box[1] + 1), f"{score:.2f}", fill=ANSWER)
+        picture.paste(panel, (i * width, CAPTION_HEIGHT))
+    age_ms = (int(batch.t_end_us[index]) - int(batch.t_image_us[index])) / 1000
+    caption = (f"{batch.videos[index]} frame {int(batch.frames[index])}, {age_ms:.0f} ms after its image: truth green, "
+               f"answers >= {score_threshold:g} orange; events ON red, OFF blue")
+    ImageDraw.Draw(picture).text((4, 1), caption, fill=(255, 255, 255))
+    return np.asarray(picture)
 
 
 @torch.no_grad()
 def save_pictures(model: nn.Module, loader: DataLoader, device: torch.device, folder: Path, count: int, *,
                   conf_threshold: float, nms_threshold: float) -> None:
-    """PNGs of the first ``count`` samples with true (green) and predicted (red) boxes."""
+    """PNGs of the first ``count`` samples with true (green) and predicted (orange) boxes (:func:`render_sample`)."""
     folder.mkdir(parents=True, exist_ok=True)
     model.eval()
     saved = 0
