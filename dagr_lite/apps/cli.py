@@ -13,6 +13,7 @@ import contextlib
 import os
 import re
 import sys
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -26,6 +27,7 @@ from dagr_lite.errors import UserError
 # SensorError are UserErrors), OSError (a missing or foreign file, a folder that holds an earlier run,
 # a full disk) and a mandatory config value left out. Any other exception is a bug: its traceback shows.
 USER_ERRORS = (UserError, OSError, MissingMandatoryValue)
+STARTED = time.time()  # when this command's process imported this module, before Hydra made any folder
 OMEGACONF_DETAIL = re.compile(r"\s+(full_key|object_type|reference_type)[:=]")
 
 
@@ -59,15 +61,23 @@ def user_message(err: BaseException) -> str:
 def remove_empty_output_folder() -> None:
     """Remove the folder Hydra made for this command when it is empty, and, for a folder of the
     default layout ``runs/<kind>/<date>/<time>``, its parents up to ``runs`` that are then empty
-    too; a folder with anything in it stays."""
+    too. A folder with anything in it stays, and so does one this command did not make: the
+    current folder or one above it (detect's and the demo's Hydra folder is ``.``), or an empty one
+    that was there before the command started (a ``run_dir`` the user made)."""
     try:
         from hydra.core.hydra_config import HydraConfig
         folder = Path(HydraConfig.get().runtime.output_dir).absolute()
     except (ImportError, ValueError):  # not run by Hydra
         return
+    try:
+        here = Path.cwd().resolve()
+    except OSError:  # the current folder is gone: touch nothing
+        return
     default = len(folder.parents) > 3 and folder.parents[2].name == "runs"
     for path in [folder, *(folder.parents[:3] if default else [])]:
         try:
+            if path.resolve() == here or path.resolve() in here.parents or path.stat().st_mtime < STARTED - 1.0:
+                break
             path.rmdir()  # only an empty folder
         except OSError:
             break

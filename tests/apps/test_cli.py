@@ -1,11 +1,16 @@
 """A user's mistake is one line and exit status 1; a bug keeps its traceback."""
 from __future__ import annotations
 
+import time
+from pathlib import Path
+
 import pytest
 
 from dagr_lite.apps.cli import user_errors
 from dagr_lite.config import ConfigError
 from dagr_lite.errors import UserError
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.parametrize("error", [UserError("sample window_us must be a positive integer, got -5"),
@@ -100,3 +105,26 @@ def test_help_runs_as_a_command_and_names_a_bad_override(tmp_path):
                          text=True, cwd=tmp_path, timeout=300)
     assert run.returncode == 1 and run.stderr.startswith("error: model=hybrid: conf/sweep.yaml takes no model option")
     assert not (tmp_path / "runs").exists()
+
+
+def test_a_failed_command_removes_only_a_folder_it_made(tmp_path):
+    """detect's Hydra folder is the current one; a run_dir the user made stays too, empty or not."""
+    import subprocess
+    import sys
+
+    here = tmp_path / "empty"
+    here.mkdir()
+    run = subprocess.run([sys.executable, str(ROOT / "detect.py"), f"ckpt={tmp_path / 'none.pt'}", "input=none.raw"],
+                         capture_output=True, text=True, cwd=here, timeout=300)
+    assert run.returncode == 1 and run.stderr.startswith("error: ")
+    assert here.is_dir()  # the current folder, empty, was not removed
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    time.sleep(1.5)  # the folder is older than the command
+    run = subprocess.run([sys.executable, str(ROOT / "evaluate.py"), f"ckpt={tmp_path / 'none.pt'}", f"run_dir={mine}"],
+                         capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert run.returncode == 1 and "checkpoint file is missing" in run.stderr
+    assert mine.is_dir()
+    run = subprocess.run([sys.executable, str(ROOT / "evaluate.py"), f"ckpt={tmp_path / 'none.pt'}",
+                          f"run_dir={tmp_path / 'made'}"], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert run.returncode == 1 and not (tmp_path / "made").exists()  # the folder the command made is gone
