@@ -292,6 +292,9 @@ def video_jobs(paths: list[Path], *, labels: Path | None = None, splits: Path | 
                 raise DatasetFormatError.at(path, f"holds no video files ({', '.join(VIDEO_SUFFIXES)})")
             files += found
         elif path.is_file():
+            if path.suffix.lower() not in VIDEO_SUFFIXES:
+                raise DatasetFormatError.at(path, f"is not a video file (expected one of {', '.join(VIDEO_SUFFIXES)}); "
+                                                  "a folder of frames goes to --frames")
             files.append(path)
         else:
             raise DatasetFormatError.at(path, "video file is missing")
@@ -381,7 +384,8 @@ def main(argv: list[str] | None = None) -> int:
     for key, value in (("dvs_model", args.preset), ("upsample", args.upsample), ("scale", args.scale)):
         if value is not None:
             chosen[key] = value
-    missing = [name for name in ("dvs_model", "upsample", "scale") if name not in chosen]
+    flags = {"dvs_model": "--preset", "upsample": "--upsample", "scale": "--scale"}
+    missing = [flag for name, flag in flags.items() if name not in chosen]
     if missing:
         parser.error(f"give --version or all of --preset, --upsample, --scale (missing: {', '.join(missing)})")
     if args.egohands and args.labels:
@@ -405,8 +409,26 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     total = sum(v["events"] for v in info["videos"].values())
-    print(f"{args.out}: {len(info['videos'])} videos, {total:,} events, {settings.fps:g} fps")
+    count = len(info["videos"])
+    print(f"{args.out}: {count} video{'' if count == 1 else 's'}, {total:,} events, {settings.fps:g} fps")
+    note = training_note(args.out, info)
+    if note:
+        print(note)
     return 0
+
+
+def training_note(out: Path, info: dict) -> str | None:
+    """What a built dataset still lacks before ``train.py dataset=custom`` can train on it: a valid and a
+    test split, labelled frames (None: nothing)."""
+    splits = {video["split"] for video in info["videos"].values()}
+    missing = [split for split in fmt.SPLITS if split not in splits]
+    labelled = len(_read_json(fmt.labels_path(out), {}))
+    lacks = ([f"no {' or '.join(missing)} split (give --splits)"] if missing else []) + \
+        (["no labelled frame (give --labels, or label it: python -m dagr_lite.apps.label)"] if not labelled else [])
+    if not lacks:
+        return None
+    return f"note: to train or evaluate on it, it still needs: {'; '.join(lacks)}"
+
 
 
 if __name__ == "__main__":

@@ -85,6 +85,9 @@ def test_the_builder_refuses_a_dataset_it_did_not_make_and_check_names_mixed_siz
     write_moving_square_videos(tmp_path / "frames", ["a"])
     out = tmp_path / "out"
     assert main(["--frames", str(tmp_path / "frames"), "--out", str(out), "--version", "v4", "--scale", "1"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == (
+        "note: to train or evaluate on it, it still needs: no valid or test split (give --splits); no labelled frame "
+        "(give --labels, or label it: python -m dagr_lite.apps.label)")
     (out / BUILD_INFO).unlink()  # as a dataset made elsewhere
     before = sorted(str(p.relative_to(out)) for p in out.rglob("*"))
     write_moving_square_videos(tmp_path / "other", ["c"], height=12, width=16)
@@ -129,7 +132,11 @@ def test_egohands_input(tmp_path):
 def test_bad_arguments_are_named(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--frames", str(tmp_path), "--out", str(tmp_path / "o"), "--preset", "clean"])
-    assert "missing: upsample, scale" in capsys.readouterr().err
+    assert "missing: --upsample, --scale" in capsys.readouterr().err
+    (tmp_path / "notes.txt").write_text("not a video")
+    assert main(["--video", str(tmp_path / "notes.txt"), "--out", str(tmp_path / "o"), "--version", "v1"]) == 2
+    assert "notes.txt: is not a video file (expected one of .mp4," in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()  # nothing written: a rerun with the right file is not refused
     assert main(["--frames", str(tmp_path / "none"), "--out", str(tmp_path / "o"), "--version", "v1"]) == 2
     assert "frames folder is missing" in capsys.readouterr().err
     write_moving_square_videos(tmp_path / "frames", ["a"])
