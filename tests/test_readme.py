@@ -108,20 +108,19 @@ def test_every_other_command_shows_the_options_the_readme_gives_it(program, help
 
 
 def test_the_python_blocks_run_as_written(trained_checkpoints):
-    """The streaming detector's block from the checkpoint path alone, and the graph block."""
+    """The streaming detector's block as written (the stub's test video; the checkpoint path filled in),
+    and the graph block."""
     stream_block, graph_block = blocks("python")
     ckpt = trained_checkpoints["hybrid"]
-    rng = np.random.default_rng(0)
-    n = 2_000
-    frame = rng.integers(0, 256, (180, 320, 3), dtype=np.uint8)
-    x, y = rng.integers(0, 320, n), rng.integers(0, 180, n)
-    t, p = np.sort(rng.integers(0, 30_000, n)), rng.integers(0, 2, n)
-    namespace = {"frame": frame, "x": x, "y": y, "t": t, "p": p}
+    namespace = {}
     exec(stream_block.replace("runs/train/<run>/checkpoints/best.pt", str(ckpt)), namespace)
-    answer = namespace["answer"]
-    assert answer["boxes"].shape[1:] == (4,) and answer["t_us"] == t[-1]
+    answer, rec = namespace["answer"], namespace["rec"]
+    assert answer["boxes"].shape[1:] == (4,) and answer["t_us"] == rec.events_between(0, rec.frame_times[1])["t"][-1]
     assert namespace["detector"].operating.nms_iou < 0.5  # the checkpoint's operating point
 
+    rng = np.random.default_rng(0)
+    x, y = rng.integers(0, 320, 300), rng.integers(0, 180, 300)
+    t, p = np.sort(rng.integers(0, 30_000, 300)), rng.integers(0, 2, 300)
     events = torch.tensor(np.stack([x[:300], y[:300], t[:300], p[:300]], 1), dtype=torch.float32)
     namespace = {"events": events, "batch": torch.zeros(300, dtype=torch.long), "features": torch.randn(300, 4),
                  "new_pos": torch.tensor(np.stack([x[:50], y[:50], 5e-4 * t[:50]], 1), dtype=torch.float64)}
