@@ -134,9 +134,11 @@ class Sensor:
         return out
 
 
-def fitting_settings(sensor_size: tuple[int, int], model_size: tuple[int, int], rotate: int = 0) -> str | None:
+def fitting_settings(sensor_size: tuple[int, int], model_size: tuple[int, int], rotate: int = 0,
+                     cropped: bool = False) -> str | None:
     """The largest ``sensor.scale`` and a centred ``sensor.crop`` that turn the sensor, turned by
-    ``rotate`` degrees after the crop, into the model's input, as settings to type; None if none does."""
+    ``rotate`` degrees after the crop, into the model's input, as settings to type (``sensor.crop=null``
+    where the whole sensor fits and a crop was ``cropped``); None if none does."""
     width, height = sensor_size
     mw, mh = model_size if rotate in (0, 180) else model_size[::-1]  # the crop is taken before the rotation
     scale = min(width // mw, height // mh)
@@ -144,7 +146,8 @@ def fitting_settings(sensor_size: tuple[int, int], model_size: tuple[int, int], 
         return None
     w, h = mw * scale, mh * scale
     x0, y0 = (width - w) // 2, (height - h) // 2
-    crop = "" if (w, h) == (width, height) else f" sensor.crop=[{x0},{y0},{w},{h}]"
+    whole = (w, h) == (width, height)
+    crop = (" sensor.crop=null" if cropped else "") if whole else f" sensor.crop=[{x0},{y0},{w},{h}]"
     return f"sensor.scale={scale}{crop}"
 
 
@@ -153,7 +156,7 @@ def fit_sensor(sensor: Sensor, model_size: tuple[int, int]) -> None:
     if tuple(sensor.output_size) == tuple(model_size):
         return
     out_w, out_h = sensor.output_size
-    hint = fitting_settings(sensor.size, model_size, sensor.rotate)
+    hint = fitting_settings(sensor.size, model_size, sensor.rotate, cropped=sensor.crop is not None)
     fix = f"; {hint} fits" if hint else "; the sensor is smaller than the model's input: no crop and scale fit"
     raise SensorError(f"the {sensor.size[0]}x{sensor.size[1]} sensor gives {out_w}x{out_h} after crop, rotation and "
                       f"scale, but the model reads {model_size[0]}x{model_size[1]}{fix} (or sensor.model_size=sensor "

@@ -39,6 +39,17 @@ def save_checkpoint(path: Path, state: dict) -> None:
         raise OSError(f"{path}: the checkpoint could not be written ({err}){kept}") from err
 
 
+def load_failure(err: Exception) -> str:
+    """What ``torch.load(weights_only=True)`` found wrong, without its advice to load the file unsafely
+    (``weights_only=False``) and to file an issue: the reason its safe unpickler gives, else its first line."""
+    text = str(err)
+    if "Weights only load failed" in text:
+        reason = text.split("WeightsUnpickler error:", 1)[1] if "WeightsUnpickler error:" in text else ""
+        reason = next((line.strip() for line in reason.splitlines() if line.strip()), "")
+        return f"not a file of tensors and plain values, as train.py writes{': ' + reason if reason else ''}"
+    return text.strip().splitlines()[0] if text.strip() else type(err).__name__
+
+
 def load_checkpoint(path: Path | str) -> "Checkpoint":
     """Read a checkpoint safely (``weights_only``): the one place a checkpoint's raw contents are
     read, and where an older one is upgraded (:func:`upgrade`). A missing, foreign or unreadable
@@ -49,7 +60,7 @@ def load_checkpoint(path: Path | str) -> "Checkpoint":
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # unpickling errors come in many types
-        raise UserError(f"{path}: cannot read as a dagr_lite checkpoint ({err})") from err
+        raise UserError(f"{path}: cannot read as a dagr_lite checkpoint ({load_failure(err)})") from err
     if not isinstance(state, dict) or "model" not in state:
         raise UserError(f"{path}: not a dagr_lite checkpoint (expected keys format, model, ema, detector, config, ...)")
     if state.get("format") != CHECKPOINT_FORMAT:

@@ -58,6 +58,9 @@ def test_a_sensor_that_does_not_fit_the_model_is_refused_with_a_setting_that_wou
     with pytest.raises(SensorError, match=r"sensor.scale=2 sensor.crop=\[60,0,360,640\] fits"):
         fit_sensor(Sensor((480, 640), rotate=90), (320, 180))
     fit_sensor(Sensor((480, 640), crop=(60, 0, 360, 640), scale=2, rotate=90), (320, 180))  # the hint fits
+    # the model's size is the whole sensor's: a crop given is what does not fit, and the hint takes it away
+    with pytest.raises(SensorError, match=r"gives 300x160 .* sensor.scale=1 sensor.crop=null fits"):
+        fit_sensor(Sensor((320, 180), crop=(10, 10, 300, 160)), (320, 180))
     for bad, message in (({"crop": (600, 0, 100, 10)}, "inside the 640x480 sensor"),
                          ({"scale": 3}, "sensor.scale=3 must divide the cropped 640x480"),
                          ({"rotate": 45}, "sensor.rotate=45 must be one of")):

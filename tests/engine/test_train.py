@@ -482,8 +482,9 @@ def test_runs_never_overwrite_and_bad_checkpoints_are_named(tmp_path):
     with pytest.raises(FileNotFoundError, match="checkpoint file is missing"):
         evaluate(config("evaluate", f"ckpt={tmp_path / 'nope.pt'}", f"run_dir={tmp_path / 'e1'}"))
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
-    with pytest.raises(ValueError, match="cannot read as a dagr_lite checkpoint"):
+    with pytest.raises(ValueError, match="cannot read as a dagr_lite checkpoint") as refused:
         evaluate(config("evaluate", f"ckpt={tmp_path / 'junk.pt'}", f"run_dir={tmp_path / 'e2'}"))
+    assert "weights_only" not in str(refused.value)  # not torch's advice to load it unsafely
     with pytest.raises(Exception, match="ckpt"):
         evaluate(config("evaluate", f"run_dir={tmp_path / 'e3'}"))  # ckpt is required
 
