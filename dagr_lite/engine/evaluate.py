@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
+from torch.utils.data import Subset
 
 from dagr_lite.config import ConfigError, build_dataset, check_values, resolve_config
 from dagr_lite.engine.checkpoint import (MODEL_SIZES, at_model_size, check_picture_layout, describe_dataset,
@@ -33,6 +34,14 @@ def used_config(cfg: DictConfig, detector) -> DictConfig:
     for key in TRAINING_ONLY:
         shown["data"].pop(key, None)
     return OmegaConf.create(shown)
+
+
+def spread_indices(size: int, count: int) -> list[int]:
+    """``count`` indices (at most ``size``) spread evenly over ``range(size)``, first and last included."""
+    count = min(count, size)
+    if count <= 1:
+        return list(range(count))
+    return sorted({round(i * (size - 1) / (count - 1)) for i in range(count)})
 
 
 def evaluate(cfg: DictConfig) -> dict:
@@ -63,8 +72,12 @@ def evaluate(cfg: DictConfig) -> dict:
               "graph": None if detector.graph is None else detector.graph.as_dict(), "overrides": overrides}
     (run_dir / "metrics.json").write_text(json.dumps(result, indent=1))
     (run_dir / "detections.json").write_text(json.dumps(evaluator.results_json()))
-    if cfg.save_images:
-        save_pictures(model, loader, device, run_dir / "images", cfg.save_images,
-                      conf_threshold=cfg.eval.conf_threshold, nms_threshold=cfg.eval.nms_threshold)
+    if cfg.save_images:  # samples spread over the split, answered at the checkpoint's operating point
+        chosen = spread_indices(len(dataset), int(cfg.save_images))
+        pictures = make_loader(Subset(dataset, chosen), batch_size=cfg.loader.batch_size, num_workers=0,
+                               graph=model.graph_spec)
+        point = checkpoint.operating
+        save_pictures(model, pictures, device, run_dir / "images", len(chosen), conf_threshold=point.score,
+                      nms_threshold=point.nms_iou)
     print(f"{cfg.split} split, {len(evaluator.images)} images ({run_dir}):\n{format_metrics(metrics)}", flush=True)
     return {"metrics": result, "run_dir": Path(run_dir)}

@@ -104,7 +104,8 @@ def render_sample(batch: Batch, index: int, detections: dict | None = None, *, s
 @torch.no_grad()
 def save_pictures(model: nn.Module, loader: DataLoader, device: torch.device, folder: Path, count: int, *,
                   conf_threshold: float, nms_threshold: float) -> None:
-    """PNGs of the first ``count`` samples with true (green) and predicted (orange) boxes (:func:`render_sample`)."""
+    """PNGs of the first ``count`` samples of ``loader`` with true (green) and predicted (orange) boxes
+    (:func:`render_sample`): the answers at ``conf_threshold`` and ``nms_threshold``, all of them drawn."""
     folder.mkdir(parents=True, exist_ok=True)
     model.eval()
     saved = 0
@@ -114,7 +115,7 @@ def save_pictures(model: nn.Module, loader: DataLoader, device: torch.device, fo
         for b in range(len(batch)):
             if saved >= count:
                 return
-            picture = render_sample(batch, b, detections[b])
+            picture = render_sample(batch, b, detections[b], score_threshold=conf_threshold)
             Image.fromarray(np.ascontiguousarray(picture)).save(
                 folder / f"{fmt.label_key(batch.videos[b], int(batch.frames[b]))}.png")
             saved += 1

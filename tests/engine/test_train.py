@@ -69,7 +69,9 @@ def test_smoke_training_lowers_the_loss_then_evaluate_scores_the_checkpoint(tmp_
     independent = pycocotools_metrics(detections, "test")  # the written detections, against the label file
     for key in ("mAP", "AP50", "AP75"):
         assert abs(out[key] - independent[key]) < 1e-9, (key, out[key], independent[key])
-    assert len(list((tmp_path / "eval" / "images").glob("*.png"))) == 2
+    test_set = sample_set(stub_root(), "test")
+    first, last = (fmt.label_key(*test_set.sample_name(i)) for i in (0, len(test_set) - 1))
+    assert sorted(p.name for p in (tmp_path / "eval" / "images").glob("*.png")) == sorted([f"{first}.png", f"{last}.png"])
     # The command line itself, as a user runs it.
     import subprocess
     import sys
@@ -742,3 +744,9 @@ def test_sigterm_saves_last_and_the_run_resumes_from_it(tmp_path):
     assert load_checkpoint(last).training["step"] == step + 2 and load_checkpoint(last).model_name == "events_only"
     assert (run / "config.yaml").read_text() == config_before and (run / "metrics.json").is_file()
     assert not (tmp_path / "runs").exists()  # no empty folder of Hydra's left behind
+
+
+def test_pictures_are_spread_over_the_split():
+    from dagr_lite.engine.evaluate import spread_indices
+    assert spread_indices(10, 3) == [0, 4, 9] and spread_indices(10, 1) == [0] and spread_indices(2, 5) == [0, 1]
+    assert spread_indices(0, 4) == [] and spread_indices(118, 4) == [0, 39, 78, 117]
