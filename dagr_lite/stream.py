@@ -278,6 +278,27 @@ class StreamingDetector:
         self._carry: CarryPicture | None = None  # a carry branch's picture of the events since the image
         self._segment: _Segment | None = None
 
+    def warm_up(self, seed: int = 0) -> float:
+        """Run the detector once over made-up input (a grey image, 3 horizons of random events in
+        5 ms updates, so that events also leave the horizon), then :meth:`reset`; returns the seconds
+        it took. The compiled kernels are compiled (or read from numba's cache) and torch's first
+        calls made here, not in the first answers of a stream whose latency is measured."""
+        tic = time.perf_counter()
+        rng = np.random.default_rng(seed)
+        span = 3 * self.window_us
+        count = int(max(2000, 60 * span / 1000))  # about 60k events/s
+        t = np.sort(rng.uniform(0, span, count)).astype(np.int64)
+        x, y = rng.integers(0, self.width, count), rng.integers(0, self.height, count)
+        p = rng.integers(0, 2, count)
+        if self.hybrid:
+            self.push_image(np.full((self.height, self.width, 3), 128, np.uint8), 0)
+        for stop in np.arange(5_000, span + 5_000, 5_000):
+            part = slice(int(np.searchsorted(t, stop - 5_000)), int(np.searchsorted(t, stop)))
+            self.push_events(x[part], y[part], t[part], p[part])
+            self.detect(float(stop))
+        self.reset()
+        return time.perf_counter() - tic
+
     @property
     def origin_us(self) -> float | None:
         """The time event times count from in the model (a hybrid's image time; None before any)."""

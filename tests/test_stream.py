@@ -658,3 +658,26 @@ def test_streaming_with_dense_pooled_stages_from_the_first_stride_equals_the_bat
     images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 190_000)]
     checks, largest, _ = replay(model, events, images, seed=12, detect_prob=0.7)
     assert checks >= 20 and largest >= 300
+
+
+@pytest.mark.parametrize("variant, carry_width", [("hybrid", 8), ("events_only", 0)])
+def test_a_warm_up_leaves_the_detector_as_new(variant, carry_width):
+    """After :meth:`warm_up` the detector answers a stream as a fresh one does, to the bit."""
+    model = small_model(variant, carry_width=carry_width)
+    rng = np.random.default_rng(3)
+    events = random_stream(rng, 600, 40_000)
+    image = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    answers = []
+    for warm in (False, True):
+        stream = streaming(model)
+        if warm:
+            assert stream.warm_up() > 0
+            assert stream._segment is None and stream.last_event_us == -math.inf
+        if stream.hybrid:
+            stream.push_image(image, 0)
+        stream.push_events(**{key: value[:300] for key, value in events.items()})
+        first = stream.head_outputs(float(events["t"][299]))[0]
+        stream.push_events(**{key: value[300:] for key, value in events.items()})
+        answers.append((first, stream.head_outputs(45_000.0)[0]))
+    for fresh, warmed in zip(*answers):
+        assert torch.equal(fresh, warmed)

@@ -152,6 +152,7 @@ def run_detect(stream: StreamingDetector, source, sensor: Sensor, out: Path | st
     out = Path(out)
     check_out(out, overwrite)
     output = _Output(out, sensor, video, live)
+    warm_up_s = stream.warm_up()  # compiled kernels ready before the clock of the first answer starts
     bar, stopped = None, None
     previous = _catch_sigterm()
     try:
@@ -186,7 +187,8 @@ def run_detect(stream: StreamingDetector, source, sensor: Sensor, out: Path | st
         if bar is not None:
             bar.close()
     video_path = output.close()
-    summary = {**runner.summary(source, video_path), "finished": stopped is None, "stopped": stopped}
+    summary = {**runner.summary(source, video_path), "warm_up_seconds": warm_up_s, "finished": stopped is None,
+               "stopped": stopped}
     if stopped is None:
         publish(out, {**summary, "video": None if video_path is None else str(out / VIDEO)})
         return {**summary, "video": None if video_path is None else str(out / VIDEO)}

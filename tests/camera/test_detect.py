@@ -84,6 +84,7 @@ def test_detect_on_a_written_aedat4_answers_what_the_batch_model_answers(stub_vi
                          video=video_settings(enabled=False), progress=False)
     answers = {a["t_us"]: a for a in lines(tmp_path / "out")}
     assert summary["answers"] == len(answers) and summary["events_in"] == len(stub_video["events"]["t"])
+    assert summary["warm_up_seconds"] > 0  # made-up input ran first, outside the answers' latencies
 
     trained = load_checkpoint(ckpt).sample
     dataset = sample_set(stub_video["root"], "test", image_age=1, window_us=trained.window_us,
