@@ -20,7 +20,7 @@ from dagr_lite.data import format as fmt
 from dagr_lite.data.errors import DatasetFormatError, Problem
 from dagr_lite.data.events import fits_neither_message, header_problems, open_h5, polarity_problem
 from dagr_lite.data.frames import frame_header_problems, jpeg_size, list_frames, read_frame
-from dagr_lite.data.labels import box_problems, list_videos, load_labels_json, parse_boxes
+from dagr_lite.data.labels import box_problems, list_videos, load_labels_json, parse_boxes, read_labels
 from dagr_lite.progress import progress_bar
 
 BLOCK_EVENTS = 1 << 22
@@ -263,8 +263,9 @@ def check_labels(root: Path, videos: dict[str, tuple[int, tuple[int, int] | None
 
 
 def convention_lines(conventions: dict[Path, str | None]) -> list[str]:
-    """What ``check`` prints of the files' frame-time conventions: one line counting each, then a line
-    for each file whose ``timeidx`` is not this package's own (``round``) or could not be told."""
+    """What ``check`` prints of the files' frame-time conventions: one line counting each (saying that a
+    mix is read file by file where there is one), then a line for each file whose ``timeidx`` follows
+    another convention than this package's own (``round``); one that could not be told is among the problems."""
     if not conventions:
         return []
     counts: dict[str, int] = {}
@@ -276,10 +277,11 @@ def convention_lines(conventions: dict[Path, str | None]) -> list[str]:
     order = [*known, *sorted(set(counts) - set(known))]
     parts = [f"{name} in {counts[name]} file{'s' * (counts[name] > 1)} ({known.get(name, name)})"
              for name in order if name in counts]
-    lines = [f"frame times (timeidx): {'; '.join(parts)}. Each file is read in its own convention, so a mix is no "
-             f"problem"]
-    lines += [f"{path}: frame times (timeidx): {convention or 'not determined'}"
-              for path, convention in conventions.items() if convention is None or not convention.startswith("round")]
+    mixed = len(counts) - ("not determined" in counts) > 1
+    lines = [f"frame times (timeidx): {'; '.join(parts)}"
+             + (". Each file is read in its own convention, so a mix is no problem" if mixed else "")]
+    lines += [f"{path}: frame times (timeidx): {convention}"  # an undetermined file's problem is listed with the rest
+              for path, convention in conventions.items() if convention is not None and not convention.startswith("round")]
     return lines
 
 
@@ -304,7 +306,22 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{args.root}: {len(problems)} problem(s) found", file=sys.stderr)
         return 1
     print(f"{args.root}: no problems found")
+    note = training_note(args.root)
+    if note:
+        print(note)
     return 0
+
+
+def training_note(root: Path) -> str | None:
+    """What a dataset without problems still lacks before ``train.py`` and ``evaluate.py`` can use it
+    (a split folder, labelled frames), in one line; None: nothing."""
+    absent = [split for split in fmt.SPLITS if not (Path(root) / split).is_dir()]
+    labelled = sum(len(frames) for frames in read_labels(root).values()) if fmt.labels_path(root).is_file() else 0
+    lacks = ([f"no {' or '.join(absent)} split"] if absent else []) + (["no labelled frame"] if not labelled else [])
+    if not lacks:
+        return None
+    return (f"note: {'; '.join(lacks)}: train.py reads train and valid, evaluate.py test (by default), each with "
+            "labels (python -m dagr_lite.synth.build --splits/--labels, python -m dagr_lite.apps.label)")
 
 
 if __name__ == "__main__":

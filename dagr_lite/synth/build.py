@@ -37,6 +37,7 @@ import numpy as np
 from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.errors import DatasetFormatError
+from dagr_lite.data.check import training_note
 from dagr_lite.data.frames import frame_size
 from dagr_lite.data.labels import read_json_object, read_label_file
 from dagr_lite.data.writer import VideoWriter, write_labels, write_text_atomically
@@ -411,24 +412,10 @@ def main(argv: list[str] | None = None) -> int:
     total = sum(v["events"] for v in info["videos"].values())
     count = len(info["videos"])
     print(f"{args.out}: {count} video{'' if count == 1 else 's'}, {total:,} events, {settings.fps:g} fps")
-    note = training_note(args.out, info)
+    note = training_note(args.out)
     if note:
         print(note)
     return 0
-
-
-def training_note(out: Path, info: dict) -> str | None:
-    """What a built dataset still lacks before ``train.py dataset=custom`` can train on it: a valid and a
-    test split, labelled frames (None: nothing)."""
-    splits = {video["split"] for video in info["videos"].values()}
-    missing = [split for split in fmt.SPLITS if split not in splits]
-    labelled = len(_read_json(fmt.labels_path(out), {}))
-    lacks = ([f"no {' or '.join(missing)} split (give --splits)"] if missing else []) + \
-        (["no labelled frame (give --labels, or label it: python -m dagr_lite.apps.label)"] if not labelled else [])
-    if not lacks:
-        return None
-    return f"note: to train or evaluate on it, it still needs: {'; '.join(lacks)}"
-
 
 
 if __name__ == "__main__":

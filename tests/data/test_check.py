@@ -18,7 +18,20 @@ def messages(problems):
 def test_a_written_dataset_has_no_problems(dataset, capsys):
     assert check_dataset(dataset.root, decode_frames=True) == []
     assert main([str(dataset.root)]) == 0
-    assert "no problems found" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "no problems found" in out and "note:" not in out and "a mix" not in out  # every split, labelled
+
+
+def test_a_dataset_without_problems_says_what_training_still_needs(tmp_path, capsys):
+    from tests.conftest import make_dataset
+    make_dataset(tmp_path, videos={"a": "train"}, num_frames=6, events_per_video=100)
+    labels = json.loads(fmt.labels_path(tmp_path).read_text())
+    fmt.labels_path(tmp_path).write_text(json.dumps({key: [] for key in labels}))  # frames without hands count
+    assert main([str(tmp_path)]) == 0
+    assert capsys.readouterr().out.splitlines()[-1].startswith("note: no valid or test split: train.py reads")
+    fmt.labels_path(tmp_path).write_text("{}")
+    assert main([str(tmp_path)]) == 0
+    assert capsys.readouterr().out.splitlines()[-1].startswith("note: no valid or test split; no labelled frame: ")
 
 
 def edit_h5(path, fn):
