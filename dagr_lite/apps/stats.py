@@ -274,6 +274,8 @@ def main(argv: list[str] | None = None) -> int:
               f"events\nwritten to {args.out}")
         return 0
     with user_errors():  # a user's mistake: one line, no traceback
+        if not Path(args.root).exists():
+            raise FileNotFoundError(f"{args.root}: no such dataset folder or recording file")
         stats = dataset_stats(args.root, args.out, videos=args.videos, frame=args.frame, fps=args.fps)
     for split, row in stats["splits"].items():
         print(f"{split}: {row['videos']} videos, {row['events']:,} events over {row['duration_s']:.1f} s "

@@ -477,6 +477,9 @@ def _folder_frames(folder: Path, times_file: Path | None, size: tuple[int, int])
         files = [folder / numbered[k] for k in sorted(numbered)]
     if not files:
         raise RecordingError(f"{folder}: no images ({', '.join(IMAGE_SUFFIXES)}) in the frame folder")
+    if times_file is None and not (folder / TIMESTAMPS_FILE).is_file():
+        raise RecordingError(f"{folder / TIMESTAMPS_FILE}: the frame timestamp file is missing; a frame folder needs "
+                             f"its frames' times in microseconds, one per line: there, or named by frame_times=FILE")
     times = read_frame_times(times_file or folder / TIMESTAMPS_FILE, len(files))
 
     def frames() -> Iterator[tuple[int, np.ndarray]]:

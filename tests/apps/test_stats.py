@@ -85,3 +85,10 @@ def test_a_frame_past_the_video_or_an_earlier_out_is_refused_before_writing(tmp_
         main([str(written.root), "--out", str(tmp_path / "out"), "--videos", video, "--frame", "2"])
     assert re.search(r"holds earlier statistics \(stats\.json\); choose a new --out", capsys.readouterr().err)
     assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "out").iterdir()} == before
+
+
+def test_a_missing_root_is_named_as_missing(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main([str(tmp_path / "nothere"), "--out", str(tmp_path / "out")])
+    assert capsys.readouterr().err == f"error: {tmp_path / 'nothere'}: no such dataset folder or recording file\n"
+    assert not (tmp_path / "out").exists()

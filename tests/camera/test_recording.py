@@ -106,6 +106,13 @@ def test_frame_folder_with_timestamps_goes_with_the_events(tmp_path):
     (folder / "timestamps.txt").write_text("0\n33333\n")
     with pytest.raises(RecordingError, match="timestamps.txt: 2 times for 3 frames"):
         open_recording(tmp_path / "rec.es", frames=folder)
+    (folder / "timestamps.txt").rename(tmp_path / "times.txt")
+    with pytest.raises(RecordingError, match="timestamps.txt: the frame timestamp file is missing; .* frame_times=FILE"):
+        open_recording(tmp_path / "rec.es", frames=folder)
+    (tmp_path / "times.txt").write_text("0\n33333\n66667\n")
+    assert [t for t, _ in open_recording(tmp_path / "rec.es", frames=folder, frame_times=tmp_path / "times.txt").frames()] \
+        == [0, 33333, 66667]  # the times named by frame_times
+    (tmp_path / "times.txt").rename(folder / "timestamps.txt")
     # times in seconds or milliseconds, or nanoseconds: refused with the fix, not read as microseconds
     for text, fix in (("0.0\n0.033333\n0.066667\n", "x 1e6"), ("0\n33.3\n66.7\n", "x 1e3"),
                       ("0\n33333333\n66666667\n", "/ 1e3")):
