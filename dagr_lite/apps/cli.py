@@ -27,7 +27,7 @@ from dagr_lite.errors import UserError
 # SensorError are UserErrors), OSError (a missing or foreign file, a folder that holds an earlier run,
 # a full disk) and a mandatory config value left out. Any other exception is a bug: its traceback shows.
 USER_ERRORS = (UserError, OSError, MissingMandatoryValue)
-STARTED = time.time()  # when this command's process imported this module, before Hydra made any folder
+STARTED = time.time()  # when the command started (hydra_command's command() sets it), before Hydra made any folder
 OMEGACONF_DETAIL = re.compile(r"\s+(full_key|object_type|reference_type)[:=]")
 
 
@@ -61,9 +61,9 @@ def user_message(err: BaseException) -> str:
 def remove_empty_output_folder() -> None:
     """Remove the folder Hydra made for this command when it is empty, and, for a folder of the
     default layout ``runs/<kind>/<date>/<time>``, its parents up to ``runs`` that are then empty
-    too. A folder with anything in it stays, and so does one this command did not make: the
-    current folder or one above it (detect's and the demo's Hydra folder is ``.``), or an empty one
-    that was there before the command started (a ``run_dir`` the user made)."""
+    too. A folder with anything in it stays, and so does the current folder or one above it (detect's
+    and the demo's Hydra folder is ``.``) and, for Hydra's own folder, an empty one last changed before
+    the command started (a ``run_dir`` the user made and the command did not write into)."""
     try:
         from hydra.core.hydra_config import HydraConfig
         folder = Path(HydraConfig.get().runtime.output_dir).absolute()
@@ -97,10 +97,13 @@ def hydra_command(config_name: str, run: Callable[[DictConfig], object]) -> Call
         remove_empty_output_folder()  # e.g. a resumed run that went on in its own folder
 
     def command() -> None:
+        global STARTED
+        STARTED = time.time()  # before Hydra makes any folder
         arguments = sys.argv[1:]
-        if "--help" in arguments or "-h" in arguments:
+        helps = [a for a in arguments if a in ("--help", "-h")]
+        if helps and not any(a.startswith("-") for a in arguments if a not in helps):  # else Hydra's flags and help
             with user_errors():
-                print(command_help(config_name, [a for a in arguments if a not in ("--help", "-h")]))
+                print(command_help(config_name, [a for a in arguments if a not in helps]))
             return
         # Hydra's own flags (--cfg, --help, -m) and its settings (hydra.*) go to Hydra as they are.
         plain = not any(a.startswith("-") or a.lstrip("+~").startswith("hydra") for a in arguments)
@@ -118,7 +121,6 @@ def command_help(config_name: str, overrides: list[str]) -> str:
     """``--help``: the usage from ``conf/<config_name>.yaml``'s opening comments, the config groups
     that file composes with their options, and its settings composed with ``overrides`` (Hydra's own
     help would list every group of ``conf/``, those the command ignores too)."""
-    from dagr_lite.config import compose_config
     problem = composition_problem(config_name, overrides)
     if problem:
         raise UserError(problem)
@@ -132,6 +134,7 @@ def command_help(config_name: str, overrides: list[str]) -> str:
     for group in composed_groups(text):
         options = sorted(path.stem for path in (CONF_DIR / group).glob("*.yaml"))
         lines.append(f"  {group}: {', '.join(options)}")
+    from dagr_lite.config import compose_config
     cfg = compose_config(config_name, overrides)
     lines += ["", "Settings (key=value; `--cfg job` prints them, `--hydra-help` Hydra's flags):",
               OmegaConf.to_yaml(cfg).rstrip()]
@@ -149,7 +152,7 @@ def composed_groups(config_text: str) -> list[str]:
         if inside and not line.startswith((" ", "\t")) and line.strip():
             break
         entry = re.match(r"\s*-\s*(?:optional\s+)?([\w/]+)\s*:", line) if inside else None
-        if entry and entry.group(1) != "override" and not line.split("-", 1)[1].strip().startswith("override"):
+        if entry:  # `- override hydra/...: ...` does not match: a space before its colon
             groups.append(entry.group(1))
     return groups
 

@@ -113,6 +113,7 @@ def demo(cfg: DictConfig) -> dict:
     if rec.frames[0].shape[:2] != (stream.height, stream.width):
         raise ConfigError(f"{cfg.ckpt}: the model takes {stream.width}x{stream.height} frames, the video "
                           f"{rec.video} has {rec.frames[0].shape[1]}x{rec.frames[0].shape[0]}")
+    stream.warm_up()  # the compiled kernels ready before the first update's latency is taken
     step_us = 1e6 / cfg.rate_hz
     t_first = float(rec.frame_times[0])
     t_last = float(rec.frame_times[-1]) if cfg.seconds is None else min(float(rec.frame_times[-1]),

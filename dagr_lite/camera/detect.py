@@ -151,8 +151,11 @@ def run_detect(stream: StreamingDetector, source, sensor: Sensor, out: Path | st
     fit_sensor(sensor, (stream.width, stream.height))
     out = Path(out)
     check_out(out, overwrite)
-    output = _Output(out, sensor, video, live)
+    if progress:
+        print("warming the detector up (compiled kernels, the first time after an install: up to a minute)",
+              flush=True)
     warm_up_s = stream.warm_up()  # compiled kernels ready before the clock of the first answer starts
+    output = _Output(out, sensor, video, live)
     bar, stopped = None, None
     previous = _catch_sigterm()
     try:

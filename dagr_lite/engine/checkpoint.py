@@ -46,6 +46,7 @@ def load_failure(err: Exception) -> str:
     if "Weights only load failed" in text:
         reason = text.split("WeightsUnpickler error:", 1)[1] if "WeightsUnpickler error:" in text else ""
         reason = next((line.strip() for line in reason.splitlines() if line.strip()), "")
+        reason = reason.split(". Please use", 1)[0]  # torch's advice to allow a class it refused
         return f"not a file of tensors and plain values, as train.py writes{': ' + reason if reason else ''}"
     return text.strip().splitlines()[0] if text.strip() else type(err).__name__
 

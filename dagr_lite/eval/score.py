@@ -66,11 +66,24 @@ CAPTION_HEIGHT = 14  # pixels of the caption bar above a sample's picture
 TRUTH, ANSWER = (0, 200, 0), (255, 150, 0)  # the true boxes' colour, the predicted boxes' (and their scores')
 
 
+def caption_lines(parts: list[str], width_px: int) -> list[str]:
+    """``parts`` joined by "; " into as few lines as fit ``width_px`` in PIL's default font (a part
+    longer than a line gets a line of its own)."""
+    measure = ImageDraw.Draw(Image.new("RGB", (1, 1))).textlength
+    lines: list[str] = []
+    for part in parts:
+        if lines and measure(f"{lines[-1]}; {part}") <= width_px:
+            lines[-1] = f"{lines[-1]}; {part}"
+        else:
+            lines.append(part)
+    return lines
+
+
 def render_sample(batch: Batch, index: int, detections: dict | None = None, *, score_threshold: float = 0.3
                   ) -> np.ndarray:
-    """``(14 + H, 2W, 3)`` uint8: the frame with true (green) and predicted (orange, with their scores)
+    """``(14 L + H, 2W, 3)`` uint8: the frame with true (green) and predicted (orange, with their scores)
     boxes, beside the events of the sample's window (ON red, OFF blue on white) with the same boxes,
-    under a caption that names the sample and says so."""
+    under a caption of ``L`` lines (as many as its width needs) that names the sample and says so."""
     image = batch.images[index, :3].permute(1, 2, 0).cpu().numpy()  # the frame (or picture) alone
     height, width = image.shape[:2]
     if not image.shape[2]:  # a frameless sample: a grey frame
@@ -82,7 +95,15 @@ def render_sample(batch: Batch, index: int, detections: dict | None = None, *, s
         xs = np.clip(events[:, 0].astype(int), 0, width - 1)
         ys = np.clip(events[:, 1].astype(int), 0, height - 1)
         canvas[ys, xs] = np.where(events[:, 3:4] > 0.5, [220, 30, 30], [30, 60, 220])
-    picture = Image.new("RGB", (2 * width, height + CAPTION_HEIGHT), (0, 0, 0))
+    age_ms = (int(batch.t_end_us[index]) - int(batch.t_image_us[index])) / 1000
+    framed = batch.images.shape[1] >= 3  # a frameless sample is drawn on grey and has no image age
+    parts = [f"{batch.videos[index]} frame {int(batch.frames[index])}" + (f", {age_ms:.0f} ms after its image"
+                                                                            if framed else ", no image"),
+             "truth green" + (f", answers >= {score_threshold:g} orange" if detections is not None else ""),
+             "events ON red, OFF blue"]
+    lines = caption_lines(parts, 2 * width - 8)
+    top = CAPTION_HEIGHT * len(lines)
+    picture = Image.new("RGB", (2 * width, height + top), (0, 0, 0))
     for i, array in enumerate((image, canvas)):
         panel = Image.fromarray(np.ascontiguousarray(array))
         draw = ImageDraw.Draw(panel)
@@ -93,11 +114,10 @@ def render_sample(batch: Batch, index: int, detections: dict | None = None, *, s
                 if score >= score_threshold:
                     draw.rectangle(box, outline=ANSWER)
                     draw.text((box[0] + 2, box[1] + 1), f"{score:.2f}", fill=ANSWER)
-        picture.paste(panel, (i * width, CAPTION_HEIGHT))
-    age_ms = (int(batch.t_end_us[index]) - int(batch.t_image_us[index])) / 1000
-    caption = (f"{batch.videos[index]} frame {int(batch.frames[index])}, {age_ms:.0f} ms after its image: truth green, "
-               f"answers >= {score_threshold:g} orange; events ON red, OFF blue")
-    ImageDraw.Draw(picture).text((4, 1), caption, fill=(255, 255, 255))
+        picture.paste(panel, (i * width, top))
+    draw = ImageDraw.Draw(picture)
+    for k, line in enumerate(lines):
+        draw.text((4, 1 + CAPTION_HEIGHT * k), line, fill=(255, 255, 255))
     return np.asarray(picture)
 
 

@@ -38,7 +38,7 @@ def gcn_norm(edge_index: torch.Tensor, num_nodes: int, *, in_degree: torch.Tenso
     src, dst = edge_index[0], edge_index[1]
     if rows is None and _sorted_causal(src, dst, num_nodes):
         return _norm_sorted_causal(src, dst, num_nodes, in_degree)
-    if compiled_for(src):  # one compiled pass each, the same triplets (graph/sparse.py)
+    if compiled_for(src) and _within(num_nodes, src, dst, rows):  # one compiled pass each, the same triplets
         src_np, dst_np = src.contiguous().numpy(), dst.contiguous().numpy()
         if in_degree is None:
             in_degree = torch.from_numpy(distinct_in_degree(src_np, dst_np, num_nodes))
@@ -67,6 +67,12 @@ def gcn_norm(edge_index: torch.Tensor, num_nodes: int, *, in_degree: torch.Tenso
     first[1:] = key[order][1:] != key[order][:-1]  # a repeated edge counts once: N(i) is a set
     order = order[first]
     return row[order], col[order], value[order]
+
+
+def _within(num_nodes: int, *ids: torch.Tensor | None) -> bool:
+    """Whether every id given is a node, ``0 <= id < num_nodes``: the compiled passes do not check
+    (an id outside would write outside their arrays); the tensor expression raises an IndexError."""
+    return all(i is None or not len(i) or (int(i.min()) >= 0 and int(i.max()) < num_nodes) for i in ids)
 
 
 def _sorted_causal(src: torch.Tensor, dst: torch.Tensor, num_nodes: int) -> bool:

@@ -294,8 +294,8 @@ def video_jobs(paths: list[Path], *, labels: Path | None = None, splits: Path | 
             files += found
         elif path.is_file():
             if path.suffix.lower() not in VIDEO_SUFFIXES:
-                raise DatasetFormatError.at(path, f"is not a video file (expected one of {', '.join(VIDEO_SUFFIXES)}); "
-                                                  "a folder of frames goes to --frames")
+                raise DatasetFormatError.at(path, f"is not a video file the builder reads (by its suffix: "
+                                                  f"{', '.join(VIDEO_SUFFIXES)}); a folder of frames goes to --frames")
             files.append(path)
         else:
             raise DatasetFormatError.at(path, "video file is missing")

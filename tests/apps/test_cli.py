@@ -104,6 +104,9 @@ def test_help_runs_as_a_command_and_names_a_bad_override(tmp_path):
     run = subprocess.run([sys.executable, "-m", "dagr_lite.apps.sweep", "--help", "model=hybrid"], capture_output=True,
                          text=True, cwd=tmp_path, timeout=300)
     assert run.returncode == 1 and run.stderr.startswith("error: model=hybrid: conf/sweep.yaml takes no model option")
+    run = subprocess.run([sys.executable, "-m", "dagr_lite.apps.sweep", "--help", "--cfg", "job"], capture_output=True,
+                         text=True, cwd=tmp_path, timeout=300)
+    assert run.returncode == 0 and "powered by Hydra" in run.stdout  # beside another flag: Hydra's own help
     assert not (tmp_path / "runs").exists()
 
 

@@ -134,7 +134,7 @@ def test_bad_arguments_are_named(tmp_path, capsys):
     assert "missing: --upsample, --scale" in capsys.readouterr().err
     (tmp_path / "notes.txt").write_text("not a video")
     assert main(["--video", str(tmp_path / "notes.txt"), "--out", str(tmp_path / "o"), "--version", "v1"]) == 2
-    assert "notes.txt: is not a video file (expected one of .mp4," in capsys.readouterr().err
+    assert "notes.txt: is not a video file the builder reads (by its suffix: .mp4," in capsys.readouterr().err
     assert not (tmp_path / "o").exists()  # nothing written: a rerun with the right file is not refused
     assert main(["--frames", str(tmp_path / "none"), "--out", str(tmp_path / "o"), "--version", "v1"]) == 2
     assert "frames folder is missing" in capsys.readouterr().err
