@@ -79,7 +79,7 @@ def size_histogram(labels: dict[str, dict[int, np.ndarray]], videos: list[str]) 
     sizes = [np.sqrt(b[:, 2] * b[:, 3]) for v in videos for b in labels.get(v, {}).values() if len(b)]
     sizes = np.concatenate(sizes) if sizes else np.zeros(0)
     counts, _ = np.histogram(sizes, bins=SIZE_EDGES)
-    return {"edges_px": SIZE_EDGES, "counts": counts.tolist(),
+    return {"edges_px": [*SIZE_EDGES[:-1], None], "counts": counts.tolist(),  # the last bin is open: null
             "median_px": float(np.median(sizes)) if len(sizes) else None}
 
 
@@ -147,9 +147,10 @@ def frame_pictures(root: Path, split: str, video: str, k: int, boxes: np.ndarray
         if background is not None:
             for x, y, w, h in boxes:
                 ax.add_patch(plt.Rectangle((x, y), w, h, fill=False, color=(0.1, 0.9, 0.1), lw=1.5))
-        ax.set(title=title + (" over the frame, with its boxes" if background is not None else ""),
+        boxed = background is not None and len(boxes) > 0  # an unlabelled frame has no boxes to name
+        ax.set(title=title + (" over the frame" if background is not None else "") + (", with its boxes" if boxed else ""),
                xlabel="x (px)", ylabel="y (px)")
-        _colour_legend(ax, with_box=background is not None)
+        _colour_legend(ax, with_box=boxed)
         fig.tight_layout()
         fig.savefig(out / name, dpi=110, bbox_inches="tight")
         plt.close(fig)

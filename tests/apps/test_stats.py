@@ -33,6 +33,7 @@ def test_statistics_equal_a_brute_force_count(tmp_path):
     sizes = np.concatenate([np.sqrt(b[:, 2] * b[:, 3]) for v in written.labels for b in written.labels[v].values()
                             if len(b)])
     assert stats["box_size_histogram"]["counts"] == np.histogram(sizes, bins=SIZE_EDGES)[0].tolist()
+    assert stats["box_size_histogram"]["edges_px"] == [*SIZE_EDGES[:-1], None]  # the last bin open, not 1e9 px
     assert json.loads((tmp_path / "out" / "stats.json").read_text()) == json.loads(json.dumps(stats))
 
 
