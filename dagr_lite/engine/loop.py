@@ -115,10 +115,11 @@ class NullWriter:
 
 
 class Terminated(SystemExit):
-    """Training stopped by SIGTERM with ``last.pt`` saved; exits with status 143 (128 + SIGTERM)."""
+    """Training stopped by SIGTERM or Ctrl-C with ``last.pt`` saved; exits with status 128 + the
+    signal's number (143, 130)."""
 
-    def __init__(self, message: str):
-        super().__init__(143)
+    def __init__(self, message: str, code: int = 128 + signal.SIGTERM):
+        super().__init__(code)
         self.message = message
 
     def __str__(self) -> str:
@@ -170,7 +171,7 @@ class TrainLoop:
         if self.offset >= self.epoch_samples:  # saved after an epoch's last batch
             self.epoch, self.offset = self.epoch + 1, 0
         self.saved_at = time.monotonic()
-        self.terminated = False  # set by SIGTERM (see run)
+        self.terminated: signal.Signals | None = None  # set by SIGTERM or a first Ctrl-C (see run)
         # A first phase: one branch alone, or the dense parts without the graph (at most one, checked with the config).
         self.first_key = next((key for key in FIRST_PHASES if getattr(trainer, key)), "events_first")
         self.first_fraction = getattr(trainer, self.first_key)
@@ -194,19 +195,27 @@ class TrainLoop:
 
     def run(self) -> dict:
         """Train to the end of the schedule (or ``trainer.max_minutes``); a SIGTERM (a cluster's
-        notice of preemption, ``kill``'s default) ends it after the step under way, with
-        ``last.pt`` saved, by raising :class:`Terminated`."""
+        notice of preemption, ``kill``'s default) or a first Ctrl-C ends it after the step under
+        way, with ``last.pt`` saved, by raising :class:`Terminated`; a second Ctrl-C stops at once."""
         if threading.current_thread() is not threading.main_thread():  # signals reach the main thread only
             return self._run()
+        previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
 
         def note(signum, frame):
-            self.terminated = True
+            self.terminated = signal.Signals(signum)
+            if signum == signal.SIGINT:  # the next Ctrl-C is Python's: a KeyboardInterrupt at once
+                signal.signal(signal.SIGINT, previous[signal.SIGINT])
+                if self.place.is_main:
+                    print("\nCtrl-C: stopping after this step and saving last.pt (Ctrl-C again: at once, unsaved)",
+                          flush=True)
 
-        previous = signal.signal(signal.SIGTERM, note)
+        for sig in previous:
+            signal.signal(sig, note)
         try:
             return self._run()
         finally:
-            signal.signal(signal.SIGTERM, previous)
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
 
     def _run(self) -> dict:
         state = self.state
@@ -235,8 +244,9 @@ class TrainLoop:
                             **({"left": f"{self.clock.left_s():.0f}s"} if by_time else {}))
             bar.update(1)
             self.log(out, batch)
-            if broadcast_object(self.terminated, self.place):
-                self.stop_on_signal(bar)
+            stopped = broadcast_object(self.terminated, self.place)
+            if stopped:
+                self.stop_on_signal(bar, signal.Signals(stopped))
             out_of_time = self.read_clock()
             self.in_phase = self.first_phase()  # the next step's, from this reading
             if self.graphs is not None:
@@ -254,15 +264,16 @@ class TrainLoop:
         bar.close()
         return self.metrics
 
-    def stop_on_signal(self, bar) -> None:
+    def stop_on_signal(self, bar, sig: signal.Signals = signal.SIGTERM) -> None:
         self.save("last.pt")
         bar.close()
         path = self.checkpoints / "last.pt"
+        name = "Ctrl-C" if sig == signal.SIGINT else sig.name
         if self.place.is_main:
-            print(f"SIGTERM: stopped after step {self.state.step} and saved {path}; continue with: python train.py "
+            print(f"{name}: stopped after step {self.state.step} and saved {path}; continue with: python train.py "
                   f"resume={path} (the run's settings come back from its overrides.yaml; it goes on in its folder)",
                   flush=True)
-        raise Terminated(f"stopped by SIGTERM after step {self.state.step} ({path} saved)")
+        raise Terminated(f"stopped by {name} after step {self.state.step} ({path} saved)", 128 + int(sig))
 
     def read_clock(self) -> bool:
         """Read the run's clock after a step and, with ``schedule_by=time``, set the next step's

@@ -704,6 +704,19 @@ def train_until_saved_then(stop, run, *, workers: int):
     return proc, out
 
 
+def test_a_first_ctrl_c_saves_last_like_a_sigterm(tmp_path):
+    """Ctrl-C in a terminal: the run stops after its step, saves last.pt, prints the resume command
+    and exits with 130; before, it stopped unsaved and left a folder that a rerun refused."""
+    import signal
+
+    run = tmp_path / "run"
+    last = run / "checkpoints" / "last.pt"
+    proc, out = train_until_saved_then(lambda proc: proc.send_signal(signal.SIGINT), run, workers=1)
+    assert proc.returncode == 130, out
+    step = load_checkpoint(last).training["step"]
+    assert f"Ctrl-C: stopped after step {step} and saved {last}; continue with: python train.py resume={last} " in out
+
+
 def test_a_sigterm_to_the_whole_process_group_still_saves_last(tmp_path):
     """What ``timeout`` and many schedulers do: SIGTERM to every process of the run's group. The
     loader's workers are in groups of their own, so the main process stops after its step, saves
