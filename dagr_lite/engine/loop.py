@@ -228,6 +228,11 @@ class TrainLoop:
                            disable=not self.place.is_main)
         if state.step >= self.total or self.clock.spent():  # resumed at the end
             bar.close()
+            if self.place.is_main:
+                limit = (f"its length of {self.total} steps" if state.step >= self.total
+                         else "its trainer.max_minutes")
+                say(f"step {state.step} is at or past {limit}: nothing to train (raise trainer.max_steps, "
+                    "max_epochs or max_minutes to go on)")
             return self.metrics if self.metrics is not None else self.save_and_validate()
         self.data.sampler.start_at(self.epoch, self.offset)
         for batch in self.data.train_loader:  # every epoch from here on, one iterator

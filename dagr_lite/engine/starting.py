@@ -31,7 +31,9 @@ def resume(state: TrainState, path: str | Path, checkpoints: Path, place: Distri
     if theirs != ours:
         differ = ", ".join(f"{key}: {theirs[key]!r} in the checkpoint, {ours[key]!r} here"
                            for key in ours if theirs[key] != ours[key])
-        raise ResumeError(f"resume={path}: the checkpoint's model does not fit this run's ({differ})")
+        raise ResumeError(f"resume={path}: the checkpoint's model does not fit this run's ({differ}); a resumed "
+                          "run takes its model from its own overrides.yaml: leave out the model= and model.* "
+                          "overrides that change it (init_from= starts a new run from its weights)")
     groups = saved.training["optimizer"]["param_groups"]
     if groups and set(groups[0]) - {"params"} != set(state.optimizer.param_groups[0]) - {"params"}:
         name = str((saved.config.get("optim") or {}).get("_target_", "another optimizer")).rsplit(".", 1)[-1]
@@ -47,7 +49,8 @@ def resume(state: TrainState, path: str | Path, checkpoints: Path, place: Distri
     else:
         state.best_metric = -math.inf  # nothing to carry: the first validation writes best.pt
     if place.is_main:
-        print(f"resumed from {path} at step {state.step} (it ran on {saved.training.get('world_size', 1)} processes)",
+        ranks = saved.training.get('world_size', 1)
+        print(f"resumed from {path} at step {state.step} (it ran on {ranks} process{'es' if ranks != 1 else ''})",
               flush=True)
     return saved
 

@@ -628,7 +628,7 @@ def test_a_refused_run_writes_nothing_into_the_earlier_one(tmp_path):
 def test_resume_refuses_another_variant_and_keeps_the_best_checkpoint(tmp_path, monkeypatch):
     train(small(tmp_path / "a", "model=image_only", "trainer.max_steps=2", "trainer.val_every=1"))
     last = tmp_path / "a" / "checkpoints" / "last.pt"
-    with pytest.raises(ResumeError, match=r"use_events: False in the checkpoint, True here"):
+    with pytest.raises(ResumeError, match=r"use_events: False in the checkpoint, True here.*leave out the model= "):
         train(small(tmp_path / "b", "model=hybrid", "trainer.max_steps=3", f"resume={last}"))
     with pytest.raises(ResumeError, match=r"trained with AdamW, this run's optimizer is SGD; its state cannot continue"):
         train(small(tmp_path / "d", "model=image_only", "optim=sgd", "trainer.max_steps=3", f"resume={last}"))
@@ -763,3 +763,14 @@ def test_pictures_are_spread_over_the_split():
     from dagr_lite.engine.evaluate import spread_indices
     assert spread_indices(10, 3) == [0, 4, 9] and spread_indices(10, 1) == [0] and spread_indices(2, 5) == [0, 1]
     assert spread_indices(0, 4) == [] and spread_indices(118, 4) == [0, 39, 78, 117]
+
+
+def test_resuming_at_or_past_the_runs_end_says_there_is_nothing_to_train(tmp_path, capsys):
+    train(small(tmp_path / "a", "model=image_only", "trainer.max_steps=2"))
+    last = tmp_path / "a" / "checkpoints" / "last.pt"
+    capsys.readouterr()
+    train(small(tmp_path / "a", "model=image_only", "trainer.max_steps=1", f"resume={last}"))
+    out = capsys.readouterr().out
+    assert "resumed from" in out and "at step 2 (it ran on 1 process)" in out
+    assert "step 2 is at or past its length of 1 steps: nothing to train (raise trainer.max_steps" in out
+    assert load_checkpoint(last).training["step"] == 2
