@@ -173,6 +173,11 @@ def composition_problem(config_name: str, overrides: list[str]) -> str | None:
                     f"{', '.join(options)}")
         return one_line(text)
     except ConfigCompositionException as err:
+        ambiguous = re.search(r"Ambiguous value for argument '([^'=]+)=([^']*)'", str(err))
+        if ambiguous:  # Hydra's advice includes --multirun, which no command here takes
+            name, value = ambiguous.groups()
+            return (f"{name}={value}: a list is written in brackets, {name}=[{value}] (a text with a comma: in "
+                    f"quotes, {name}=\"'{value}'\")")
         key = re.search(r"Could not override '([^']+)'", str(err))
         if key and "No match in the defaults list" in str(err) and (CONF_DIR / key.group(1)).is_dir():
             # a config group that this command does not compose (Hydra's advice, '+group=', would add one)

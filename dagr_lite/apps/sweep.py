@@ -255,8 +255,8 @@ def sweep_checkpoint(cfg: DictConfig, checkpoint: Checkpoint, frames: list[tuple
             + (" (streaming)" if cfg.stream else ""))
     changed = "".join(f", {key}={value['used']} (trained with {value['checkpoint']})" for key, value in overrides.items())
     print(f"{path}: {name}, {len(frames)} label frames of {cfg.split}{changed}", flush=True)
-    rows = [{"ckpt": str(path), "model": name, "age_frames": age + fraction,
-             "age_ms": 1000 * (age + fraction) / cfg.dataset.fps,
+    rows = [{"ckpt": str(path), "model": name, "age_frames": age if not fraction else round(age + fraction, 6),
+             "age_ms": round(1000 * (age + fraction) / cfg.dataset.fps, 3),
              **score_point(run_cfg, model, dataset, frames, age, fraction, device, checkpoint.operating.score,
                            entries_out)}
             for age, fraction in sweep_points(list(cfg.ages), cfg.between)]
@@ -276,8 +276,10 @@ def check_sweep(cfg: DictConfig) -> None:
     if cfg.stream and cfg.blank_image:
         raise ConfigError("stream=true scores what a camera's stream gives; blank_image=true is a batch ablation: "
                           "give one of them")
+    if isinstance(cfg.ckpt, str) and cfg.ckpt:  # one checkpoint needs no brackets
+        cfg.ckpt = [cfg.ckpt]
     if not isinstance(cfg.ckpt, ListConfig) or not cfg.ckpt:
-        raise ConfigError(f"ckpt must be a list of checkpoints, e.g. ckpt=[a.pt,b.pt], got {cfg.ckpt!r}")
+        raise ConfigError(f"ckpt must be a checkpoint or a list of them, e.g. ckpt=[a.pt,b.pt], got {cfg.ckpt!r}")
     for path in cfg.ckpt:
         if not Path(path).is_file():
             raise FileNotFoundError(f"{path}: checkpoint file is missing")

@@ -59,6 +59,14 @@ def test_a_config_group_the_command_does_not_compose_is_named():
     assert composition_problem("train", ["model=events_only"]) is None
 
 
+def test_a_list_without_brackets_is_named_with_the_brackets_not_hydras_multirun():
+    from dagr_lite.apps.cli import composition_problem
+
+    assert composition_problem("sweep", ["ckpt=a.pt,b.pt"]) == (
+        "ckpt=a.pt,b.pt: a list is written in brackets, ckpt=[a.pt,b.pt] (a text with a comma: in quotes, "
+        "ckpt=\"'a.pt,b.pt'\")")
+
+
 def test_a_key_added_with_a_plus_is_refused_among_settings_and_allowed_among_named_entries():
     from dagr_lite.apps.cli import composition_problem
     for override in ("+loader.batchsize=8", "+sed=1", "++trainer.max_minute=5", "+nothing.here=1", "+model.sizes.s.x=1"):
