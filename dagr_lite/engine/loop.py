@@ -220,6 +220,7 @@ class TrainLoop:
     def _run(self) -> dict:
         state = self.state
         self.clock.start(self.resumed_position, state.step)
+        self.first_step = self.read_at_step = state.step  # this process's first (a resumed run's step), last read
         self.in_phase = self.first_phase()  # the first step's
         if self.graphs is not None:
             self.graphs.building = not self.in_phase
@@ -246,7 +247,7 @@ class TrainLoop:
                 self.epoch, self.offset = self.epoch + 1, 0
             self.losses.append(float(out["loss"]))
             bar.set_postfix(loss=f"{self.losses[-1]:.3f}", lr=f"{state.lr:.2e}", refresh=False,  # drawn with the count
-                            **({"left": f"{self.clock.left_s():.0f}s"} if by_time else {}))
+                            **({"left": f"{self.time_left_s():.0f}s"} if by_time else {}))
             bar.update(1)
             self.log(out, batch)
             stopped = broadcast_object(self.terminated, self.place)
@@ -269,6 +270,16 @@ class TrainLoop:
         bar.close()
         return self.metrics
 
+    def time_left_s(self) -> float:
+        """The run's time left at the clock's last reading: its budget's, or less where its steps
+        (``max_steps`` / ``max_epochs``) end it first at the pace of this process's steps so far."""
+        left = self.clock.left_s()
+        made = self.read_at_step - self.first_step  # steps in the clock's last reading
+        if made > 0:
+            pace = (self.clock.elapsed_s - self.clock.before_s) / made
+            left = min(left, pace * max(0, self.total - self.read_at_step))
+        return left
+
     def stop_on_signal(self, bar, sig: signal.Signals = signal.SIGTERM) -> None:
         self.save("last.pt")
         bar.close()
@@ -286,6 +297,7 @@ class TrainLoop:
         process (``schedule_by=steps``), or by the whole run, the time before a resume included
         (``schedule_by=time``). Every rank reads the same clock, so every rank stops at the same step."""
         elapsed = self.clock.tick(self.state.step, self.place)
+        self.read_at_step = self.state.step
         if self.clock.by_time:
             self.state.refresh_lr()  # the next step's rate from this reading, not the one before the step
         minutes = self.trainer.max_minutes

@@ -774,3 +774,13 @@ def test_resuming_at_or_past_the_runs_end_says_there_is_nothing_to_train(tmp_pat
     assert "resumed from" in out and "at step 2 (it ran on 1 process)" in out
     assert "step 2 is at or past its length of 1 steps: nothing to train (raise trainer.max_steps" in out
     assert load_checkpoint(last).training["step"] == 2
+
+
+def test_the_bars_time_left_follows_the_steps_when_they_end_the_run_first(tmp_path, capsys):
+    """With a 9-minute budget a 6-step run's bar showed the budget's ~540 s left at its last step."""
+    import re
+    train(small(tmp_path / "a", "model=image_only", "trainer.max_steps=6", "trainer.max_minutes=9",
+                "trainer.schedule_by=time"))
+    err = capsys.readouterr().err
+    left = [int(v) for v in re.findall(r"left=(\d+)s", err)]
+    assert left and left[-1] < 270  # one step left at the steps' pace, not the budget's 500-odd seconds
