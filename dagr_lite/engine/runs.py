@@ -56,6 +56,21 @@ def run_folder(cfg: DictConfig, kind: str, *, make: bool = True) -> Path:
     return path
 
 
+def record_resume(path: Path, step: int, resumed_from: str) -> None:
+    """Append to ``path/resumes.yaml`` the step a resume went on from, its checkpoint and the command
+    line's overrides (``config.yaml`` and ``overrides.yaml`` stay the first command's)."""
+    overrides: list[str] = []
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        overrides = list(HydraConfig.get().overrides.task)
+    except (ImportError, ValueError):
+        pass
+    log = path / "resumes.yaml"
+    records = OmegaConf.to_container(OmegaConf.load(log)) if log.is_file() else []
+    records.append({"step": int(step), "resume": str(resumed_from), "overrides": overrides})
+    write_text_atomically(log, OmegaConf.to_yaml(OmegaConf.create(records)))
+
+
 def write_run_files(path: Path, cfg: DictConfig) -> None:
     """Make the run folder ``path`` and write ``config.yaml`` (resolved) and ``overrides.yaml``
     (the command line's overrides) into it."""

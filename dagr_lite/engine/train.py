@@ -23,7 +23,7 @@ from dagr_lite.engine.distributed import (Distributed, broadcast_object, cleanup
 from dagr_lite.engine.loading import batch_maker
 from dagr_lite.engine.loop import NullWriter, TrainLoop, make_data
 from dagr_lite.engine.precision import amp_dtype, memory_format, prefers_trial, time_precisions
-from dagr_lite.engine.runs import resolve_device, seed_everything, write_run_files
+from dagr_lite.engine.runs import record_resume, resolve_device, seed_everything, write_run_files
 from dagr_lite.engine.starting import resume, resumed_config, shared_run_folder, start_from, start_weights
 from dagr_lite.engine.state import TrainState
 from dagr_lite.eval.coco import METRIC_KEYS, format_metrics
@@ -97,6 +97,8 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
     saved = resume(state, resume_from, run_dir / "checkpoints", place) if resume_from else None
     if place.is_main and not (run_dir / "config.yaml").exists():  # all checked: the run folder is made now
         write_run_files(run_dir, cfg)
+    elif place.is_main and saved is not None:  # a run going on in its own folder: its resumes are logged
+        record_resume(run_dir, state.step, resume_from)
     if place.enabled:
         state.forward = DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None,
                                                 find_unused_parameters=bool(trainer.events_first or trainer.image_first

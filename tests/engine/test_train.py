@@ -756,6 +756,8 @@ def test_sigterm_saves_last_and_the_run_resumes_from_it(tmp_path):
     assert f"resumed from {last} at step {step}" in again.stdout
     assert load_checkpoint(last).training["step"] == step + 2 and load_checkpoint(last).model_name == "events_only"
     assert (run / "config.yaml").read_text() == config_before and (run / "metrics.json").is_file()
+    resumes = OmegaConf.to_container(OmegaConf.load(run / "resumes.yaml"))  # how the run went on, logged
+    assert resumes == [{"step": step, "resume": str(last), "overrides": [f"resume={last}", f"trainer.max_steps={step + 2}"]}]
     assert not (tmp_path / "runs").exists()  # no empty folder of Hydra's left behind
 
 
