@@ -30,10 +30,21 @@ def render_moment(image: np.ndarray, events: dict[str, np.ndarray], boxes: np.nd
         draw = ImageDraw.Draw(panel)
         for box, score in zip(boxes.tolist(), scores.tolist()):
             draw.rectangle(box, outline=(0, 230, 0) if i == 0 else (0, 150, 0), width=2)
-            draw.text((box[0] + 2, box[1] + 1), f"{score:.2f}", fill=(0, 230, 0) if i == 0 else (0, 120, 0))
+            score_label(draw, box, f"{score:.2f}", width, height)
         frame.paste(panel, (i * width, TEXT_HEIGHT))
     ImageDraw.Draw(frame).text((4, 1), caption, fill=(255, 255, 255))
     return np.asarray(frame)
+
+
+def score_label(draw: ImageDraw.ImageDraw, box: list[float], text: str, width: int, height: int) -> None:
+    """``text`` in white on black at the box's top-left corner, inside it where the box reaches the
+    panel's top edge, and moved left or right to stay inside the ``width x height`` panel."""
+    left, top, right, bottom = draw.textbbox((0, 0), text)
+    w, h = right - left + 4, bottom - top + 2
+    x = min(max(box[0], 0), width - w)
+    y = box[1] - h if box[1] - h >= 0 else min(max(box[1], 0), height - h)
+    draw.rectangle((x, y, x + w - 1, y + h - 1), fill=(0, 0, 0))
+    draw.text((x + 2 - left, y + 1 - top), text, fill=(255, 255, 255))
 
 
 class Mp4Writer:

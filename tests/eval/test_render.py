@@ -46,3 +46,21 @@ def test_a_caption_takes_as_many_lines_as_its_width_needs():
     narrow = caption_lines(parts, 312)  # a 160x96 training crop's
     assert len(narrow) > 1 and "; ".join(narrow) == "; ".join(parts)
     assert caption_lines(parts, 10) == parts  # a part longer than a line keeps a line of its own
+
+
+def test_a_score_label_stays_inside_its_panel_on_a_dark_ground():
+    """The demo's and detect's labels: white on black at the box's corner, moved inside the panel
+    (a box at the right edge spilled its label into the events' panel, green on green)."""
+    from PIL import Image, ImageDraw
+
+    from dagr_lite.camera.render import score_label
+    for box in ([280.0, 40.0, 320.0, 100.0], [0.0, 0.0, 40.0, 30.0], [300.0, 170.0, 320.0, 180.0]):
+        panel = Image.new("RGB", (320, 180), (255, 255, 255))
+        draw = ImageDraw.Draw(panel)
+        left, top, right, bottom = draw.textbbox((0, 0), "0.44")
+        score_label(draw, box, "0.44", 320, 180)
+        marked = np.argwhere((np.asarray(panel) != 255).any(axis=2))
+        # the whole label is drawn, none of it cut off by the panel's edges
+        assert marked[:, 1].max() - marked[:, 1].min() + 1 == right - left + 4
+        assert marked[:, 0].max() - marked[:, 0].min() + 1 == bottom - top + 2
+        assert np.asarray(panel)[tuple(marked[0])].tolist() == [0, 0, 0]  # the label's dark ground
