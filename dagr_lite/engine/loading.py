@@ -126,5 +126,5 @@ def prepare_worker(_worker_id: int, nice: int = 0) -> None:
         # A process group of its own: a signal to the trainer's group (a scheduler's or `timeout`'s
         # SIGTERM) reaches the main process alone, which stops after its step, saves last.pt and
         # shuts the workers down; a worker killed by it first would fail the save. (A terminal's
-        # Ctrl-C then reaches the main process alone too, which stops without saving.)
+        # Ctrl-C then reaches the main process alone too, which saves the same way.)
         os.setpgrp()

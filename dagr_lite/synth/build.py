@@ -382,11 +382,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="override a DVS parameter, e.g. --dvs sigma_threshold=0.05 (repeatable)")
     args = parser.parse_args(argv)
     chosen = dict(VERSIONS[args.version]) if args.version else {}
-    for key, value in (("dvs_model", args.preset), ("upsample", args.upsample), ("scale", args.scale)):
-        if value is not None:
-            chosen[key] = value
-    flags = {"dvs_model": "--preset", "upsample": "--upsample", "scale": "--scale"}
-    missing = [flag for name, flag in flags.items() if name not in chosen]
+    given = {"dvs_model": ("--preset", args.preset), "upsample": ("--upsample", args.upsample),
+             "scale": ("--scale", args.scale)}  # each setting's flag and value
+    chosen.update({key: value for key, (_, value) in given.items() if value is not None})
+    missing = [flag for key, (flag, _) in given.items() if key not in chosen]
     if missing:
         parser.error(f"give --version or all of --preset, --upsample, --scale (missing: {', '.join(missing)})")
     if args.egohands and args.labels:
