@@ -19,6 +19,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -350,26 +351,53 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def curve_points(rows: list[dict], metric: str, between: int) -> tuple[list[float], list[float]]:
+    """One checkpoint's ``metric`` against the image's age in milliseconds, for a plot: rows in order
+    of age, a metric of None (no such hand) as NaN, and with ``between`` a NaN between points more
+    than one in-between step apart (ages not next to each other), so the line is broken where
+    nothing was measured rather than drawn straight across it."""
+    xs: list[float] = []
+    ys: list[float] = []
+    previous = None
+    for r in sorted(rows, key=lambda r: r["age_ms"]):
+        if between and previous is not None and r["age_frames"] - previous > 1 / between + 1e-9:
+            xs.append(math.nan)
+            ys.append(math.nan)
+        xs.append(r["age_ms"])
+        ys.append(math.nan if r.get(metric) is None else max(r[metric], 0.0))
+        previous = r["age_frames"]
+    return xs, ys
+
+
 def plot_sweep(rows: list[dict], path: Path, *, between: int) -> None:
-    """mAP and AP50 against the image's age in milliseconds, one line per checkpoint."""
+    """mAP and AP50 against the image's age in milliseconds, one line per checkpoint, and the recall
+    of the hands that moved since the image (solid) and of those that did not (dashed), each
+    checkpoint in its own colour."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.8), sharex=True)
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.8), sharex=True)
+    marker = "." if between else "o"
     for ckpt in dict.fromkeys(r["ckpt"] for r in rows):
-        mine = sorted((r for r in rows if r["ckpt"] == ckpt), key=lambda r: r["age_ms"])
+        mine = [r for r in rows if r["ckpt"] == ckpt]
         label = f"{mine[0]['model']} ({checkpoint_name(ckpt)})"
         for ax, metric in zip(axes, ("mAP", "AP50")):
-            ax.plot([r["age_ms"] for r in mine], [max(r[metric], 0.0) for r in mine], marker="." if between else "o",
-                    label=label)
+            (line,) = ax.plot(*curve_points(mine, metric, between), marker=marker, label=label)
+        for metric, style in (("recall_moved", "-"), ("recall_still", "--")):
+            axes[2].plot(*curve_points(mine, metric, between), style, marker=marker, color=line.get_color())
     ages = sorted({r["age_ms"] for r in rows})
-    for ax, metric in zip(axes, ("mAP (AP@[.5:.95])", "AP50")):
+    titles = ("mAP (AP@[.5:.95])", "AP50", "recall at the operating point:\nmoved since the image (solid), still (dashed)")
+    for ax, metric, title in zip(axes, ("mAP", "AP50", None), titles):
         if not between and len(ages) <= 12:  # ticks at the ages measured, in whole milliseconds
             ax.set_xticks(ages, [f"{age:.0f}" for age in ages])
         ax.set_xlabel("image age: time since the image (ms)")
-        ax.set_ylabel(metric)
-        ax.set_ylim(0, min(1.0, 1.15 * max(max(r["AP50" if "50" in metric else "mAP"] for r in rows), 0.05)))
+        ax.set_ylabel(title if metric else "recall")
+        if metric:
+            ax.set_ylim(0, min(1.0, 1.15 * max(max(r[metric] for r in rows), 0.05)))
+        else:
+            ax.set_title(title, fontsize=9)
+            ax.set_ylim(0, 1.05)
         ax.grid(alpha=0.3)
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 3), fontsize=8, frameon=False)

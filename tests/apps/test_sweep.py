@@ -1,13 +1,15 @@
 """The sweep over image ages: matching and interpolating boxes, shared frames, outputs."""
 import csv
 import json
+import math
 
 import numpy as np
 import pytest
 
 from dagr_lite.config import ConfigError, compose_config
 from dagr_lite.engine.train import train
-from dagr_lite.apps.sweep import SweepSamples, interpolate_boxes, match_boxes, moved_recall, sweep, sweep_frames, sweep_points
+from dagr_lite.apps.sweep import (SweepSamples, curve_points, interpolate_boxes, match_boxes, moved_recall, sweep,
+                                  sweep_frames, sweep_points)
 from dagr_lite.synth.stub import stub_root
 from tests.settings import sample_set
 
@@ -158,3 +160,18 @@ def test_the_sweep_writes_its_table_plot_and_rows(tmp_path, capsys, monkeypatch)
     assert json.loads((tmp_path / "cap" / "sweep.json").read_text())["overrides"] == expected
     assert "window_us=10000 (trained with 15000)" in capsys.readouterr().out
     assert built == [10000]  # the samples were made with the override
+
+
+def test_a_curve_is_broken_where_nothing_was_measured():
+    """With in-between points, ages that are not next to each other are not joined by a line (a NaN
+    between them); next ones are; a recall of None (no such hand) is NaN; rows come in age order."""
+    def row(frames, value):
+        return {"age_frames": frames, "age_ms": round(frames * 100 / 3, 3), "AP50": value, "recall_moved": None}
+
+    rows = [row(4.5, 0.3), row(1, 0.6), row(1.5, 0.5), row(4, 0.4), row(2, 0.45)]
+    xs, ys = curve_points(rows, "AP50", between=2)
+    assert [None if math.isnan(y) else y for y in ys] == [0.6, 0.5, 0.45, None, 0.4, 0.3]  # 2 -> 4: broken
+    assert math.isnan(xs[3]) and xs[:3] == [33.333, 50.0, 66.667] and xs[4:] == [133.333, 150.0]
+    assert curve_points(rows, "AP50", between=0)[1] == [0.6, 0.5, 0.45, 0.4, 0.3]  # whole ages only: one line
+    assert all(math.isnan(y) for y in curve_points(rows, "recall_moved", between=2)[1])
+    assert curve_points([row(1, -1.0)], "AP50", between=0) == ([33.333], [0.0])  # COCO's -1 drawn at 0
