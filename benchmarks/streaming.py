@@ -175,7 +175,7 @@ def sample_at(model: Detector, rec: Recording, t_query: float, *, sample: Sample
     if model.carry is not None:  # and the picture of every event since the image, which its carry branch reads
         height, width = parts[0].shape[:2]
         carry = CarryPicture(height, width, t_image, sample.carry_recent_us, sample.carry_confirm_us,
-                             sample.carry_align_us, rec.frames[k])
+                             sample.carry_align_us, rec.frames[k], sample.carry_spans_us, sample.carry_onset)
         since = slice(int(np.searchsorted(t, carry.reads_from_us)), keep.stop)
         carry.add(*(rec.events[key][since] for key in ("x", "y", "t", "p")))
         parts.append(carry.picture(t_query))

@@ -98,6 +98,16 @@ def _integers(v, count: int, least: int) -> bool:
     return isinstance(v, (ListConfig, list, tuple)) and len(v) == count and all(is_integer(a) and a >= least for a in v)
 
 
+def _increasing(v) -> bool:
+    return (isinstance(v, (list, tuple, ListConfig)) and all(is_integer(x) and x > 0 for x in v)
+            and all(a < b for a, b in zip(v, list(v)[1:])))
+
+
+def spans_of(data: DictConfig) -> tuple[int, ...]:
+    """``data.carry_spans_us`` as a tuple (missing or null: none)."""
+    return tuple(int(v) for v in (data.get("carry_spans_us") or ()))
+
+
 def _number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
@@ -137,6 +147,9 @@ _RULES = {
     "data.carry_confirm_us": ("an integer >= 0 (microseconds; 0: no confirmed channels)",
                               lambda v: is_integer(v) and v >= 0),
     "data.carry_align_us": ("an integer >= 0 (microseconds; 0: no moved frame)", lambda v: is_integer(v) and v >= 0),
+    "data.carry_spans_us": ("a list of increasing positive integers (microseconds since the image; []: no spans)",
+                            lambda v: _increasing(v)),
+    "data.carry_onset": ("true or false", lambda v: isinstance(v, bool)),
     "data.max_events": ("a positive integer or null", lambda v: v is None or (is_integer(v) and v > 0)),
     "loader.batch_size": ("a positive integer", lambda v: is_integer(v) and v > 0),
     "loader.num_workers": ("an integer >= 0", lambda v: is_integer(v) and v >= 0),
@@ -263,6 +276,7 @@ def build_dataset(cfg: DictConfig, split: str, *, train: bool, with_image: bool,
                           carry_recent_us=int(data.get("carry_recent_us", 0)),
                           carry_confirm_us=int(data.get("carry_confirm_us", 0)),
                           carry_align_us=int(data.get("carry_align_us", 0)),
+                          carry_spans_us=spans_of(data), carry_onset=data.get("carry_onset", False),
                           frames=with_image or not train)  # a frameless model's training skips the frames
     if not len(built) and built.videos and first_frame is None:  # (the sweep says its own)
         lengths = [built.num_frames(v) for v in range(len(built.videos))]
@@ -308,7 +322,9 @@ def detector_config(cfg: DictConfig, *, height: int, width: int) -> DetectorConf
     picture, carry = bool(cfg.data.get("carry_picture", False)), int(model.carry_width)
     channels = carry_channels(int(cfg.data.get("carry_recent_us", 0)) if picture else 0,  # the carry picture's
                               int(cfg.data.get("carry_confirm_us", 0)) if picture else 0,
-                              int(cfg.data.get("carry_align_us", 0)) if picture else 0)
+                              int(cfg.data.get("carry_align_us", 0)) if picture else 0,
+                              spans_of(cfg.data) if picture else (),
+                              bool(cfg.data.get("carry_onset", False)) if picture else False)
     if carry and not picture:
         raise ConfigError(f"model.carry_width={carry} reads the picture of the events since the image: it needs "
                           "data.carry_picture=true")

@@ -11,8 +11,10 @@ run on the sample of that moment, the sample training and evaluation read
   dropped on arrival; with ``support_us`` > 0, one whose 8 neighbouring pixels had none less than
   that long before it (:func:`~dagr_lite.data.dataset.arrival_keep`);
 - a carry branch reads the picture of every event since the image (with ``carry_confirm_us``,
-  also of those a neighbouring pixel confirms; with ``carry_align_us``, also the frame moved by the
-  camera's motion since it: :class:`~dagr_lite.data.dataset.CarryPicture`).
+  also of those a neighbouring pixel confirms; with ``carry_spans_us`` and ``carry_onset``, also
+  each pixel's counts per span of time since the image and its first event; with
+  ``carry_align_us``, also the frame moved by the camera's motion since it:
+  :class:`~dagr_lite.data.dataset.CarryPicture`).
 
 Work per update: new events get their incoming edges from the streaming graph builder, the
 first GCN stage computes the new nodes only (reading the cached features of older nodes; a
@@ -178,13 +180,16 @@ def check_streamable(detector: DetectorConfig, sample: SampleSpec, where: str = 
         raise UserError(f"{where}this model's image branch reads a picture of the events since the image beside the "
                          "camera frame (data.carry_picture without model.carry_width); the streaming detector runs "
                          "such a picture through a carry branch only, whose maps join at the fusion")
-    made = carry_channels(sample.carry_recent_us, sample.carry_confirm_us, sample.carry_align_us)
+    made = carry_channels(sample.carry_recent_us, sample.carry_confirm_us, sample.carry_align_us,
+                          sample.carry_spans_us, sample.carry_onset)
     if detector.carry_width and made != detector.carry_channels:
         raise UserError(f"{where}this model's carry branch reads pictures of {detector.carry_channels} channels, but "
                          f"data.carry_recent_us={sample.carry_recent_us}, data.carry_confirm_us="
-                         f"{sample.carry_confirm_us} and data.carry_align_us={sample.carry_align_us} make pictures "
-                         f"of {made} (three, one more with a recent window, three more with confirmed events, three "
-                         "more with the moved frame)")
+                         f"{sample.carry_confirm_us}, data.carry_align_us={sample.carry_align_us}, "
+                         f"data.carry_spans_us={list(sample.carry_spans_us)} and data.carry_onset="
+                         f"{sample.carry_onset} make pictures of {made} (three, one more with a recent window, three "
+                         "more with confirmed events, three more with the moved frame, one per span, one with the "
+                         "onset)")
     if sample.event_picture:
         raise UserError(f"{where}this model reads a picture of events in place of the camera frame "
                          "(data.event_picture, the dense peer of benchmarks/dense_peer.py); the streaming "
@@ -325,7 +330,8 @@ class StreamingDetector:
         needed_from = self.sample.graph_start_us(max(t_us, self._last_t), t_us)
         # A carry picture also reads every event since the image (and those that confirm them, before it).
         carry = CarryPicture(self.height, self.width, t_us, self.sample.carry_recent_us, self.sample.carry_confirm_us,
-                             self.sample.carry_align_us, image) if self.model.carry is not None else None
+                             self.sample.carry_align_us, image, self.sample.carry_spans_us,
+                             self.sample.carry_onset) if self.model.carry is not None else None
         read_from = needed_from if carry is None else min(needed_from, carry.reads_from_us)
         if read_from < self._kept_from:
             raise UserError(f"image at t={t_us:g} us needs the events from {read_from:g} us, but "

@@ -212,6 +212,10 @@ def test_model_defaults_come_from_conf_and_variants_inherit_them():
     ("model.event_answers=2", r"model\.event_answers must be true or false, got 2"),
     ("model.image_stem=vit", r"model\.image_stem must be one of patch, conv, got 'vit'"),
     ("loader.worker_nice=25", r"loader\.worker_nice must be an integer from 0 to 19 \(a Unix nice increment\), got 25"),
+    ("data.carry_spans_us=[5,5]", r"data\.carry_spans_us must be a list of increasing positive integers \(microseconds "
+                                  r"since the image; \[\]: no spans\), got \[5, 5\]"),
+    ("data.carry_spans_us=33333", r"data\.carry_spans_us must be a list of increasing positive integers"),
+    ("data.carry_onset=1", r"data\.carry_onset must be true or false, got 1"),
 ])
 def test_bad_values_name_their_key(override, match):
     with pytest.raises(ConfigError, match=match):

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ from dagr_lite.nn.detector import Detector
 from dagr_lite.nn.head import postprocess
 from dagr_lite.nn.head import TowerCache, conv3x3_at
 from dagr_lite.stream import REORIGIN_US, StreamingDetector
+from tests.data.test_event_picture import history_by_loop
 from tests.models import small_detector_config
 from tests.settings import EVAL
 
@@ -27,21 +29,26 @@ CONTEXT_US, WINDOW_US = 10_000, 33_333
 RECENT_US = 12_000  # a four-channel carry picture's recent window
 CONFIRM_US = 15_000  # a carry picture's confirmation (six or seven channels): longer than the context
 ALIGN_US = 8_000  # the recent window a moved frame is aligned with (three more channels)
+SPANS_US = (15_000, 40_000)  # a carry picture's spans of time since the image, with carry_history
 SHIFTS: list[tuple[int, int]] = []  # the moved frames' shifts at the answers checked
 
 
 def streaming(model: Detector, *, refractory_us: int = 0, score: float = 0.0,
-              graph_context_us: int = 0, support_us: int = 0, carry_align_us: int = 0) -> StreamingDetector:
+              graph_context_us: int = 0, support_us: int = 0, carry_align_us: int = 0,
+              carry_history: bool = False) -> StreamingDetector:
     """The streaming detector on this module's sample, answering every box of ``score`` or more;
-    a carry picture's channels say which of its windows it has (less three with ``carry_align_us``)."""
-    picture = model.cfg.carry_channels - (3 if carry_align_us else 0)
+    a carry picture's channels say which of its windows it has (less three with ``carry_align_us``,
+    less the spans' and the onset's with ``carry_history``: :data:`SPANS_US` and an onset)."""
+    picture = model.cfg.carry_channels - (3 if carry_align_us else 0) - (len(SPANS_US) + 2 if carry_history else 0)
     return StreamingDetector(model, SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=refractory_us,
                                                max_events=None, event_picture=False,
                                                graph_context_us=graph_context_us,
                                                carry_picture=model.carry is not None,
                                                carry_recent_us=RECENT_US if picture in (4, 7) else 0,
                                                carry_confirm_us=CONFIRM_US if picture >= 6 else 0,
-                                               support_us=support_us, carry_align_us=carry_align_us),
+                                               support_us=support_us, carry_align_us=carry_align_us,
+                                               carry_spans_us=SPANS_US if carry_history else (),
+                                               carry_onset=carry_history),
                              OperatingPoint(score=score, nms_iou=EVAL["nms_threshold"]))
 
 
@@ -133,6 +140,10 @@ def check_against_batch(stream: StreamingDetector, model: Detector, events: dict
             shift = background_shift(frame_gradients(image), signs, max_shift_px(t_query - t_image))
             pictures.append(shifted_frame(image, *shift))
             SHIFTS.append(shift)
+        if stream.sample.carry_spans_us:  # and the counts per span since the image and the first events (a loop)
+            assert stream.sample.carry_onset
+            pictures.append(history_by_loop(events["x"][:upto][since], events["y"][:upto][since], t[since], t_image,
+                                            t_query, stream.sample.carry_spans_us, H, W))
         image = np.concatenate(pictures, axis=2)
     origin = t_image if hybrid else stream.origin_us
     sample = sample_of(image, tuple(v[:upto][keep] for v in events.values()), origin, t_query, math.ceil(start))
@@ -160,13 +171,13 @@ def brute_refractory(events: dict, upto: int, refractory_us: int) -> np.ndarray:
 
 def replay(model: Detector, events: dict, images: list, seed: int, *, detect_prob: float = 0.4,
            sizes=(0, 1, 1, 2, 5, 40, 300), refractory_us: int = 0,
-           graph_context_us: int = 0, support_us: int = 0, carry_align_us: int = 0
+           graph_context_us: int = 0, support_us: int = 0, carry_align_us: int = 0, carry_history: bool = False
            ) -> tuple[int, int, StreamingDetector]:
     """Push ``events`` in random sizes (0, 1 and more), images at their times, and check random
     detect calls (at the latest event or a little later) against the batch model."""
     rng = np.random.default_rng(seed)
     stream = streaming(model, refractory_us=refractory_us, graph_context_us=graph_context_us, support_us=support_us,
-                       carry_align_us=carry_align_us)
+                       carry_align_us=carry_align_us, carry_history=carry_history)
     n, i, checks, largest = len(events["t"]), 0, 0, 0
     pending = sorted(images, key=lambda item: item[1])
     image, t_image = None, None
@@ -629,9 +640,26 @@ def test_a_model_reading_a_picture_of_events_is_refused_by_its_key():
     for key in ("event_picture", "carry_picture"):
         spec = SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=0, support_us=0, max_events=None,
                           graph_context_us=0, carry_recent_us=0, carry_confirm_us=0, carry_align_us=0,
-                          **{"event_picture": False, "carry_picture": False, key: True})
+                          carry_spans_us=(), carry_onset=False, **{"event_picture": False, "carry_picture": False, key: True})
         with pytest.raises(UserError, match=f"data.{key}"):
             StreamingDetector(model, spec, OperatingPoint(score=0.0, nms_iou=EVAL["nms_threshold"]))
+
+
+@pytest.mark.parametrize(("carry_channels", "refractory_us", "carry_frame"), [(3 + 4, 0, True), (4 + 3 + 4, 3_000, False)])
+def test_streaming_with_the_carry_spans_and_onset_equals_the_batch_model(carry_channels, refractory_us, carry_frame):
+    """A carry picture with counts per span of time since the image and each pixel's first event
+    (``carry_spans_us``, ``carry_onset``; the second case beside the recent and confirmed
+    channels): kept per pixel as events arrive, read at each answer, the batch model's answer,
+    its channels by a plain loop over the events."""
+    model = small_model("hybrid", seed=5, carry_width=4, carry_channels=carry_channels, carry_frame=carry_frame)
+    rng = np.random.default_rng(31)
+    events = random_stream(rng, 2500, 250_000)
+    images = [(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), t) for t in (30_000, 95_000, 190_000)]
+    checks, largest, stream = replay(model, events, images, seed=17, refractory_us=refractory_us, detect_prob=0.6,
+                                     carry_history=True)
+    assert checks >= 20 and largest >= 300
+    carry = stream._carry
+    assert carry.spans.shape[0] == 3 and carry.spans[2].sum() > 0 and np.isfinite(carry.first).sum() > 100
 
 
 def test_a_carry_branch_is_refused_a_picture_of_other_channels():
@@ -639,10 +667,15 @@ def test_a_carry_branch_is_refused_a_picture_of_other_channels():
     model = small_model("hybrid", carry_width=4, carry_channels=4)
     spec = SampleSpec(window_us=WINDOW_US, context_us=CONTEXT_US, refractory_us=0, support_us=0, max_events=None,
                       graph_context_us=0, event_picture=False, carry_picture=True, carry_recent_us=0,
-                      carry_confirm_us=0, carry_align_us=0)
-    with pytest.raises(UserError, match="reads pictures of 4 channels, but data.carry_recent_us=0, "
-                                        "data.carry_confirm_us=0 and data.carry_align_us=0 make pictures of 3"):
+                      carry_confirm_us=0, carry_align_us=0, carry_spans_us=(), carry_onset=False)
+    with pytest.raises(UserError, match=r"reads pictures of 4 channels, but data.carry_recent_us=0, "
+                                        r"data.carry_confirm_us=0, data.carry_align_us=0, data.carry_spans_us=\[\] "
+                                        "and data.carry_onset=False make pictures of 3"):
         StreamingDetector(model, spec, OperatingPoint(score=0.0, nms_iou=EVAL["nms_threshold"]))
+    with pytest.raises(UserError, match=r"data.carry_spans_us=\[50000\] and data.carry_onset=False make pictures "
+                                        "of 5"):  # spans of time since the image: one channel each
+        StreamingDetector(model, replace(spec, carry_spans_us=(50_000,)),
+                          OperatingPoint(score=0.0, nms_iou=EVAL["nms_threshold"]))
 
 
 @pytest.mark.parametrize("variant", ["hybrid", "events_only"])

@@ -27,7 +27,7 @@ from dagr_lite.data.denoise import support_keep
 from dagr_lite.data.frames import frame_header_problems, list_frames, read_frame
 from dagr_lite.data.spec import SampleSpec, is_integer, sample_start_us
 from dagr_lite.data.labels import box_problems, list_videos, read_labels
-from dagr_lite.data.picture import add_confirmed, add_events, render
+from dagr_lite.data.picture import add_confirmed, add_events, add_history, render, render_history
 
 # At most this many frame problems are listed when the dataset refuses to open.
 MAX_LISTED_PROBLEMS = 10
@@ -46,12 +46,27 @@ def picture_channels(recent_us: float) -> int:
     return PICTURE_CHANNELS + (1 if recent_us > 0 else 0)
 
 
-def carry_channels(recent_us: float, confirm_us: float, align_us: float = 0) -> int:
+def carry_channels(recent_us: float, confirm_us: float, align_us: float = 0, spans_us: Sequence[int] = (),
+                   onset: bool = False) -> int:
     """The channels of a carry picture (:class:`CarryPicture`): an event picture's
-    (:func:`picture_channels`), with ``confirm_us > 0`` three more of the confirmed events, and with
-    ``align_us > 0`` three more of the frame moved by the camera's motion since it."""
+    (:func:`picture_channels`), with ``confirm_us > 0`` three more of the confirmed events, with
+    ``align_us > 0`` three more of the frame moved by the camera's motion since it, with ``spans_us``
+    one more for each of its ``len(spans_us) + 1`` spans of time since the image, and with
+    ``onset`` one more, each pixel's first event."""
     return (picture_channels(recent_us) + (PICTURE_CHANNELS if confirm_us > 0 else 0)
-            + (RGB_CHANNELS if align_us > 0 else 0))
+            + (RGB_CHANNELS if align_us > 0 else 0) + (len(spans_us) + 1 if len(spans_us) else 0)
+            + (1 if onset else 0))
+
+
+def check_spans(spans_us) -> tuple[int, ...]:
+    """``spans_us`` (a carry picture's span bounds, microseconds since the image) as a tuple, or a
+    :class:`~dagr_lite.errors.UserError` naming it unless it is a list of increasing positive integers."""
+    values = tuple(spans_us) if isinstance(spans_us, Sequence) and not isinstance(spans_us, str) else None
+    if values is None or not all(is_integer(v) and v > 0 for v in values) or any(
+            b <= a for a, b in zip(values, values[1:])):
+        raise UserError(f"carry_spans_us must be a list of increasing positive integers (microseconds since the "
+                        f"image; []: none), got {spans_us!r}")
+    return tuple(int(v) for v in values)
 
 
 def event_picture(x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray, t_end_us: float, window_us: float,
@@ -126,10 +141,19 @@ class CarryPicture:
     background's displacement since it (:meth:`shift`), found by laying the frame's log-luma
     gradient over the polarities of the pixels that fired in the last ``align_us``
     (:mod:`~dagr_lite.data.align`): the background as it should look now, beside where the events are.
+
+    With ``spans_us`` (increasing bounds, microseconds since the image) ``len(spans_us) + 1``
+    channels follow, each pixel's count of events (both polarities, ``31 x min(count, 8)``) in
+    each span of time since the image (``[0, spans_us[0])``, ..., ``[spans_us[-1], inf)``): a
+    background that fires all along (a pan) fills every span so far, a hand that moved since the
+    image only the spans it passed in. With ``onset`` one more follows: each pixel's first event
+    since the image, ``1 + 254 x`` its time as a fraction of the image's age (0: none). Counts only
+    grow and a first time is written once, so the streaming detector keeps them as the other channels.
     """
 
     def __init__(self, height: int, width: int, t_image_us: float, recent_us: float = 0, confirm_us: float = 0,
-                 align_us: float = 0, frame: np.ndarray | None = None):
+                 align_us: float = 0, frame: np.ndarray | None = None, spans_us: Sequence[int] = (),
+                 onset: bool = False):
         self.height, self.width = int(height), int(width)
         self.t_image_us, self.recent_us, self.confirm_us = float(t_image_us), float(recent_us), float(confirm_us)
         self.align_us = float(align_us)
@@ -142,6 +166,11 @@ class CarryPicture:
             self.gradients = frame_gradients(self.frame)
             self.signs = np.zeros(self.height * self.width)  # each pixel's latest polarity since the image, +-1
         self.counts, self.last = picture_state(self.height, self.width)
+        self.spans_us, self.onset = check_spans(spans_us), bool(onset)
+        self.span_bounds = np.asarray(self.spans_us, np.float64)
+        # counts per span of time since the image, each pixel's first event (no rows / one entry: not kept)
+        self.spans = np.zeros((len(self.spans_us) + 1 if self.spans_us else 0, self.height * self.width), np.int32)
+        self.first = np.full(self.height * self.width if self.onset else 1, np.inf)
         if self.confirm_us > 0:
             self.confirmed = picture_state(self.height, self.width)
             self.seen = np.full(self.height * self.width, -np.inf)  # every pixel's latest event, before the image too
@@ -153,7 +182,12 @@ class CarryPicture:
 
     @property
     def channels(self) -> int:
-        return carry_channels(self.recent_us, self.confirm_us, self.align_us)
+        return carry_channels(self.recent_us, self.confirm_us, self.align_us, self.spans_us, self.onset)
+
+    @property
+    def history_channels(self) -> int:
+        """The channels of the spans and the onset."""
+        return len(self.spans) + (1 if self.onset else 0)
 
     def add(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> None:
         """Adds events sorted by ``t``, later than any added before (integer pixels in the frame)."""
@@ -162,6 +196,9 @@ class CarryPicture:
         x, y, t, p = np.asarray(x), np.asarray(y), np.asarray(t), np.asarray(p)
         since = first_at_or_after(t, self.t_image_us)
         add_to_picture(self.counts, self.last, x[since:], y[since:], t[since:], p[since:], self.width)
+        if self.history_channels:
+            add_history(self.spans, self.first, x[since:], y[since:], t[since:], self.t_image_us, self.span_bounds,
+                        self.width)
         if self.align_us > 0:
             add_polarities(self.signs, x[since:], y[since:], p[since:], self.width)
         if self.confirm_us > 0:
@@ -177,6 +214,10 @@ class CarryPicture:
             parts.append(picture_of(*self.confirmed, t_end_us, span, self.height, self.width))
         if self.align_us > 0:
             parts.append(shifted_frame(self.frame, *self.shift(t_end_us)))
+        if self.history_channels:
+            history = np.empty((self.height * self.width, self.history_channels), np.uint8)
+            render_history(self.spans, self.first, self.t_image_us, float(t_end_us), PICTURE_COUNT_FULL, history)
+            parts.append(history.reshape(self.height, self.width, -1))
         return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=2)
 
     def shift(self, t_end_us: float) -> tuple[int, int]:
@@ -399,6 +440,10 @@ class EventEgoHands(Dataset):
         carry_align_us: > 0: the carry picture gains three channels, the frame moved by the
             camera's motion since it, found from the pixels that fired in the last ``carry_align_us``
             (:mod:`~dagr_lite.data.align`); 0: none.
+        carry_spans_us: increasing bounds (microseconds since the image): the carry picture gains
+            one channel per span of time since the image, each pixel's count of events in it
+            (:class:`CarryPicture`); empty: none.
+        carry_onset: the carry picture gains a channel of each pixel's first event since the image.
         graph_context_us: > 0: a sample's events also hold those of this long before its start
             (for ``event_span="image"`` not from before ``t(k - a) - context_us``), which the event
             graph reads as neighbours and never pools (:class:`~dagr_lite.data.spec.SampleSpec`);
@@ -418,7 +463,7 @@ class EventEgoHands(Dataset):
                  age_ramp: int = 0,
                  graph_context_us: int, event_picture: bool = False, carry_picture: bool = False,
                  carry_recent_us: int = 0, frames: bool = True, support_us: int, carry_confirm_us: int = 0,
-                 carry_align_us: int = 0):
+                 carry_align_us: int = 0, carry_spans_us: Sequence[int] = (), carry_onset: bool = False):
         if split not in fmt.SPLITS:
             raise UserError(f"split must be one of {', '.join(fmt.SPLITS)}, got {split!r}")
         self.age_range = age_range(image_age)
@@ -451,6 +496,10 @@ class EventEgoHands(Dataset):
         if carry_align_us and carry_picture and not frames:
             raise UserError("carry_align_us moves the camera frame: a frameless sample (frames=False) has none")
         self.carry_align_us = int(carry_align_us)
+        self.carry_spans_us = check_spans(carry_spans_us)
+        if not isinstance(carry_onset, bool):
+            raise UserError(f"carry_onset must be true or false, got {carry_onset!r}")
+        self.carry_onset = carry_onset
         if context_us < 0:
             raise UserError(f"context_us must be >= 0, got {context_us}")
         if refractory_us < 0:
@@ -502,7 +551,8 @@ class EventEgoHands(Dataset):
                           max_events=self.max_events, event_picture=self.event_picture,
                           graph_context_us=self.graph_context_us, carry_picture=self.carry_picture,
                           carry_recent_us=self.carry_recent_us, support_us=self.support_us,
-                          carry_confirm_us=self.carry_confirm_us, carry_align_us=self.carry_align_us)
+                          carry_confirm_us=self.carry_confirm_us, carry_align_us=self.carry_align_us,
+                          carry_spans_us=self.carry_spans_us, carry_onset=self.carry_onset)
 
     def _open_video(self, video: str, labels: dict[int, np.ndarray], clip_boxes: bool):
         frames_dir = fmt.frames_dir(self.root, self.split, video)
@@ -610,7 +660,7 @@ class EventEgoHands(Dataset):
         # One read serves the graph's events and, with a carry picture, every event since the image (and
         # those confirm_us before it, which confirm).
         carry = CarryPicture(height, width, t_image, self.carry_recent_us, self.carry_confirm_us, self.carry_align_us,
-                             frame) if self.carry_picture else None
+                             frame, self.carry_spans_us, self.carry_onset) if self.carry_picture else None
         kept = self._kept_events(v, min(t_graph, math.floor(carry.reads_from_us)) if carry else t_graph, t_end)
         graph_from = int(np.searchsorted(kept["t"], t_graph, side="left"))
         raw = {key: values[graph_from:] for key, values in kept.items()}

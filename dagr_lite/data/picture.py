@@ -70,3 +70,44 @@ def add_confirmed(counts, last, seen, x, y, t, p, t_from, confirm_us, width, hei
                 last[j] = ti
         if ti > seen[j]:
             seen[j] = ti
+
+
+@numba.njit(**KERNEL)
+def add_history(spans, first, x, y, t, t_from, bounds, width):  # pragma: no cover - compiled
+    """In place, for the events ``x, y, t`` (sorted by ``t``, none before ``t_from``): each event is
+    counted in ``spans[k, pixel]`` for the span ``k`` of its time since ``t_from``
+    (``bounds[k - 1] <= t - t_from < bounds[k]``; ``bounds`` increasing, the last span open), and
+    ``first[pixel]`` (``inf``: none yet) keeps each pixel's first event time. ``spans`` may have no
+    rows and ``first`` one entry (neither kept); counts only grow and a first time is written once,
+    so events added in any pieces give the same state."""
+    keep_first = len(first) > 1
+    for i in range(len(t)):
+        j = np.int64(y[i]) * width + np.int64(x[i])
+        ti = np.float64(t[i])
+        if spans.shape[0]:
+            k = 0
+            while k < len(bounds) and ti - t_from >= bounds[k]:
+                k += 1
+            spans[k, j] += 1
+        if keep_first and ti < first[j]:
+            first[j] = ti
+
+
+@numba.njit(**KERNEL)
+def render_history(spans, first, t_from, t_end, count_full, picture):  # pragma: no cover - compiled
+    """Fills ``picture (P, C)`` uint8 from :func:`add_history`'s state at query time ``t_end``:
+    channel ``k < spans.shape[0]`` each span's count saturating at ``count_full``, times
+    ``255 // count_full`` (31 a count for 8), and with ``C > spans.shape[0]`` a last channel, the
+    first event's time since ``t_from`` as a fraction ``f`` of ``t_end - t_from``:
+    ``rint(1 + 254 * clip(f, 0, 1))``, 0 where a pixel has no event."""
+    scale = 255 // count_full
+    spans_n = spans.shape[0]
+    span = max(t_end - t_from, 1.0)
+    for j in range(picture.shape[0]):
+        for k in range(spans_n):
+            picture[j, k] = np.uint8(min(spans[k, j], count_full) * scale)
+        if picture.shape[1] > spans_n:
+            if np.isfinite(first[j]):
+                picture[j, spans_n] = np.uint8(np.rint(1.0 + 254.0 * min(max((first[j] - t_from) / span, 0.0), 1.0)))
+            else:
+                picture[j, spans_n] = 0

@@ -10,6 +10,7 @@ so a model is always run on the sample it was trained on unless an override says
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields
 
 import numpy as np
@@ -62,6 +63,9 @@ class SampleSpec:
         carry_align_us: > 0: the carry picture gains three channels, the camera frame moved by the
             background's displacement since it, found from the pixels that fired in the last
             ``carry_align_us`` (:mod:`~dagr_lite.data.align`); 0: none.
+        carry_spans_us: increasing bounds (microseconds since the image): the carry picture gains a
+            channel per span of time since the image, each pixel's count of events in it; (): none.
+        carry_onset: the carry picture gains a channel, each pixel's first event since the image.
         graph_context_us: > 0: the event graph's first stage also reads the events of this long
             before the sample's start (for a model with an image, not from before ``image time -
             context_us``): they are neighbours of the sample's nodes, never pooled, so a node's
@@ -79,8 +83,12 @@ class SampleSpec:
     support_us: int
     carry_confirm_us: int
     carry_align_us: int
+    carry_spans_us: tuple[int, ...]
+    carry_onset: bool
 
     def __post_init__(self):
+        if isinstance(self.carry_spans_us, Sequence) and not isinstance(self.carry_spans_us, (str, tuple)):
+            object.__setattr__(self, "carry_spans_us", tuple(self.carry_spans_us))  # a config's list
         checks = {"window_us": (is_integer(self.window_us) and self.window_us > 0, "a positive integer"),
                   "context_us": (is_integer(self.context_us) and self.context_us >= 0, "an integer >= 0"),
                   "refractory_us": (is_integer(self.refractory_us) and self.refractory_us >= 0, "an integer >= 0"),
@@ -95,7 +103,12 @@ class SampleSpec:
                   "carry_recent_us": (is_integer(self.carry_recent_us) and self.carry_recent_us >= 0,
                                       "an integer >= 0"),
                   "graph_context_us": (is_integer(self.graph_context_us) and self.graph_context_us >= 0,
-                                       "an integer >= 0")}
+                                       "an integer >= 0"),
+                  "carry_spans_us": (isinstance(self.carry_spans_us, tuple)
+                                     and all(is_integer(v) and v > 0 for v in self.carry_spans_us)
+                                     and all(a < b for a, b in zip(self.carry_spans_us, self.carry_spans_us[1:])),
+                                     "a tuple of increasing positive integers"),
+                  "carry_onset": (isinstance(self.carry_onset, bool), "true or false")}
         for name, (ok, expected) in checks.items():
             if not ok:
                 raise UserError(f"sample {name} must be {expected}, got {getattr(self, name)!r}")

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, ListConfig
 
 from dagr_lite.errors import UserError
 from dagr_lite.config import ConfigError
@@ -90,7 +90,7 @@ DETECTOR_ADDED_LATER = {"event_head_weight": 0.0, "event_answers": False, "image
                         "carry_frame": False, "carry_attend": 0, "event_dense": 0}
 SAMPLE_ADDED_LATER = {"refractory_us": 0, "event_picture": False, "graph_context_us": 0, "carry_picture": False,
                       "carry_recent_us": 0, "support_us": 0, "carry_confirm_us": 0,
-                      "carry_align_us": 0}
+                      "carry_align_us": 0, "carry_spans_us": [], "carry_onset": False}
 
 
 def upgrade(state: dict) -> dict:
@@ -160,8 +160,9 @@ def override(section: str, key: str, trained, given, overrides: dict):
     """``given`` when set (recorded in ``overrides`` when it differs), else ``trained``."""
     if given is None:
         return trained
-    if given != trained:
-        overrides[f"{section}.{key}"] = {"checkpoint": trained, "used": given}
+    given = as_plain(given)
+    if given != as_plain(trained):
+        overrides[f"{section}.{key}"] = {"checkpoint": as_plain(trained), "used": given}
     return given
 
 
@@ -170,6 +171,7 @@ def override(section: str, key: str, trained, given, overrides: dict):
 # window's length, never whether the model's input holds it.
 PICTURE_KEYS = ("event_picture", "carry_picture")
 CARRY_WINDOW_KEYS = ("carry_recent_us", "carry_confirm_us", "carry_align_us")
+CARRY_FIXED_KEYS = ("carry_spans_us", "carry_onset")  # the carry picture's spans and onset: as trained, or refused
 
 
 def check_picture_layout(path, trained: dict, used: dict) -> None:
@@ -189,6 +191,16 @@ def check_picture_layout(path, trained: dict, used: dict) -> None:
             raise ConfigError(f"{path}: data.{key}={used[key]} {'adds' if used[key] > 0 else 'removes'} carry "
                               f"picture channels the model was not trained with (data.{key}={trained[key]}): an "
                               "evaluation may change a window's length, not whether the picture holds it")
+    for key in CARRY_FIXED_KEYS:
+        if as_plain(used[key]) != as_plain(trained[key]):
+            raise ConfigError(f"{path}: data.{key}={as_plain(used[key])} changes what the carry picture's channels "
+                              f"hold (the model was trained with data.{key}={as_plain(trained[key])}); leave it null "
+                              "(the checkpoint's)")
+
+
+def as_plain(value):
+    """A setting as a plain value to compare and print: a list, tuple or list config as a list."""
+    return list(value) if isinstance(value, (list, tuple, ListConfig)) else value
 
 
 def settings(cfg: DictConfig, checkpoint: "Checkpoint") -> tuple[dict, DetectorConfig, dict]:

@@ -206,8 +206,9 @@ class DetectorConfig:
             alone. 0: none.
         carry_channels: the channels of the picture the carry branch reads: 3, or 4 with the
             recency over a recent window (``data.carry_recent_us``), 3 more of the confirmed
-            events (``data.carry_confirm_us``) and 3 more of the frame moved by the camera's motion
-            (``data.carry_align_us``).
+            events (``data.carry_confirm_us``), 3 more of the frame moved by the camera's motion
+            (``data.carry_align_us``), one per span of time since the image (``data.carry_spans_us``)
+            and one of each pixel's first event (``data.carry_onset``).
         carry_frame: the carry branch also reads the camera frame beside the picture (its stem
             joins them at the first layer, as the dense peer's image branch does); false: the
             picture alone (as in checkpoints saved before the key). Read only with a carry branch.

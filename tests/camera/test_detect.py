@@ -91,6 +91,7 @@ def test_detect_on_a_written_aedat4_answers_what_the_batch_model_answers(stub_vi
                          context_us=trained.context_us, refractory_us=trained.refractory_us,
                          support_us=trained.support_us, carry_picture=trained.carry_picture, carry_recent_us=trained.carry_recent_us,
                          carry_confirm_us=trained.carry_confirm_us, carry_align_us=trained.carry_align_us,
+                         carry_spans_us=trained.carry_spans_us, carry_onset=trained.carry_onset,
                          videos=[stub_video["video"]])
     model = stream.model
     checked = 0

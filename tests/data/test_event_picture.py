@@ -147,3 +147,74 @@ def test_a_sample_with_confirmed_channels_reads_the_events_just_before_its_image
         np.testing.assert_array_equal(b.image[7:].numpy().transpose(1, 2, 0), expected)
     with pytest.raises(ValueError, match="carry_confirm_us must be an integer >= 0, got -1"):
         sample_set(stub_root(), "valid", carry_picture=True, carry_confirm_us=-1)
+
+
+def history_by_loop(x, y, t, t_image, t_end, bounds, height, width):
+    """The span and onset channels by a plain loop over the events, per the definition: an event of
+    time ``d`` after the image is in span ``k`` when ``bounds[k - 1] <= d < bounds[k]``; a count
+    shows as 31 a count up to 8; the onset is ``round(1 + 254 f)`` for the first event's ``f``,
+    its time since the image over the image's age."""
+    spans = np.zeros((height, width, len(bounds) + 1), np.int64)
+    first = {}
+    for xi, yi, ti in zip(x, y, t):
+        if ti < t_image:
+            continue
+        d = ti - t_image
+        spans[yi, xi, sum(d >= b for b in bounds)] += 1
+        first.setdefault((yi, xi), ti)
+    picture = np.zeros((height, width, len(bounds) + 2), np.uint8)
+    picture[..., :-1] = np.minimum(spans, 8) * 31
+    for (yi, xi), ti in first.items():
+        f = min(max((ti - t_image) / (t_end - t_image), 0.0), 1.0)
+        picture[yi, xi, -1] = round(1 + 254 * f)
+    return picture
+
+
+def test_the_span_and_onset_channels_against_a_loop():
+    """:class:`CarryPicture`'s channels of the counts per span of time since the image and of each
+    pixel's first event, against a plain loop, the events added in random pieces (events before
+    the image are not counted); a bound falls on an event's time; the channels follow the others."""
+    rng = np.random.default_rng(5)
+    height, width, n, t_image = 9, 12, 4000, 10_000
+    x, y = rng.integers(0, width, n), rng.integers(0, height, n)
+    t, p = np.sort(rng.integers(0, 300_000, n)), rng.integers(0, 2, n)
+    t[n // 2] = t_image + 33_333  # an event on a bound is in the span it starts
+    t = np.sort(t)
+    bounds = (33_333, 66_667, 133_333)
+    carry = CarryPicture(height, width, t_image, recent_us=10_000, spans_us=list(bounds), onset=True)
+    assert carry.channels == carry_channels(10_000, 0, 0, bounds, True) == 4 + 4 + 1
+    for piece in np.split(np.arange(n), np.sort(rng.integers(0, n, 15))):
+        carry.add(x[piece], y[piece], t[piece], p[piece])
+    got = carry.picture(300_000)
+    since = t >= t_image
+    np.testing.assert_array_equal(got[..., :4], event_picture(x[since], y[since], t[since], p[since], 300_000,
+                                                              290_000, height, width, 10_000))
+    expected = history_by_loop(x, y, t, t_image, 300_000, bounds, height, width)
+    np.testing.assert_array_equal(got[..., 4:], expected)
+    assert len(np.unique(got[..., 4:8])) > 3 and len(np.unique(got[..., 8])) > 20  # counts and onsets vary
+    spans_only = CarryPicture(height, width, t_image, spans_us=[50_000])
+    spans_only.add(x, y, t, p)
+    assert spans_only.channels == 3 + 2 and spans_only.picture(300_000).shape == (height, width, 5)
+    onset_only = CarryPicture(height, width, t_image, onset=True)
+    onset_only.add(x, y, t, p)
+    np.testing.assert_array_equal(onset_only.picture(300_000)[..., 3], expected[..., -1])
+    for bad in ([0], [5, 5], [10, 3], "33333", [1.5]):
+        with pytest.raises(ValueError, match="carry_spans_us must be a list of increasing positive integers"):
+            CarryPicture(height, width, t_image, spans_us=bad)
+
+
+def test_a_samples_carry_picture_holds_the_spans_and_onset_of_every_event_since_the_image():
+    """The dataset's samples (what training, evaluation and the sweep read) hold the span and onset
+    channels last, after the recent window, as the loop over the events since the image gives them."""
+    bounds = (20_000, 60_000)
+    carried = sample_set(stub_root(), "valid", image_age=(1, 10), carry_picture=True, carry_recent_us=10_000,
+                         carry_spans_us=list(bounds), carry_onset=True)
+    assert carried.sample.carry_spans_us == bounds and carried.sample.carry_onset
+    old = next(i for i in range(len(carried)) if carried[i].age_us > 3 * 33_333)
+    b = carried[old]
+    assert b.image.shape == (3 + 4 + 3 + 1, 180, 320)
+    raw = carried.events_of(carried.videos.index(b.video), b.t_image_us, b.t_end_us)
+    expected = history_by_loop(raw["x"], raw["y"], raw["t"].astype(np.float64), b.t_image_us, b.t_end_us, bounds,
+                               180, 320)
+    np.testing.assert_array_equal(b.image[7:].numpy().transpose(1, 2, 0), expected)
+    assert b.image[9].numpy().max() > 0  # the last span holds events: the image is older than 60 ms

@@ -57,13 +57,19 @@ def test_an_evaluation_may_change_a_pictures_window_length_not_its_channels():
     """Two carry pictures of 7 channels (recent window + moved frame, recent window + confirmed
     events) have one count; the layout check names the key that would swap them."""
     trained = {"event_picture": False, "carry_picture": True, "carry_recent_us": 20_000, "carry_confirm_us": 0,
-               "carry_align_us": 5_000}
+               "carry_align_us": 5_000, "carry_spans_us": (33_333,), "carry_onset": True}
     check_picture_layout("m.pt", trained, {**trained, "carry_recent_us": 10_000, "carry_align_us": 3_000})
     with pytest.raises(ConfigError, match=r"m\.pt: data\.carry_confirm_us=5000 adds carry picture channels the model "
                                           r"was not trained with \(data\.carry_confirm_us=0\)"):
         check_picture_layout("m.pt", trained, {**trained, "carry_confirm_us": 5_000, "carry_align_us": 0})
     with pytest.raises(ConfigError, match=r"data\.carry_align_us=0 removes carry picture channels"):
         check_picture_layout("m.pt", trained, {**trained, "carry_align_us": 0})
+    check_picture_layout("m.pt", trained, {**trained, "carry_spans_us": [33_333]})  # a config's list: the same
+    with pytest.raises(ConfigError, match=r"m\.pt: data\.carry_spans_us=\[50000\] changes what the carry picture's "
+                                          r"channels hold \(the model was trained with data\.carry_spans_us=\[33333\]\)"):
+        check_picture_layout("m.pt", trained, {**trained, "carry_spans_us": [50_000]})
+    with pytest.raises(ConfigError, match=r"data\.carry_onset=False changes what the carry picture's channels hold"):
+        check_picture_layout("m.pt", trained, {**trained, "carry_onset": False})
     with pytest.raises(ConfigError, match=r"data\.event_picture=True changes the model's input"):
         check_picture_layout("m.pt", trained, {**trained, "event_picture": True})
     plain = {**trained, "carry_picture": False}  # no carry picture: its windows are read by nothing

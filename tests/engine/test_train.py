@@ -501,7 +501,7 @@ def test_evaluation_takes_the_data_and_graph_settings_from_the_checkpoint(tmp_pa
     assert out["data"] == {"image_age": 2, "window_us": 20000, "context_us": 10000, "refractory_us": 0,
                            "max_events": 100000, "event_picture": False, "graph_context_us": 0,
                            "carry_picture": False, "carry_recent_us": 20000, "support_us": 0,
-                           "carry_confirm_us": 0, "carry_align_us": 0}
+                           "carry_confirm_us": 0, "carry_align_us": 0, "carry_spans_us": [], "carry_onset": False}
     assert out["graph"] == {"radius": 4.0, "beta": 5e-4, "max_neighbors": 8} and out["overrides"] == {}
     assert out["num_images"] == len(sample_set(stub_root(), "valid", image_age=2))
     printed = OmegaConf.create(capsys.readouterr().out.split("\n\n")[0])  # the config, as the evaluation uses it
