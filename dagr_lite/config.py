@@ -104,7 +104,7 @@ def _increasing(v) -> bool:
 
 
 def spans_of(data: DictConfig) -> tuple[int, ...]:
-    """``data.carry_spans_us`` as a tuple (missing or null: none)."""
+    """``data.carry_spans_us`` as a tuple (missing: none)."""
     return tuple(int(v) for v in (data.get("carry_spans_us") or ()))
 
 

@@ -131,7 +131,11 @@ def check_against_batch(stream: StreamingDetector, model: Detector, events: dict
                                                stream.sample.carry_confirm_us, W, H) & (kept_events["t"] >= t_image)
             pictures.append(event_picture(*(v[confirmed] for v in kept_events.values()), t_query,
                                           max(t_query - t_image, 1.0), H, W))
-        if stream.sample.carry_align_us:  # and the frame moved by the shift the recently fired pixels give
+        if stream.sample.carry_spans_us:  # and the counts per span since the image and the first events (a loop)
+            assert stream.sample.carry_onset
+            pictures.append(history_by_loop(events["x"][:upto][since], events["y"][:upto][since], t[since], t_image,
+                                            t_query, stream.sample.carry_spans_us, H, W))
+        if stream.sample.carry_align_us:  # and, last, the frame moved by the shift the recently fired pixels give
             signs, last = np.zeros((H, W)), np.full((H, W), -np.inf)  # each pixel's latest event since the image
             for i in np.nonzero(since)[0]:
                 signs[events["y"][i], events["x"][i]] = 1.0 if events["p"][i] == 1 else -1.0
@@ -140,10 +144,6 @@ def check_against_batch(stream: StreamingDetector, model: Detector, events: dict
             shift = background_shift(frame_gradients(image), signs, max_shift_px(t_query - t_image))
             pictures.append(shifted_frame(image, *shift))
             SHIFTS.append(shift)
-        if stream.sample.carry_spans_us:  # and the counts per span since the image and the first events (a loop)
-            assert stream.sample.carry_onset
-            pictures.append(history_by_loop(events["x"][:upto][since], events["y"][:upto][since], t[since], t_image,
-                                            t_query, stream.sample.carry_spans_us, H, W))
         image = np.concatenate(pictures, axis=2)
     origin = t_image if hybrid else stream.origin_us
     sample = sample_of(image, tuple(v[:upto][keep] for v in events.values()), origin, t_query, math.ceil(start))

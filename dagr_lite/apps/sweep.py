@@ -360,7 +360,7 @@ def curve_points(rows: list[dict], metric: str, between: int) -> tuple[list[floa
     ys: list[float] = []
     previous = None
     for r in sorted(rows, key=lambda r: r["age_ms"]):
-        if between and previous is not None and r["age_frames"] - previous > 1 / between + 1e-9:
+        if between and previous is not None and r["age_frames"] - previous > 1.5 / between:  # (ages rounded)
             xs.append(math.nan)
             ys.append(math.nan)
         xs.append(r["age_ms"])

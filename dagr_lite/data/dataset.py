@@ -137,16 +137,16 @@ class CarryPicture:
     Deciding needs the events of ``confirm_us`` before the image too: :meth:`add` them all
     (:attr:`reads_from_us`); those before the image only confirm.
 
-    With ``align_us > 0`` three more channels follow: the camera ``frame`` moved by the
+    With ``align_us > 0`` three more channels follow, last: the camera ``frame`` moved by the
     background's displacement since it (:meth:`shift`), found by laying the frame's log-luma
     gradient over the polarities of the pixels that fired in the last ``align_us``
     (:mod:`~dagr_lite.data.align`): the background as it should look now, beside where the events are.
 
     With ``spans_us`` (increasing bounds, microseconds since the image) ``len(spans_us) + 1``
-    channels follow, each pixel's count of events (both polarities, ``31 x min(count, 8)``) in
+    channels come before the moved frame, each pixel's count of events (both polarities, ``31 x min(count, 8)``) in
     each span of time since the image (``[0, spans_us[0])``, ..., ``[spans_us[-1], inf)``): a
     background that fires all along (a pan) fills every span so far, a hand that moved since the
-    image only the spans it passed in. With ``onset`` one more follows: each pixel's first event
+    image only the spans it passed in. With ``onset`` one more, after them: each pixel's first event
     since the image, ``1 + 254 x`` its time as a fraction of the image's age (0: none). Counts only
     grow and a first time is written once, so the streaming detector keeps them as the other channels.
     """
@@ -212,12 +212,12 @@ class CarryPicture:
         parts = [picture]
         if self.confirm_us > 0:
             parts.append(picture_of(*self.confirmed, t_end_us, span, self.height, self.width))
-        if self.align_us > 0:
-            parts.append(shifted_frame(self.frame, *self.shift(t_end_us)))
         if self.history_channels:
             history = np.empty((self.height * self.width, self.history_channels), np.uint8)
             render_history(self.spans, self.first, self.t_image_us, float(t_end_us), PICTURE_COUNT_FULL, history)
             parts.append(history.reshape(self.height, self.width, -1))
+        if self.align_us > 0:  # last: a blanked frame blanks the moved frame too (Sample.blank_frame)
+            parts.append(shifted_frame(self.frame, *self.shift(t_end_us)))
         return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=2)
 
     def shift(self, t_end_us: float) -> tuple[int, int]:

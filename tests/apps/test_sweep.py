@@ -175,3 +175,5 @@ def test_a_curve_is_broken_where_nothing_was_measured():
     assert curve_points(rows, "AP50", between=0)[1] == [0.6, 0.5, 0.45, 0.4, 0.3]  # whole ages only: one line
     assert all(math.isnan(y) for y in curve_points(rows, "recall_moved", between=2)[1])
     assert curve_points([row(1, -1.0)], "AP50", between=0) == ([33.333], [0.0])  # COCO's -1 drawn at 0
+    thirds = [row(round(a + j / 3, 6), 0.5) for a in (1, 2, 4) for j in range(3)]  # ages rounded as the sweep's
+    assert sum(math.isnan(x) for x in curve_points(thirds, "AP50", between=3)[0]) == 1  # only 2.67 -> 4

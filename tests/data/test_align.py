@@ -185,5 +185,13 @@ def test_a_sample_with_a_moved_frame_and_its_blank():
         blank = b.blank_frame()
         assert (blank.image[:3] == 128).all() and (blank.image[-3:] == 128).all()
         torch.testing.assert_close(blank.image[3:-3], b.image[3:-3], rtol=0, atol=0)
+    # with the spans and the onset too, the moved frame stays last: they come before it, and a blank greys it
+    both = sample_set(stub_root(), "valid", image_age=(1, 10), carry_picture=True, carry_recent_us=10_000,
+                      carry_align_us=10_000, carry_spans_us=[50_000], carry_onset=True)[31]
+    assert both.image.shape[0] == b.image.shape[0] + 3
+    torch.testing.assert_close(both.image[-3:], b.image[-3:], rtol=0, atol=0)
+    torch.testing.assert_close(both.image[:-6], b.image[:-3], rtol=0, atol=0)
+    blank = both.blank_frame()
+    assert (blank.image[-3:] == 128).all() and torch.equal(blank.image[-6:-3], both.image[-6:-3])
     with pytest.raises(UserError, match="carry_align_us must be an integer >= 0, got -1"):
         sample_set(stub_root(), "valid", carry_picture=True, carry_align_us=-1)
