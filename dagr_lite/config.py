@@ -21,7 +21,7 @@ from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.data.augment import TrainAugment, crop_size
 from dagr_lite.data.dataset import RGB_CHANNELS, EventEgoHands, carry_channels
-from dagr_lite.data.spec import is_integer
+from dagr_lite.data.spec import increasing_positive_integers, is_integer
 from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.detector import IMAGE_STEMS, Detector, DetectorConfig
 
@@ -98,11 +98,6 @@ def _integers(v, count: int, least: int) -> bool:
     return isinstance(v, (ListConfig, list, tuple)) and len(v) == count and all(is_integer(a) and a >= least for a in v)
 
 
-def _increasing(v) -> bool:
-    return (isinstance(v, (list, tuple, ListConfig)) and all(is_integer(x) and x > 0 for x in v)
-            and all(a < b for a, b in zip(v, list(v)[1:])))
-
-
 def spans_of(data: DictConfig) -> tuple[int, ...]:
     """``data.carry_spans_us`` as a tuple (missing: none)."""
     return tuple(int(v) for v in (data.get("carry_spans_us") or ()))
@@ -148,7 +143,7 @@ _RULES = {
                               lambda v: is_integer(v) and v >= 0),
     "data.carry_align_us": ("an integer >= 0 (microseconds; 0: no moved frame)", lambda v: is_integer(v) and v >= 0),
     "data.carry_spans_us": ("a list of increasing positive integers (microseconds since the image; []: no spans)",
-                            lambda v: _increasing(v)),
+                            increasing_positive_integers),
     "data.carry_onset": ("true or false", lambda v: isinstance(v, bool)),
     "data.max_events": ("a positive integer or null", lambda v: v is None or (is_integer(v) and v > 0)),
     "loader.batch_size": ("a positive integer", lambda v: is_integer(v) and v > 0),

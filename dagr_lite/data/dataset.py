@@ -25,7 +25,7 @@ from dagr_lite.data.errors import DatasetFormatError, Problem
 from dagr_lite.data.events import EventFile
 from dagr_lite.data.denoise import support_keep
 from dagr_lite.data.frames import frame_header_problems, list_frames, read_frame
-from dagr_lite.data.spec import SampleSpec, is_integer, sample_start_us
+from dagr_lite.data.spec import SampleSpec, increasing_positive_integers, is_integer, sample_start_us
 from dagr_lite.data.labels import box_problems, list_videos, read_labels
 from dagr_lite.data.picture import add_confirmed, add_events, add_history, render, render_history
 
@@ -61,12 +61,10 @@ def carry_channels(recent_us: float, confirm_us: float, align_us: float = 0, spa
 def check_spans(spans_us) -> tuple[int, ...]:
     """``spans_us`` (a carry picture's span bounds, microseconds since the image) as a tuple, or a
     :class:`~dagr_lite.errors.UserError` naming it unless it is a list of increasing positive integers."""
-    values = tuple(spans_us) if isinstance(spans_us, Sequence) and not isinstance(spans_us, str) else None
-    if values is None or not all(is_integer(v) and v > 0 for v in values) or any(
-            b <= a for a, b in zip(values, values[1:])):
+    if not increasing_positive_integers(spans_us):
         raise UserError(f"carry_spans_us must be a list of increasing positive integers (microseconds since the "
                         f"image; []: none), got {spans_us!r}")
-    return tuple(int(v) for v in values)
+    return tuple(int(v) for v in spans_us)
 
 
 def event_picture(x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray, t_end_us: float, window_us: float,

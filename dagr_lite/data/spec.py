@@ -24,6 +24,13 @@ def is_integer(value) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
 
 
+def increasing_positive_integers(values) -> bool:
+    """Whether ``values`` is a sequence (not a string) of positive integers, each larger than the one
+    before: the bounds of a carry picture's spans (``carry_spans_us``), in a config or a spec."""
+    return (isinstance(values, Sequence) and not isinstance(values, str)
+            and all(is_integer(v) and v > 0 for v in values) and all(a < b for a, b in zip(values, values[1:])))
+
+
 def sample_start_us(t_query_us: float, window_us: int, t_image_us: float | None = None, context_us: int = 0) -> float:
     """The start of the events a model reads when asked at ``t_query_us``: it reads ``[start, t_query_us)``.
 
@@ -105,8 +112,7 @@ class SampleSpec:
                   "graph_context_us": (is_integer(self.graph_context_us) and self.graph_context_us >= 0,
                                        "an integer >= 0"),
                   "carry_spans_us": (isinstance(self.carry_spans_us, tuple)
-                                     and all(is_integer(v) and v > 0 for v in self.carry_spans_us)
-                                     and all(a < b for a, b in zip(self.carry_spans_us, self.carry_spans_us[1:])),
+                                     and increasing_positive_integers(self.carry_spans_us),
                                      "a tuple of increasing positive integers"),
                   "carry_onset": (isinstance(self.carry_onset, bool), "true or false")}
         for name, (ok, expected) in checks.items():
