@@ -27,10 +27,11 @@ under ``"sort"``. An Event Stream file cannot go back in time; an AEDAT4 file's 
 unseen. ``.h5`` and CSV chunks get one compiled pass that checks both (tests/camera/test_recording.py
 pins what faery does).
 
-Frames come from the recording's own frame track (AEDAT4), from a frame folder (``frames=DIR``
-with ``timestamps.txt``, one time in microseconds per image in name order) or a video file
-(``frames=FILE.mp4``; times from ``frame_times=FILE`` or else the video's own clock), as
-``(t_us, (H, W, 3) uint8)`` in time order, one frame in memory at a time.
+Frames come from the recording's own frame track (AEDAT4), from a video's own frame folder beside an
+``.h5`` of this package's layout (times from the h5 file, also when ``frames=`` names that folder),
+from a frame folder (``frames=DIR`` with ``timestamps.txt``, one time in microseconds per image in
+name order) or a video file (``frames=FILE.mp4``; times from ``frame_times=FILE`` or else the
+video's own clock), as ``(t_us, (H, W, 3) uint8)`` in time order, one frame in memory at a time.
 """
 from __future__ import annotations
 
@@ -510,9 +511,15 @@ def _video_frames(video: Path, times_file: Path | None, size: tuple[int, int]) -
     return frames
 
 
+def h5_frames_dir(path: Path) -> Path:
+    """The frame folder of a video of this package's layout, ``<root>/<split>/frames/<video>`` beside
+    ``<root>/<split>/events/<video>.h5`` (whose frame times the h5 file holds)."""
+    return path.parent.parent / fmt.FRAMES_DIR / path.stem
+
+
 def _h5_recording(path: Path, size: tuple[int, int] | None) -> tuple[tuple[int, int], Callable, Callable | None]:
     """A video of this package's layout: ``<root>/<split>/events/<video>.h5`` and its frame folder."""
-    frames_dir = path.parent.parent / fmt.FRAMES_DIR / path.stem
+    frames_dir = h5_frames_dir(path)
     count = len(list_frames(frames_dir)) if frames_dir.is_dir() else None
     file = EventFile(path, num_frames=count)
     if count:
@@ -575,7 +582,11 @@ def open_recording(path: Path | str, *, size: tuple[int, int] | None = None, fra
     if frames is not None:
         frames = Path(frames)
         times = Path(frame_times) if frame_times is not None else None
-        if frames.is_dir():
+        own = kind == "h5" and frame_source is not None and times is None and frames.is_dir() and \
+            frames.resolve() == h5_frames_dir(path).resolve()
+        if own:
+            pass  # the video's own frame folder: its frames' times are in the h5 file, as without frames=
+        elif frames.is_dir():
             frame_source = _folder_frames(frames, times, size)
         elif frames.is_file():
             frame_source = _video_frames(frames, times, size)

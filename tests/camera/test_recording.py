@@ -452,3 +452,25 @@ def test_a_folder_or_a_pipe_is_not_called_a_missing_file(tmp_path):
     os.mkfifo(tmp_path / "pipe.raw")
     with pytest.raises(RecordingError, match=r"pipe\.raw: not a regular file \(a pipe or a device\)"):
         open_recording(tmp_path / "pipe.raw")
+
+
+def test_h5_recording_given_its_own_frame_folder_takes_the_frame_times_from_the_h5(dataset, tmp_path):
+    """A built-in video's frame folder holds no timestamps.txt: its times are in the h5 file, so naming
+    the folder with frames= reads them there; another folder without one is still refused."""
+    video = next(iter(dataset.events))
+    split = dataset.splits[video]
+    path = dataset.root / split / "events" / f"{video}.h5"
+    folder = dataset.root / split / "frames" / video
+    assert not (folder / "timestamps.txt").exists()
+    alone = list(open_recording(path).frames())
+    named = list(open_recording(path, frames=folder).frames())
+    assert len(alone) == len(dataset.frames[video]) > 1
+    assert [t for t, _ in named] == [t for t, _ in alone]
+    for (_, got), (_, expected) in zip(named, alone):
+        np.testing.assert_array_equal(got, expected)
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    for file in folder.iterdir():
+        (copy / file.name).write_bytes(file.read_bytes())
+    with pytest.raises(RecordingError, match="timestamps.txt: the frame timestamp file is missing"):
+        open_recording(path, frames=copy)
