@@ -25,7 +25,7 @@ def amp_dtype(trainer: TrainerSettings, device: torch.device) -> torch.dtype | N
     CUDA: ``trainer.amp_dtype`` (``auto``: bfloat16 where the GPU supports it, else float16 with
     the gradient scaler). CPU: bfloat16 where the CPU has it natively (``auto`` or ``bfloat16``;
     float16 is not offered there), else float32; with ``auto`` a run then keeps bfloat16 only if
-    :func:`time_precisions` finds it faster (:func:`prefers_trial` says when to ask). The sparse
+    :func:`time_precisions` finds it clearly faster (:data:`BFLOAT16_MARGIN`; :func:`prefers_trial` says when to ask). The sparse
     graph products and the losses run in float32 either way.
     """
     if not trainer.amp or device.type not in ("cuda", "cpu"):
@@ -54,6 +54,13 @@ def prefers_trial(trainer: TrainerSettings, device: torch.device) -> bool:
     return amp_dtype(trainer, device) == torch.bfloat16 and device.type == "cpu" and trainer.amp_dtype == "auto"
 
 
+# bfloat16 is chosen only when the trial's step takes under this fraction of float32's. The trial
+# times a step alone; in a run the loader's workers share the cores, and on a CPU where the trial
+# found bfloat16 5-7% faster, runs in bfloat16 made fewer steps than runs in float32 (docs/results.md,
+# 2026-12-01): a trial within a tenth does not tell which run is faster, and float32 is then kept.
+BFLOAT16_MARGIN = 0.9
+
+
 @dataclass(frozen=True)
 class PrecisionTrial:
     """Seconds of one training step's forward and backward in each precision, on this CPU."""
@@ -63,12 +70,12 @@ class PrecisionTrial:
 
     @property
     def dtype(self) -> torch.dtype | None:
-        """The faster: ``torch.bfloat16``, or None for float32."""
-        return torch.bfloat16 if self.bfloat16_s < self.float32_s else None
+        """``torch.bfloat16`` when it took under :data:`BFLOAT16_MARGIN` of float32's time, else None (float32)."""
+        return torch.bfloat16 if self.bfloat16_s < BFLOAT16_MARGIN * self.float32_s else None
 
     def describe(self) -> str:
         return (f"a step's forward and backward took {self.float32_s:.3f} s in float32 and {self.bfloat16_s:.3f} s "
-                f"in bfloat16 on this CPU")
+                f"in bfloat16 on this CPU, which is taken under {BFLOAT16_MARGIN:g} of float32's")
 
 
 def time_precisions(model: torch.nn.Module, batch, *, rounds: int = 3) -> PrecisionTrial:

@@ -144,11 +144,15 @@ def test_the_cpu_trains_in_bfloat16_only_where_it_has_it_natively(monkeypatch, n
 
 def test_the_precision_trial_times_a_copy_and_keeps_the_faster():
     """Timing both precisions leaves the model as it was (weights, batch-norm statistics, no
-    gradients, the random state) and chooses the smaller time, as a hand-made trial says."""
+    gradients, the random state) and chooses bfloat16 only when clearly faster, as hand-made trials say."""
     from dagr_lite.engine.precision import PrecisionTrial, time_precisions
 
     assert PrecisionTrial(float32_s=0.2, bfloat16_s=0.3).dtype is None
     assert PrecisionTrial(float32_s=0.3, bfloat16_s=0.2).dtype == torch.bfloat16
+    # within a tenth float32 stays: the trial's step alone does not tell the faster run (BFLOAT16_MARGIN)
+    assert PrecisionTrial(float32_s=0.2, bfloat16_s=0.19).dtype is None
+    assert PrecisionTrial(float32_s=0.2, bfloat16_s=0.181).dtype is None
+    assert PrecisionTrial(float32_s=0.2, bfloat16_s=0.179).dtype == torch.bfloat16
     state = fresh_state("hybrid")
     before = {key: value.clone() for key, value in state.model.state_dict().items()}
     dataset = sample_set(stub_root(), "train", window_us=10_000, carry_picture=True)
