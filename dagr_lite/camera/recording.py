@@ -28,7 +28,8 @@ unseen. ``.h5`` and CSV chunks get one compiled pass that checks both (tests/cam
 pins what faery does).
 
 Frames come from the recording's own frame track (AEDAT4), from a video's own frame folder beside an
-``.h5`` of this package's layout (times from the h5 file, also when ``frames=`` names that folder),
+``.h5`` of this package's layout (times from the h5 file, also when ``frames=`` names that folder
+without ``frame_times=``),
 from a frame folder (``frames=DIR`` with ``timestamps.txt``, one time in microseconds per image in
 name order) or a video file (``frames=FILE.mp4``; times from ``frame_times=FILE`` or else the
 video's own clock), as ``(t_us, (H, W, 3) uint8)`` in time order, one frame in memory at a time.
@@ -513,7 +514,9 @@ def _video_frames(video: Path, times_file: Path | None, size: tuple[int, int]) -
 
 def h5_frames_dir(path: Path) -> Path:
     """The frame folder of a video of this package's layout, ``<root>/<split>/frames/<video>`` beside
-    ``<root>/<split>/events/<video>.h5`` (whose frame times the h5 file holds)."""
+    ``<root>/<split>/events/<video>.h5`` (whose frame times the h5 file holds); found from the file's
+    resolved path, so a relative name or a link to the file finds it too."""
+    path = path.resolve()
     return path.parent.parent / fmt.FRAMES_DIR / path.stem
 
 
@@ -536,8 +539,7 @@ def _h5_recording(path: Path, size: tuple[int, int] | None) -> tuple[tuple[int, 
 
     def frames() -> Iterator[tuple[int, np.ndarray]]:
         for k in range(count):
-            yield int(file.frame_time_us(k)), _rgb(read_frame(fmt.frame_path(path.parent.parent.parent,
-                                                                              path.parent.parent.name, path.stem, k)),
+            yield int(file.frame_time_us(k)), _rgb(read_frame(frames_dir / fmt.frame_name(k)),
                                                    f"{frames_dir} frame {k}", size)
 
     return tuple(size), chunks, (frames if count else None)
@@ -585,7 +587,7 @@ def open_recording(path: Path | str, *, size: tuple[int, int] | None = None, fra
         own = kind == "h5" and frame_source is not None and times is None and frames.is_dir() and \
             frames.resolve() == h5_frames_dir(path).resolve()
         if own:
-            pass  # the video's own frame folder: its frames' times are in the h5 file, as without frames=
+            pass  # the video's own frame folder: its frames' times are the h5 file's (a timestamps.txt there is not read)
         elif frames.is_dir():
             frame_source = _folder_frames(frames, times, size)
         elif frames.is_file():

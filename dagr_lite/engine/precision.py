@@ -1,5 +1,5 @@
 """The precision of a training step: mixed precision where the device computes it natively, and on
-a CPU only where it also makes the step faster; and the layout its convolutions' weights take."""
+a CPU only where it also makes the step clearly faster; and the layout its convolutions' weights take."""
 from __future__ import annotations
 
 import copy
@@ -25,7 +25,8 @@ def amp_dtype(trainer: TrainerSettings, device: torch.device) -> torch.dtype | N
     CUDA: ``trainer.amp_dtype`` (``auto``: bfloat16 where the GPU supports it, else float16 with
     the gradient scaler). CPU: bfloat16 where the CPU has it natively (``auto`` or ``bfloat16``;
     float16 is not offered there), else float32; with ``auto`` a run then keeps bfloat16 only if
-    :func:`time_precisions` finds it clearly faster (:data:`BFLOAT16_MARGIN`; :func:`prefers_trial` says when to ask). The sparse
+    :func:`time_precisions` finds it clearly faster (:data:`BFLOAT16_MARGIN`; :func:`prefers_trial` says
+    when to ask). The sparse
     graph products and the losses run in float32 either way.
     """
     if not trainer.amp or device.type not in ("cuda", "cpu"):
@@ -75,7 +76,7 @@ class PrecisionTrial:
 
     def describe(self) -> str:
         return (f"a step's forward and backward took {self.float32_s:.3f} s in float32 and {self.bfloat16_s:.3f} s "
-                f"in bfloat16 on this CPU, which is taken under {BFLOAT16_MARGIN:g} of float32's")
+                f"in bfloat16 on this CPU; bfloat16 only if it takes under {BFLOAT16_MARGIN:g} of float32's time")
 
 
 def time_precisions(model: torch.nn.Module, batch, *, rounds: int = 3) -> PrecisionTrial:

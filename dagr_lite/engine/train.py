@@ -75,7 +75,7 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
     if trainer.dense_first and resume_from is None:  # the event graph's weights start at zero (see TrainLoop)
         model.zero_graph_weights()
     amp, trial = amp_dtype(trainer, device), None
-    if prefers_trial(trainer, device):  # a CPU with native bfloat16: the faster of the two on a first batch,
+    if prefers_trial(trainer, device):  # a CPU with native bfloat16: bfloat16 if clearly faster on a first batch,
         if place.is_main:               # timed before the processes share batch norm and the loss normaliser
             first = [train_set[(0, index)] for index in range(min(cfg.loader.batch_size, len(train_set)))]
             trial = time_precisions(model, batch_maker(model.graph_spec)(first))

@@ -142,7 +142,7 @@ def test_the_cpu_trains_in_bfloat16_only_where_it_has_it_natively(monkeypatch, n
     assert not train_module.prefers_trial(cuda, torch.device("cuda"))
 
 
-def test_the_precision_trial_times_a_copy_and_keeps_the_faster():
+def test_the_precision_trial_times_a_copy_and_keeps_bfloat16_only_when_clearly_faster():
     """Timing both precisions leaves the model as it was (weights, batch-norm statistics, no
     gradients, the random state) and chooses bfloat16 only when clearly faster, as hand-made trials say."""
     from dagr_lite.engine.precision import PrecisionTrial, time_precisions
