@@ -29,10 +29,10 @@ pins what faery does).
 
 Frames come from the recording's own frame track (AEDAT4), from a video's own frame folder beside an
 ``.h5`` of this package's layout (times from the h5 file, also when ``frames=`` names that folder
-without ``frame_times=``),
-from a frame folder (``frames=DIR`` with ``timestamps.txt``, one time in microseconds per image in
-name order) or a video file (``frames=FILE.mp4``; times from ``frame_times=FILE`` or else the
-video's own clock), as ``(t_us, (H, W, 3) uint8)`` in time order, one frame in memory at a time.
+without ``frame_times=``), from a frame folder (``frames=DIR`` with ``timestamps.txt``, one time in
+microseconds per image in name order) or a video file (``frames=FILE.mp4``; times from
+``frame_times=FILE`` or else the video's own clock), as ``(t_us, (H, W, 3) uint8)`` in time order,
+one frame in memory at a time.
 """
 from __future__ import annotations
 
@@ -585,7 +585,7 @@ def open_recording(path: Path | str, *, size: tuple[int, int] | None = None, fra
         frames = Path(frames)
         times = Path(frame_times) if frame_times is not None else None
         own = kind == "h5" and frame_source is not None and times is None and frames.is_dir() and \
-            frames.resolve() == h5_frames_dir(path).resolve()
+            frames.resolve() == h5_frames_dir(path)
         if own:
             pass  # the video's own frame folder: its frames' times are the h5 file's (a timestamps.txt there is not read)
         elif frames.is_dir():

@@ -25,9 +25,8 @@ def amp_dtype(trainer: TrainerSettings, device: torch.device) -> torch.dtype | N
     CUDA: ``trainer.amp_dtype`` (``auto``: bfloat16 where the GPU supports it, else float16 with
     the gradient scaler). CPU: bfloat16 where the CPU has it natively (``auto`` or ``bfloat16``;
     float16 is not offered there), else float32; with ``auto`` a run then keeps bfloat16 only if
-    :func:`time_precisions` finds it clearly faster (:data:`BFLOAT16_MARGIN`; :func:`prefers_trial` says
-    when to ask). The sparse
-    graph products and the losses run in float32 either way.
+    :func:`time_precisions` finds it clearly faster (:data:`BFLOAT16_MARGIN`; :func:`prefers_trial`
+    says when to ask). The sparse graph products and the losses run in float32 either way.
     """
     if not trainer.amp or device.type not in ("cuda", "cpu"):
         return None
