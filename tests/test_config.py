@@ -117,6 +117,27 @@ def test_custom_dataset_takes_its_resolution_from_the_frames(dataset):
         build_dataset(v6, "train", train=True, with_image=True)
 
 
+def test_the_dataset_line_says_what_the_model_reads(dataset):
+    from dagr_lite.engine.checkpoint import describe_dataset
+    cfg = resolve_config(compose_cfg("train", ["dataset=custom", f"dataset.root={dataset.root}"]))
+    window, context = cfg.data.window_us, cfg.data.context_us
+
+    def head(ds):
+        return f"{dataset.root} [valid]: {len(ds.videos)} videos, {len(ds)} samples, 64x48 px"
+
+    hybrid = build_dataset(cfg, "valid", train=False, with_image=True, image_age=3)
+    assert describe_dataset(hybrid) == (f"{head(hybrid)}, image age 3 frames, events of the last {window} us "
+                                        f"(none from before the image - {context} us)")
+    assert describe_dataset(hybrid, events=False) == f"{head(hybrid)}, image age 3 frames"  # image_only
+    frameless = build_dataset(cfg, "valid", train=False, with_image=False)  # events_only
+    assert describe_dataset(frameless, image=False) == f"{head(frameless)}, events of the last {window} us"
+    peer = resolve_config(compose_cfg("train", ["dataset=custom", f"dataset.root={dataset.root}", "model=image_only",
+                                                "data.event_picture=true"]))
+    pictured = build_dataset(peer, "valid", train=False, with_image=True)  # the dense peer
+    assert describe_dataset(pictured, events=False) == (f"{head(pictured)}, the image a picture of the events of "
+                                                        f"the last {window} us")
+
+
 def test_model_sizes_build_and_differ():
     sizes = {}
     for size in ("s", "m"):

@@ -134,11 +134,92 @@ def command_help(config_name: str, overrides: list[str]) -> str:
     for group in composed_groups(text):
         options = sorted(path.stem for path in (CONF_DIR / group).glob("*.yaml"))
         lines.append(f"  {group}: {', '.join(options)}")
-    from dagr_lite.config import compose_config
-    cfg = compose_config(config_name, overrides)
+    from hydra import compose, initialize_config_dir
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        cfg = compose(config_name=config_name, overrides=list(overrides), return_hydra_config=True)
+    choices = {group: option for group, option in cfg.hydra.runtime.choices.items()
+               if not group.startswith("hydra") and option is not None}
+    del cfg.hydra
+    descriptions = key_comments(config_files(config_name, choices))
     lines += ["", "Settings (key=value; `--cfg job` prints them, `--hydra-help` Hydra's flags):",
-              OmegaConf.to_yaml(cfg).rstrip()]
+              with_comments(OmegaConf.to_yaml(cfg).rstrip(), descriptions)]
     return "\n".join(lines)
+
+
+KEY_LINE = re.compile(r"^(\s*)([\w-]+):(?:\s+(.*?))?\s*$")
+
+
+def config_files(config_name: str, choices: dict[str, str]) -> list[tuple[Path, str]]:
+    """The files a command's settings come from, each with the key its settings lie under: its
+    own file first, then each group's chosen option and the group's other options (a key's meaning
+    is said where it is first set; a file of ``# @package _global_`` lies at the top)."""
+    files = [(CONF_DIR / f"{config_name}.yaml", "")]
+    for group, option in choices.items():
+        chosen = CONF_DIR / group / f"{option}.yaml"
+        others = sorted(path for path in (CONF_DIR / group).glob("*.yaml") if path != chosen)
+        for path in [chosen, *others]:
+            if path.is_file():
+                head = path.read_text().split("\n", 1)[0]
+                files.append((path, "" if head.strip() == "# @package _global_" else group))
+    return files
+
+
+def key_comments(files: list[tuple[Path, str]]) -> dict[str, str]:
+    """``{dotted key: its comment}`` from config files, the first file to describe a key winning: a
+    key's comment is the ``# ...`` after its value and the comment lines under it indented further."""
+    comments: dict[str, str] = {}
+    for path, package in files:
+        stack: list[tuple[int, str]] = []  # (indent, key) of the lines the current one lies under
+        current, indent = None, -1  # the key whose comment goes on, and its line's indent
+        for line in path.read_text().splitlines():
+            stripped = line.strip()
+            if stripped.startswith("#"):
+                if current is not None and len(line) - len(line.lstrip()) > indent:
+                    comments[current] += " " + stripped.lstrip("#").strip()
+                else:
+                    current = None
+                continue
+            match = KEY_LINE.match(line)
+            if not match:  # a list item, a blank line
+                current = None if not stripped else current
+                continue
+            indent = len(match.group(1))
+            while stack and stack[-1][0] >= indent:
+                stack.pop()
+            stack.append((indent, match.group(2)))
+            current = ".".join(([package] if package else []) + [key for _, key in stack])
+            value = match.group(3) or ""
+            comment = value.split(" #", 1)[1].strip() if " #" in value else value[1:].strip() if value.startswith("#") else ""
+            if comment and current not in comments:
+                comments[current] = comment
+            else:
+                current = None  # no comment here, or described before: its comment lines here are not carried on
+    return comments
+
+
+def with_comments(yaml_text: str, comments: dict[str, str], width: int = 110) -> str:
+    """``yaml_text`` (as :func:`OmegaConf.to_yaml` writes it) with each key's comment after it,
+    wrapped at ``width`` under its start."""
+    import textwrap
+    out, stack = [], []
+    for line in yaml_text.splitlines():
+        match = KEY_LINE.match(line)
+        if not match:
+            out.append(line)
+            continue
+        indent = len(match.group(1))
+        while stack and stack[-1][0] >= indent:
+            stack.pop()
+        stack.append((indent, match.group(2)))
+        comment = comments.get(".".join(key for _, key in stack))
+        if not comment:
+            out.append(line)
+            continue
+        column = max(len(line) + 2, 26)
+        wrapped = textwrap.wrap(comment, max(width - column - 2, 40))
+        out.append(f"{line:<{column}}# {wrapped[0]}")
+        out.extend(f"{'':<{column}}# {part}" for part in wrapped[1:])
+    return "\n".join(out)
 
 
 def composed_groups(config_text: str) -> list[str]:

@@ -248,12 +248,21 @@ def at_model_size(model_size: str, detector: DetectorConfig, image_size: tuple[i
     return dataclasses.replace(detector, width=int(width), height=int(height))
 
 
-def describe_dataset(dataset: EventEgoHands) -> str:
+def describe_dataset(dataset: EventEgoHands, *, image: bool = True, events: bool = True) -> str:
+    """One line on what a split holds and what a model reads of it: with an ``image``, the image's age
+    (or, for a picture of the events, its horizon); with ``events``, the horizon (and, beside an
+    image, how far before it the events may start)."""
     height, width = dataset.image_size
-    return (f"{dataset.root} [{dataset.split}]: {len(dataset.videos)} videos, {len(dataset)} samples, "
-            f"{width}x{height} px, image age {describe_age(dataset.age_range, dataset.age_power, dataset.age_ramp)} "
-            f"frames, events of the last {dataset.window_us} us"
-            + (f" (none from before the image - {dataset.context_us} us)" if dataset.event_span == "image" else ""))
+    line = f"{dataset.root} [{dataset.split}]: {len(dataset.videos)} videos, {len(dataset)} samples, {width}x{height} px"
+    if image and dataset.event_picture:  # the dense peer: its image is a picture of the horizon's events
+        line += f", the image a picture of the events of the last {dataset.window_us} us"
+    elif image:
+        line += f", image age {describe_age(dataset.age_range, dataset.age_power, dataset.age_ramp)} frames"
+    if events:
+        line += f", events of the last {dataset.window_us} us"
+        if image and dataset.event_span == "image":
+            line += f" (none from before the image - {dataset.context_us} us)"
+    return line
 
 
 def describe_age(ages: tuple[int, int], power: float = 0.0, ramp: int = 0) -> str:

@@ -59,7 +59,7 @@ def evaluate(cfg: DictConfig) -> dict:
         print(f"override: {key}={change['used']!r} (the checkpoint was trained with {change['checkpoint']!r})")
     device = resolve_device(cfg.device)
     dataset = build_dataset(cfg, cfg.split, train=False, with_image=detector.use_image)
-    print(describe_dataset(dataset), flush=True)
+    print(describe_dataset(dataset, image=detector.use_image, events=detector.use_events), flush=True)
     detector = at_model_size(cfg.model_size, detector, dataset.image_size, overrides)
     model = load_model(checkpoint, detector, dataset.image_size).to(device)
     run_dir = run_folder(cfg, "evaluate")  # once everything the evaluation reads is found good

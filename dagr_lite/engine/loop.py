@@ -80,7 +80,7 @@ def make_data(cfg: DictConfig, train_set: EventEgoHands, model, place: Distribut
                 print(f"validation at image age {age} left out: {err}", flush=True)
     if place.is_main:
         for dataset in (train_set, *valid_sets.values()):
-            print(describe_dataset(dataset), flush=True)
+            print(describe_dataset(dataset, image=cfg.model.use_image, events=cfg.model.use_events), flush=True)
     limit = cfg.trainer.get("val_samples")
     if limit is not None:
         valid_sets = {age: spread_subset(dataset, int(limit)) for age, dataset in valid_sets.items()}

@@ -102,6 +102,26 @@ def test_help_lists_the_groups_the_command_composes(name, groups):
     assert OmegaConf.to_container(settings) == OmegaConf.to_container(expected)  # overrides given with --help apply
 
 
+def test_help_says_what_each_key_means_where_it_is_first_set(tmp_path):
+    from dagr_lite.apps.cli import command_help, key_comments, with_comments
+    text = command_help("train", ["dataset=ego"])
+    lines = text.splitlines()
+    at = lines.index(next(line for line in lines if line.startswith("  max_minutes: 13.0 ")))
+    assert lines[at].endswith("# wall-clock cap; the run stops cleanly (and saves) when it is reached")  # train.yaml's
+    schedule = "\n".join(lines[lines.index(next(line for line in lines if line.startswith("  schedule_by: time"))):][:4])
+    assert "(whichever is further along" in schedule and "1,760" not in schedule  # not the recipe's words on it
+    assert "  crop: 0.5" in text and "# < 1: each sample is cut" in text  # data/default.yaml's, the recipe's value
+    # A hand-made case: nesting, a comment carried on, a later file's comment on a described key ignored.
+    first, second = tmp_path / "a.yaml", tmp_path / "b.yaml"
+    first.write_text("# a header\nouter:\n  inner: 1   # what inner is,\n              # said on two lines\n"
+                     "  bare: 2\nlist:   # items\n- 3\n")
+    second.write_text("inner: 5  # another file's word on it\n          # and its second line\nnew: 6  # only here\n")
+    comments = key_comments([(first, ""), (second, "outer")])
+    assert comments == {"outer.inner": "what inner is, said on two lines", "list": "items", "outer.new": "only here"}
+    assert with_comments("outer:\n  inner: 1\n  bare: 2", comments, width=60).splitlines() == [
+        "outer:", "  inner: 1" + " " * 16 + "# what inner is, said on two lines", "  bare: 2"]
+
+
 def test_help_runs_as_a_command_and_names_a_bad_override(tmp_path):
     import subprocess
     import sys
