@@ -126,9 +126,13 @@ def test_the_dataset_line_says_what_the_model_reads(dataset):
         return f"{dataset.root} [valid]: {len(ds.videos)} videos, {len(ds)} samples, 64x48 px"
 
     hybrid = build_dataset(cfg, "valid", train=False, with_image=True, image_age=3)
+    assert hybrid.carry_picture  # the default hybrid's carry branch reads it
     assert describe_dataset(hybrid) == (f"{head(hybrid)}, image age 3 frames, events of the last {window} us "
-                                        f"(none from before the image - {context} us)")
-    assert describe_dataset(hybrid, events=False) == f"{head(hybrid)}, image age 3 frames"  # image_only
+                                        f"(none from before the image - {context} us), a picture of every event "
+                                        "since the image")
+    only = resolve_config(compose_cfg("train", ["dataset=custom", f"dataset.root={dataset.root}", "model=image_only"]))
+    plain = build_dataset(only, "valid", train=False, with_image=True, image_age=3)
+    assert describe_dataset(plain, events=False) == f"{head(plain)}, image age 3 frames"  # image_only
     frameless = build_dataset(cfg, "valid", train=False, with_image=False)  # events_only
     assert describe_dataset(frameless, image=False) == f"{head(frameless)}, events of the last {window} us"
     peer = resolve_config(compose_cfg("train", ["dataset=custom", f"dataset.root={dataset.root}", "model=image_only",

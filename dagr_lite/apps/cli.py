@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import MissingMandatoryValue
 
 from dagr_lite.config import CONF_DIR
@@ -139,7 +139,8 @@ def command_help(config_name: str, overrides: list[str]) -> str:
         cfg = compose(config_name=config_name, overrides=list(overrides), return_hydra_config=True)
     choices = {group: option for group, option in cfg.hydra.runtime.choices.items()
                if not group.startswith("hydra") and option is not None}
-    del cfg.hydra
+    with open_dict(cfg):
+        del cfg["hydra"]
     descriptions = key_comments(config_files(config_name, choices))
     lines += ["", "Settings (key=value; `--cfg job` prints them, `--hydra-help` Hydra's flags):",
               with_comments(OmegaConf.to_yaml(cfg).rstrip(), descriptions)]
@@ -150,18 +151,32 @@ KEY_LINE = re.compile(r"^(\s*)([\w-]+):(?:\s+(.*?))?\s*$")
 
 
 def config_files(config_name: str, choices: dict[str, str]) -> list[tuple[Path, str]]:
-    """The files a command's settings come from, each with the key its settings lie under: its
-    own file first, then each group's chosen option and the group's other options (a key's meaning
-    is said where it is first set; a file of ``# @package _global_`` lies at the top)."""
+    """The files a command's settings come from, each with the key its settings lie under, in the
+    order a key's meaning is looked up: the command's own file, then for each group the files its
+    chosen option composes, the ones it starts from first (``model=events_only`` starts from
+    ``hybrid``, a dataset's recipe from ``quick``), so an option's note on why it sets a key comes
+    after what the key means. A file of ``# @package _global_`` lies at the top; a chosen option
+    without a file (``optional recipe``) has none."""
     files = [(CONF_DIR / f"{config_name}.yaml", "")]
     for group, option in choices.items():
-        chosen = CONF_DIR / group / f"{option}.yaml"
-        others = sorted(path for path in (CONF_DIR / group).glob("*.yaml") if path != chosen)
-        for path in [chosen, *others]:
-            if path.is_file():
-                head = path.read_text().split("\n", 1)[0]
-                files.append((path, "" if head.strip() == "# @package _global_" else group))
+        for path in option_chain(CONF_DIR / group, option):
+            head = path.read_text().split("\n", 1)[0]
+            files.append((path, "" if head.strip() == "# @package _global_" else group))
     return files
+
+
+def option_chain(folder: Path, option: str, seen: tuple[str, ...] = ()) -> list[Path]:
+    """``folder/<option>.yaml`` after the options of its own group it starts from (its defaults
+    list's plain entries, ``- hybrid``), theirs first; none when the file does not exist."""
+    path = folder / f"{option}.yaml"
+    if not path.is_file() or option in seen:
+        return []
+    bases = []
+    for line in defaults_lines(path.read_text()):
+        entry = re.match(r"\s*-\s*([\w-]+)\s*(?:#.*)?$", line)
+        if entry and entry.group(1) != "_self_":
+            bases += option_chain(folder, entry.group(1), (*seen, option))
+    return [*bases, path]
 
 
 def key_comments(files: list[tuple[Path, str]]) -> dict[str, str]:
@@ -225,17 +240,26 @@ def with_comments(yaml_text: str, comments: dict[str, str], width: int = 110) ->
 def composed_groups(config_text: str) -> list[str]:
     """The config groups a command's config file composes: the entries of its defaults list
     (``- group: option``, ``- optional group: ...``), not ``_self_`` nor Hydra's own overrides."""
-    groups, inside = [], False
-    for line in config_text.splitlines():
-        if line.startswith("defaults:"):
-            inside = True
-            continue
-        if inside and not line.startswith((" ", "\t")) and line.strip():
-            break
-        entry = re.match(r"\s*-\s*(?:optional\s+)?([\w/]+)\s*:", line) if inside else None
+    groups = []
+    for line in defaults_lines(config_text):
+        entry = re.match(r"\s*-\s*(?:optional\s+)?([\w/]+)\s*:", line)
         if entry:  # `- override hydra/...: ...` does not match: a space before its colon
             groups.append(entry.group(1))
     return groups
+
+
+def defaults_lines(config_text: str) -> list[str]:
+    """The lines of a config file's defaults list (those after ``defaults:`` up to the next
+    top-level key)."""
+    lines, inside = [], False
+    for line in config_text.splitlines():
+        if line.startswith("defaults:"):
+            inside = True
+        elif inside and not line.startswith((" ", "\t")) and line.strip():
+            break
+        elif inside:
+            lines.append(line)
+    return lines
 
 
 def composition_problem(config_name: str, overrides: list[str]) -> str | None:

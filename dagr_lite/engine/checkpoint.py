@@ -251,7 +251,7 @@ def at_model_size(model_size: str, detector: DetectorConfig, image_size: tuple[i
 def describe_dataset(dataset: EventEgoHands, *, image: bool = True, events: bool = True) -> str:
     """One line on what a split holds and what a model reads of it: with an ``image``, the image's age
     (or, for a picture of the events, its horizon); with ``events``, the horizon (and, beside an
-    image, how far before it the events may start)."""
+    image, how far before it the events may start); with a carry picture, that it is read."""
     height, width = dataset.image_size
     line = f"{dataset.root} [{dataset.split}]: {len(dataset.videos)} videos, {len(dataset)} samples, {width}x{height} px"
     if image and dataset.event_picture:  # the dense peer: its image is a picture of the horizon's events
@@ -262,6 +262,8 @@ def describe_dataset(dataset: EventEgoHands, *, image: bool = True, events: bool
         line += f", events of the last {dataset.window_us} us"
         if image and dataset.event_span == "image":
             line += f" (none from before the image - {dataset.context_us} us)"
+    if image and dataset.carry_picture:
+        line += ", a picture of every event since the image"
     return line
 
 

@@ -111,6 +111,12 @@ def test_help_says_what_each_key_means_where_it_is_first_set(tmp_path):
     schedule = "\n".join(lines[lines.index(next(line for line in lines if line.startswith("  schedule_by: time"))):][:4])
     assert "(whichever is further along" in schedule and "1,760" not in schedule  # not the recipe's words on it
     assert "  crop: 0.5" in text and "# < 1: each sample is cut" in text  # data/default.yaml's, the recipe's value
+    # Only the files the chosen options compose, their bases first: no other dataset's word on root, the
+    # hybrid's meaning of a key events_only sets, a key without a comment left bare.
+    other = command_help("train", ["dataset=v6", "model=events_only"]).splitlines()
+    assert "  root: ${eventegohands_root:v6}" in other
+    assert next(line for line in other if line.startswith("    radius: 3.0")).endswith("# pixels")
+    assert "# > 0: a carry branch of this width" in next(line for line in other if line.startswith("  carry_width: 0"))
     # A hand-made case: nesting, a comment carried on, a later file's comment on a described key ignored.
     first, second = tmp_path / "a.yaml", tmp_path / "b.yaml"
     first.write_text("# a header\nouter:\n  inner: 1   # what inner is,\n              # said on two lines\n"
