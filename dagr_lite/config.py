@@ -60,11 +60,12 @@ def torchrun_folder(default: str) -> str:
     return str(Path(*Path(default).parts[:2]) / f"torchrun-{run_id}")
 
 
-def compose_config(name: str = "train", overrides: Sequence[str] = ()) -> DictConfig:
-    """``conf/<name>.yaml`` composed with ``overrides``, as the command line would (for scripts and tests)."""
+def compose_config(name: str = "train", overrides: Sequence[str] = (), *, hydra: bool = False) -> DictConfig:
+    """``conf/<name>.yaml`` composed with ``overrides``, as the command line would (for scripts and tests);
+    ``hydra``: with Hydra's own node (``hydra.runtime.choices``: the option each group took)."""
     from hydra import compose, initialize_config_dir
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
-        return compose(config_name=name, overrides=list(overrides))
+        return compose(config_name=name, overrides=list(overrides), return_hydra_config=hydra)
 
 
 def resolve_config(cfg: DictConfig) -> DictConfig:

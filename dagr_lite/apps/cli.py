@@ -13,6 +13,7 @@ import contextlib
 import os
 import re
 import sys
+import textwrap
 import time
 from pathlib import Path
 from typing import Callable
@@ -134,9 +135,8 @@ def command_help(config_name: str, overrides: list[str]) -> str:
     for group in composed_groups(text):
         options = sorted(path.stem for path in (CONF_DIR / group).glob("*.yaml"))
         lines.append(f"  {group}: {', '.join(options)}")
-    from hydra import compose, initialize_config_dir
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
-        cfg = compose(config_name=config_name, overrides=list(overrides), return_hydra_config=True)
+    from dagr_lite.config import compose_config
+    cfg = compose_config(config_name, overrides, hydra=True)
     choices = {group: option for group, option in cfg.hydra.runtime.choices.items()
                if not group.startswith("hydra") and option is not None}
     with open_dict(cfg):
@@ -179,54 +179,53 @@ def option_chain(folder: Path, option: str, seen: tuple[str, ...] = ()) -> list[
     return [*bases, path]
 
 
+def keyed_lines(lines: list[str]):
+    """Each of a YAML text's ``lines`` with its key's dotted path from the top (``trainer.max_minutes``)
+    and the part after its colon, or None and None for a line that sets no key (a comment, a list
+    item, a blank line)."""
+    stack: list[tuple[int, str]] = []  # (indent, key) of the lines the current one lies under
+    for line in lines:
+        match = KEY_LINE.match(line)
+        if not match:
+            yield line, None, None
+            continue
+        indent = len(match.group(1))
+        while stack and stack[-1][0] >= indent:
+            stack.pop()
+        stack.append((indent, match.group(2)))
+        yield line, ".".join(key for _, key in stack), match.group(3) or ""
+
+
 def key_comments(files: list[tuple[Path, str]]) -> dict[str, str]:
     """``{dotted key: its comment}`` from config files, the first file to describe a key winning: a
     key's comment is the ``# ...`` after its value and the comment lines under it indented further."""
     comments: dict[str, str] = {}
     for path, package in files:
-        stack: list[tuple[int, str]] = []  # (indent, key) of the lines the current one lies under
         current, indent = None, -1  # the key whose comment goes on, and its line's indent
-        for line in path.read_text().splitlines():
+        for line, key, value in keyed_lines(path.read_text().splitlines()):
             stripped = line.strip()
-            if stripped.startswith("#"):
-                if current is not None and len(line) - len(line.lstrip()) > indent:
+            if key is None:
+                if stripped.startswith("#") and current is not None and len(line) - len(line.lstrip()) > indent:
                     comments[current] += " " + stripped.lstrip("#").strip()
-                else:
+                elif stripped.startswith("#") or not stripped:  # a header, a blank line: no comment goes on
                     current = None
                 continue
-            match = KEY_LINE.match(line)
-            if not match:  # a list item, a blank line
-                current = None if not stripped else current
-                continue
-            indent = len(match.group(1))
-            while stack and stack[-1][0] >= indent:
-                stack.pop()
-            stack.append((indent, match.group(2)))
-            current = ".".join(([package] if package else []) + [key for _, key in stack])
-            value = match.group(3) or ""
+            indent = len(line) - len(line.lstrip())
+            current = f"{package}.{key}" if package else key
             comment = value.split(" #", 1)[1].strip() if " #" in value else value[1:].strip() if value.startswith("#") else ""
-            if comment and current not in comments:
-                comments[current] = comment
-            else:
+            if not comment or current in comments:
                 current = None  # no comment here, or described before: its comment lines here are not carried on
+            else:
+                comments[current] = comment
     return comments
 
 
 def with_comments(yaml_text: str, comments: dict[str, str], width: int = 110) -> str:
     """``yaml_text`` (as :func:`OmegaConf.to_yaml` writes it) with each key's comment after it,
     wrapped at ``width`` under its start."""
-    import textwrap
-    out, stack = [], []
-    for line in yaml_text.splitlines():
-        match = KEY_LINE.match(line)
-        if not match:
-            out.append(line)
-            continue
-        indent = len(match.group(1))
-        while stack and stack[-1][0] >= indent:
-            stack.pop()
-        stack.append((indent, match.group(2)))
-        comment = comments.get(".".join(key for _, key in stack))
+    out = []
+    for line, key, _ in keyed_lines(yaml_text.splitlines()):
+        comment = comments.get(key) if key is not None else None
         if not comment:
             out.append(line)
             continue
