@@ -393,6 +393,11 @@ class TrainerSettings:
     def by_time(self) -> bool:
         return self.schedule_by == "time"
 
+    @property
+    def first_phase(self) -> str | None:
+        """The first phase the run has (``events_first``, ``image_first`` or ``dense_first``), or None."""
+        return next((key for key in FIRST_PHASES if getattr(self, key)), None)
+
     def total_steps(self, steps_per_epoch: int) -> int:
         """The schedule's length: ``max_steps``, or ``max_epochs`` epochs."""
         return int(self.max_steps) if self.max_steps is not None else int(self.max_epochs) * steps_per_epoch
@@ -401,6 +406,8 @@ class TrainerSettings:
 # The keys of conf/train.yaml's trainer section (the first phases besides): a key given with + that the
 # loop does not read is refused rather than ignored.
 FIRST_PHASES = ("events_first", "image_first", "dense_first")
+# What each first phase leaves out of a training step (``engine.state.train_step``'s flags in the phase).
+PHASE_STEP = {"events_first": {"image": False}, "image_first": {"events": False}, "dense_first": {"graph": False}}
 TRAINER_KEYS = ("max_steps", "max_epochs", "max_minutes", "schedule_by", "val_every", "val_samples", "log_every", "image_every",
                 "checkpoint_every", "checkpoint_minutes", "warmup_steps", "min_lr_ratio", "grad_clip", "ema_decay",
                 "ema_tau", "amp", "amp_dtype", "channels_last")

@@ -13,7 +13,7 @@ from omegaconf import DictConfig
 from torch.utils.data import DataLoader, Subset
 
 from dagr_lite.errors import UserError
-from dagr_lite.config import FIRST_PHASES, ConfigError, TrainerSettings, build_dataset
+from dagr_lite.config import PHASE_STEP, ConfigError, TrainerSettings, build_dataset
 from dagr_lite.data.collate import GraphCollate
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.checkpoint import describe_dataset, save_checkpoint
@@ -173,10 +173,9 @@ class TrainLoop:
         self.saved_at = time.monotonic()
         self.terminated: signal.Signals | None = None  # set by SIGTERM or a first Ctrl-C (see run)
         # A first phase: one branch alone, or the dense parts without the graph (at most one, checked with the config).
-        self.first_key = next((key for key in FIRST_PHASES if getattr(trainer, key)), "events_first")
+        self.first_key = trainer.first_phase or "events_first"
         self.first_fraction = getattr(trainer, self.first_key)
-        self.alone = {"events_first": {"image": False}, "image_first": {"events": False},  # train_step's, in the phase
-                      "dense_first": {"graph": False}}[self.first_key]
+        self.alone = PHASE_STEP[self.first_key]  # train_step's flags in the phase
         self.in_phase = False  # whether the next step is in that phase (set as the loop runs)
         collate = data.train_loader.collate_fn
         # dense_first: the loader's graph, switched off in the phase

@@ -63,35 +63,60 @@ BFLOAT16_MARGIN = 0.9
 
 @dataclass(frozen=True)
 class PrecisionTrial:
-    """Seconds of one training step's forward and backward in each precision, on this CPU."""
+    """Seconds of one training step's forward and backward in each precision, on this CPU; for a
+    run with a first phase, the mean step of its schedule (:meth:`of_schedule`), and ``parts``
+    the phase's share and trial, then the rest's."""
 
     float32_s: float
     bfloat16_s: float
+    parts: tuple[tuple[float, "PrecisionTrial"], ...] = ()
+
+    @classmethod
+    def of_schedule(cls, first: "PrecisionTrial", share: float, rest: "PrecisionTrial", *,
+                    by_time: bool) -> "PrecisionTrial":
+        """The mean step of a run whose first ``share`` of the schedule takes ``first``'s steps and
+        the rest ``rest``'s. ``by_time`` (``schedule_by: time``): the shares are of the run's time,
+        so the precision that makes more steps in it is faster: the harmonic mean
+        ``1 / (share / first + (1 - share) / rest)``; otherwise of its steps, the arithmetic mean."""
+        def mean(a: float, b: float) -> float:
+            return 1.0 / (share / a + (1 - share) / b) if by_time else share * a + (1 - share) * b
+
+        return cls(float32_s=mean(first.float32_s, rest.float32_s), bfloat16_s=mean(first.bfloat16_s, rest.bfloat16_s),
+                   parts=((share, first), (1 - share, rest)))
 
     @property
     def dtype(self) -> torch.dtype | None:
         """``torch.bfloat16`` when it took under :data:`BFLOAT16_MARGIN` of float32's time, else None (float32)."""
         return torch.bfloat16 if self.bfloat16_s < BFLOAT16_MARGIN * self.float32_s else None
 
-    def describe(self) -> str:
-        return (f"a step's forward and backward took {self.float32_s:.3f} s in float32 and {self.bfloat16_s:.3f} s "
-                f"in bfloat16 on this CPU; bfloat16 only if it takes under {BFLOAT16_MARGIN:g} of float32's time")
+    def describe(self, phase: str = "the first phase") -> str:
+        """What was timed and the rule; ``phase`` names the first phase of a schedule's trial."""
+        took = f"{self.float32_s:.3f} s in float32 and {self.bfloat16_s:.3f} s in bfloat16"
+        if self.parts:
+            (share, first), (_, rest) = self.parts
+            took = (f"a step of the run's schedule took {took} on this CPU (its first {share:.0%}, {phase}: "
+                    f"{first.float32_s:.3f} s and {first.bfloat16_s:.3f} s; the rest: {rest.float32_s:.3f} s and "
+                    f"{rest.bfloat16_s:.3f} s)")
+        else:
+            took = f"a step's forward and backward took {took} on this CPU"
+        return f"{took}; bfloat16 only if it takes under {BFLOAT16_MARGIN:g} of float32's time"
 
 
-def time_precisions(model: torch.nn.Module, batch, *, rounds: int = 3) -> PrecisionTrial:
+def time_precisions(model: torch.nn.Module, batch, *, rounds: int = 3, **branches: bool) -> PrecisionTrial:
     """Time the forward and backward of a training step on ``batch`` in float32 and in bfloat16
     autocast, on a copy of ``model`` (its weights, batch-norm statistics and gradients stay as they
     are; the random state is restored). After one warm-up each, the two take turns for ``rounds``
     rounds and each keeps its fastest, so a busy moment of a shared machine counts against neither.
     ``model`` must make no collective calls (time it before batch norm or the loss normaliser are
-    shared between processes)."""
+    shared between processes). ``branches``: the model's branch flags (``image``, ``events``,
+    ``graph``), as a first phase's steps run (``config.PHASE_STEP``)."""
     trial = copy.deepcopy(model).train()
     best = {None: float("inf"), torch.bfloat16: float("inf")}
 
     def step(dtype: torch.dtype | None) -> float:
         start = time.perf_counter()
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=dtype is not None):
-            loss = trial(batch)["loss"]
+            loss = trial(batch, **branches)["loss"]
         loss.backward()
         seconds = time.perf_counter() - start
         trial.zero_grad(set_to_none=True)

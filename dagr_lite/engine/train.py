@@ -15,14 +15,14 @@ from omegaconf import DictConfig, OmegaConf
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.tensorboard import SummaryWriter
 
-from dagr_lite.config import (TrainerSettings, build_dataset, build_model, build_optimizer, check_values,
+from dagr_lite.config import (PHASE_STEP, TrainerSettings, build_dataset, build_model, build_optimizer, check_values,
                               detector_config, resolve_config, trainer_settings, training_size)
 from dagr_lite.engine.clock import TrainingClock, make_clock
 from dagr_lite.engine.distributed import (Distributed, broadcast_object, cleanup, global_normaliser, setup,
                                           synchronise_batch_norm)
 from dagr_lite.engine.loading import batch_maker
 from dagr_lite.engine.loop import NullWriter, TrainLoop, make_data
-from dagr_lite.engine.precision import amp_dtype, memory_format, prefers_trial, time_precisions
+from dagr_lite.engine.precision import PrecisionTrial, amp_dtype, memory_format, prefers_trial, time_precisions
 from dagr_lite.engine.runs import record_resume, resolve_device, seed_everything, write_run_files
 from dagr_lite.engine.starting import resume, resumed_config, shared_run_folder, start_from, start_weights
 from dagr_lite.engine.state import TrainState
@@ -55,6 +55,27 @@ def train(cfg: DictConfig) -> dict:
         cleanup(place)
 
 
+# What a first phase's steps leave out, as the precision trial's line says it.
+PHASE_WORDS = {"events_first": "without the image", "image_first": "without the events", "dense_first": "without the graph"}
+
+
+def schedule_trial(model: torch.nn.Module, batch, trainer: TrainerSettings) -> PrecisionTrial:
+    """The precision trial of a run: a step timed in each precision (:func:`time_precisions`), and
+    with a first phase (``trainer.dense_first`` and the like, whose steps leave a part out and cost
+    differently) that phase's step too, the two weighed by their shares of the schedule
+    (:meth:`PrecisionTrial.of_schedule`)."""
+    whole, key = time_precisions(model, batch), trainer.first_phase
+    if key is None:
+        return whole
+    return PrecisionTrial.of_schedule(time_precisions(model, batch, **PHASE_STEP[key]), float(getattr(trainer, key)),
+                                      whole, by_time=trainer.by_time)
+
+
+def first_phase_words(trainer: TrainerSettings) -> str:
+    key = trainer.first_phase
+    return f"{PHASE_WORDS[key]} (trainer.{key})" if key else ""
+
+
 def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
     if place.is_main:
         print(OmegaConf.to_yaml(cfg), flush=True)
@@ -78,7 +99,7 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
     if prefers_trial(trainer, device):  # a CPU with native bfloat16: bfloat16 if clearly faster on a first batch,
         if place.is_main:               # timed before the processes share batch norm and the loss normaliser
             first = [train_set[(0, index)] for index in range(min(cfg.loader.batch_size, len(train_set)))]
-            trial = time_precisions(model, batch_maker(model.graph_spec)(first))
+            trial = schedule_trial(model, batch_maker(model.graph_spec)(first), trainer)
         trial = broadcast_object(trial, place)
         amp = trial.dtype
     if place.enabled:
@@ -92,7 +113,7 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
     if place.is_main:
         precision = "float32" if state.amp_dtype is None else f"mixed precision {str(state.amp_dtype).split('.')[-1]}"
         other = "trainer.amp_dtype=bfloat16 keeps bfloat16" if amp is None else "trainer.amp=false keeps float32"
-        why = f" ({trial.describe()}; {other})" if trial else ""
+        why = f" ({trial.describe(first_phase_words(trainer))}; {other})" if trial else ""
         print(f"training on {device} in {precision}{why}", flush=True)
     saved = resume(state, resume_from, run_dir / "checkpoints", place) if resume_from else None
     if place.is_main and not (run_dir / "config.yaml").exists():  # all checked: the run folder is made now

@@ -165,6 +165,33 @@ def test_the_precision_trial_times_a_copy_and_keeps_bfloat16_only_when_clearly_f
     assert 0 < trial.float32_s < float("inf") and 0 < trial.bfloat16_s < float("inf")
     assert all(torch.equal(before[key], value) for key, value in state.model.state_dict().items())
     assert all(parameter.grad is None for parameter in state.model.parameters())
+    # a first phase's step: the graph left out, as trainer.dense_first's steps run
+    dense = time_precisions(state.model, batch, rounds=1, graph=False)
+    assert 0 < dense.float32_s < float("inf") and 0 < dense.bfloat16_s < float("inf")
+    assert all(torch.equal(before[key], value) for key, value in state.model.state_dict().items())
+
+
+def test_a_schedule_with_a_first_phase_weighs_its_two_steps_by_their_shares():
+    """A run with a first phase (its cheaper steps for the first share of the schedule) chooses by
+    its mean step: by time, the harmonic mean (the shares are of the run's time, so more steps in
+    it is faster); by steps, the arithmetic mean. Hand-computed cases, and a choice the phase turns."""
+    from dagr_lite.engine.precision import PrecisionTrial
+
+    dense, graph = PrecisionTrial(float32_s=0.1, bfloat16_s=0.05), PrecisionTrial(float32_s=0.3, bfloat16_s=0.32)
+    by_steps = PrecisionTrial.of_schedule(dense, 0.5, graph, by_time=False)
+    assert by_steps.float32_s == pytest.approx(0.2) and by_steps.bfloat16_s == pytest.approx(0.185)
+    by_time = PrecisionTrial.of_schedule(dense, 0.5, graph, by_time=True)
+    assert by_time.float32_s == pytest.approx(1 / (0.5 / 0.1 + 0.5 / 0.3))  # 0.15
+    assert by_time.bfloat16_s == pytest.approx(1 / (0.5 / 0.05 + 0.5 / 0.32))  # 0.0865
+    assert graph.dtype is None  # the graph's step alone keeps float32,
+    assert by_steps.dtype is None  # as the mean step does when the shares are of steps (0.185 > 0.9 x 0.2),
+    assert by_time.dtype == torch.bfloat16  # but not of time: the phase makes twice its steps in bfloat16
+    assert by_time.parts == ((0.5, dense), (0.5, graph))
+    line = by_time.describe("without the graph (trainer.dense_first)")
+    assert line.startswith("a step of the run's schedule took 0.150 s in float32 and 0.086 s in bfloat16 on this CPU "
+                           "(its first 50%, without the graph (trainer.dense_first): 0.100 s and 0.050 s; the rest: "
+                           "0.300 s and 0.320 s)")
+    assert PrecisionTrial.of_schedule(dense, 0.0, graph, by_time=True).float32_s == pytest.approx(0.3)  # no phase
 
 
 def test_mixed_precision_choices_run_a_step_on_the_cpu():

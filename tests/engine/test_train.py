@@ -127,7 +127,8 @@ def test_a_cpu_run_with_native_bfloat16_trains_in_the_precision_its_trial_chose(
 
     monkeypatch.setattr(precision, "cpu_has_bfloat16", lambda: True)
     monkeypatch.setattr(train_module, "time_precisions", trial)
-    cfg = small(tmp_path / "run", "trainer.max_steps=1", "trainer.val_every=1", "trainer.val_samples=2")
+    cfg = small(tmp_path / "run", "trainer.max_steps=1", "trainer.val_every=1", "trainer.val_samples=2",
+                "trainer.dense_first=0")  # no first phase: one kind of step
     cfg.trainer.amp = True
     train(cfg)
     out = capsys.readouterr().out
@@ -137,6 +138,32 @@ def test_a_cpu_run_with_native_bfloat16_trains_in_the_precision_its_trial_chose(
     assert "bfloat16 only if it takes under 0.9 of float32's time" in out  # the rule, beside the times
     other = "trainer.amp=false keeps float32" if faster == "bfloat16" else "trainer.amp_dtype=bfloat16 keeps bfloat16"
     assert other in out  # how to have the other precision
+
+
+def test_a_run_with_a_first_phase_times_both_of_its_steps(tmp_path, monkeypatch, capsys):
+    """With ``trainer.dense_first`` the trial also times the phase's step, the graph left out as the
+    phase trains, and the run chooses by the schedule's mean step, naming both."""
+    import dagr_lite.engine.precision as precision
+    import dagr_lite.engine.train as train_module
+    from dagr_lite.engine.precision import PrecisionTrial
+
+    timed = []
+
+    def trial(model, batch, **step):
+        timed.append(step)
+        return PrecisionTrial(float32_s=0.1, bfloat16_s=0.05) if step else PrecisionTrial(float32_s=0.3, bfloat16_s=0.32)
+
+    monkeypatch.setattr(precision, "cpu_has_bfloat16", lambda: True)
+    monkeypatch.setattr(train_module, "time_precisions", trial)
+    cfg = small(tmp_path / "run", "trainer.max_steps=2", "trainer.val_every=2", "trainer.val_samples=2",
+                "trainer.dense_first=0.5")
+    cfg.trainer.amp = True
+    train(cfg)
+    out = capsys.readouterr().out
+    assert timed == [{}, {"graph": False}]
+    assert ("training on cpu in float32 (a step of the run's schedule took 0.200 s in float32 and 0.185 s in bfloat16 "
+            "on this CPU (its first 50%, without the graph (trainer.dense_first): 0.100 s and 0.050 s; the rest: "
+            "0.300 s and 0.320 s); bfloat16 only if") in out
 
 
 def test_val_samples_validates_on_samples_spread_over_the_split(tmp_path, capsys):
