@@ -17,7 +17,7 @@ from dagr_lite.config import PHASE_STEP, ConfigError, TrainerSettings, build_dat
 from dagr_lite.data.collate import GraphCollate
 from dagr_lite.data.dataset import EventEgoHands
 from dagr_lite.engine.checkpoint import describe_dataset, save_checkpoint
-from dagr_lite.engine.clock import TrainingClock
+from dagr_lite.engine.clock import TrainingClock, make_clock
 from dagr_lite.engine.distributed import Distributed, broadcast_object, gather_objects, mean_over_ranks
 from dagr_lite.engine.loading import EpochSampler, RunSampler, ShardSampler, make_loader
 from dagr_lite.engine.state import TrainState, train_step, validation_pass
@@ -63,6 +63,21 @@ def spread_subset(dataset, count: int):
     if count >= len(dataset):
         return dataset
     return Subset(dataset, [i * len(dataset) // count for i in range(count)])
+
+
+def schedule_done(step: int, total: int, clock: TrainingClock) -> float:
+    """How far along the schedule a run is at ``step`` of ``total``: by steps, and by the time
+    budget with ``schedule_by=time``, whichever is further (a first phase ends by it)."""
+    done = step / max(1, total)
+    return max(done, clock.progress()) if clock.by_time else done
+
+
+def resumed_done(trainer: TrainerSettings, training: dict, steps_per_epoch: int) -> float:
+    """:func:`schedule_done` where a checkpoint's run stopped (its ``training`` state and position)."""
+    step = int(training["step"])
+    clock = make_clock(trainer)
+    clock.start(training.get("position"), step)
+    return schedule_done(step, trainer.total_steps(steps_per_epoch), clock)
 
 
 def make_data(cfg: DictConfig, train_set: EventEgoHands, model, place: Distributed) -> TrainData:
@@ -187,10 +202,7 @@ class TrainLoop:
         whichever is further)."""
         if not self.first_fraction:
             return False
-        done = self.state.step / max(1, self.total)
-        if self.clock.by_time:
-            done = max(done, self.clock.progress())
-        return done < self.first_fraction
+        return schedule_done(self.state.step, self.total, self.clock) < self.first_fraction
 
     def run(self) -> dict:
         """Train to the end of the schedule (or ``trainer.max_minutes``); a SIGTERM (a cluster's

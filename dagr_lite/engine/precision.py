@@ -94,7 +94,7 @@ class PrecisionTrial:
         took = f"{self.float32_s:.3f} s in float32 and {self.bfloat16_s:.3f} s in bfloat16"
         if self.parts:
             (share, first), (_, rest) = self.parts
-            took = (f"a step of the run's schedule took {took} on this CPU (its first {share:.0%}, {phase}: "
+            took = (f"a step of the run's schedule took {took} on this CPU (its first {100 * share:.3g}%, {phase}: "
                     f"{first.float32_s:.3f} s and {first.bfloat16_s:.3f} s; the rest: {rest.float32_s:.3f} s and "
                     f"{rest.bfloat16_s:.3f} s)")
         else:

@@ -17,11 +17,12 @@ from torch.utils.tensorboard import SummaryWriter
 
 from dagr_lite.config import (PHASE_STEP, TrainerSettings, build_dataset, build_model, build_optimizer, check_values,
                               detector_config, resolve_config, trainer_settings, training_size)
+from dagr_lite.engine.checkpoint import load_checkpoint
 from dagr_lite.engine.clock import TrainingClock, make_clock
 from dagr_lite.engine.distributed import (Distributed, broadcast_object, cleanup, global_normaliser, setup,
                                           synchronise_batch_norm)
 from dagr_lite.engine.loading import batch_maker
-from dagr_lite.engine.loop import NullWriter, TrainLoop, make_data
+from dagr_lite.engine.loop import NullWriter, TrainLoop, make_data, resumed_done
 from dagr_lite.engine.precision import PrecisionTrial, amp_dtype, memory_format, prefers_trial, time_precisions
 from dagr_lite.engine.runs import record_resume, resolve_device, seed_everything, write_run_files
 from dagr_lite.engine.starting import resume, resumed_config, shared_run_folder, start_from, start_weights
@@ -59,16 +60,18 @@ def train(cfg: DictConfig) -> dict:
 PHASE_WORDS = {"events_first": "without the image", "image_first": "without the events", "dense_first": "without the graph"}
 
 
-def schedule_trial(model: torch.nn.Module, batch, trainer: TrainerSettings) -> PrecisionTrial:
+def schedule_trial(model: torch.nn.Module, batch, trainer: TrainerSettings, done: float = 0.0) -> PrecisionTrial:
     """The precision trial of a run: a step timed in each precision (:func:`time_precisions`), and
     with a first phase (``trainer.dense_first`` and the like, whose steps leave a part out and cost
-    differently) that phase's step too, the two weighed by their shares of the schedule
-    (:meth:`PrecisionTrial.of_schedule`)."""
+    differently) that phase's step too, the two weighed by their shares of the schedule left
+    (:meth:`PrecisionTrial.of_schedule`); ``done``: the part a resumed run has trained
+    (:func:`~dagr_lite.engine.loop.resumed_done`), past the phase none of it is left."""
     whole, key = time_precisions(model, batch), trainer.first_phase
-    if key is None:
+    share = (max(0.0, float(getattr(trainer, key)) - done) / (1.0 - done)) if key is not None and done < 1 else 0.0
+    if not share:
         return whole
-    return PrecisionTrial.of_schedule(time_precisions(model, batch, **PHASE_STEP[key]), float(getattr(trainer, key)),
-                                      whole, by_time=trainer.by_time)
+    return PrecisionTrial.of_schedule(time_precisions(model, batch, **PHASE_STEP[key]), share, whole,
+                                      by_time=trainer.by_time)
 
 
 def first_phase_words(trainer: TrainerSettings) -> str:
@@ -99,7 +102,10 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
     if prefers_trial(trainer, device):  # a CPU with native bfloat16: bfloat16 if clearly faster on a first batch,
         if place.is_main:               # timed before the processes share batch norm and the loss normaliser
             first = [train_set[(0, index)] for index in range(min(cfg.loader.batch_size, len(train_set)))]
-            trial = schedule_trial(model, batch_maker(model.graph_spec)(first), trainer)
+            done = (resumed_done(trainer, load_checkpoint(resume_from).training,
+                                 len(train_set) // (cfg.loader.batch_size * place.world_size))
+                    if resume_from is not None and trainer.first_phase else 0.0)
+            trial = schedule_trial(model, batch_maker(model.graph_spec)(first), trainer, done)
         trial = broadcast_object(trial, place)
         amp = trial.dtype
     if place.enabled:

@@ -7,7 +7,7 @@ import torch
 
 from dagr_lite.config import build_model, build_optimizer, compose_config, resolve_config
 from dagr_lite.data.collate import collate
-from dagr_lite.engine.loading import make_loader
+from dagr_lite.engine.loading import batch_maker, make_loader
 from dagr_lite.engine.state import TrainState, train_step, validate
 from dagr_lite.eval.coco import METRIC_KEYS
 from dagr_lite.eval.score import score_model
@@ -165,8 +165,16 @@ def test_the_precision_trial_times_a_copy_and_keeps_bfloat16_only_when_clearly_f
     assert 0 < trial.float32_s < float("inf") and 0 < trial.bfloat16_s < float("inf")
     assert all(torch.equal(before[key], value) for key, value in state.model.state_dict().items())
     assert all(parameter.grad is None for parameter in state.model.parameters())
-    # a first phase's step: the graph left out, as trainer.dense_first's steps run
-    dense = time_precisions(state.model, batch, rounds=1, graph=False)
+    # a first phase's step: the graph left out, as trainer.dense_first's steps run (the flag reaches
+    # the model: its event branch runs in the whole step's trial and not in the phase's)
+    ran = []
+    state.model.events.register_forward_hook(lambda *_: ran.append(1))
+    graph_batch = batch_maker(state.model.graph_spec)([dataset[i] for i in (3, 40)])
+    time_precisions(state.model, graph_batch, rounds=1)
+    assert ran
+    ran.clear()
+    dense = time_precisions(state.model, graph_batch, rounds=1, graph=False)
+    assert not ran
     assert 0 < dense.float32_s < float("inf") and 0 < dense.bfloat16_s < float("inf")
     assert all(torch.equal(before[key], value) for key, value in state.model.state_dict().items())
 

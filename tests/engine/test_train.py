@@ -164,6 +164,27 @@ def test_a_run_with_a_first_phase_times_both_of_its_steps(tmp_path, monkeypatch,
     assert ("training on cpu in float32 (a step of the run's schedule took 0.200 s in float32 and 0.185 s in bfloat16 "
             "on this CPU (its first 50%, without the graph (trainer.dense_first): 0.100 s and 0.050 s; the rest: "
             "0.300 s and 0.320 s); bfloat16 only if") in out
+    # the quick recipes' schedule by time: the shares are of the run's time, the harmonic mean turns the choice
+    cfg = small(tmp_path / "by_time", "trainer.max_steps=2", "trainer.val_every=2", "trainer.val_samples=2",
+                "trainer.dense_first=0.5", "trainer.schedule_by=time", "trainer.max_minutes=30")
+    cfg.trainer.amp = True
+    train(cfg)
+    assert ("training on cpu in mixed precision bfloat16 (a step of the run's schedule took 0.150 s in float32 and "
+            "0.086 s in bfloat16") in capsys.readouterr().out
+    # resumed past the phase: only the whole step is left to time; resumed a quarter in: a third of what is left
+    timed.clear()
+    cfg = small(tmp_path / "resumed", "trainer.max_steps=4", "trainer.val_every=4", "trainer.val_samples=2",
+                "trainer.dense_first=0.5", f"resume={tmp_path / 'run' / 'checkpoints' / 'last.pt'}")
+    cfg.trainer.amp = True
+    train(cfg)  # the checkpoint of step 2 of 4: half done, the phase over
+    out = capsys.readouterr().out
+    assert timed == [{}] and "step's forward and backward took 0.300 s in float32 and 0.320 s in bfloat16 on" in out
+    timed.clear()
+    cfg = small(tmp_path / "resumed8", "trainer.max_steps=8", "trainer.val_every=8", "trainer.val_samples=2",
+                "trainer.dense_first=0.5", f"resume={tmp_path / 'run' / 'checkpoints' / 'last.pt'}")
+    cfg.trainer.amp = True
+    train(cfg)  # step 2 of 8: a quarter done, a quarter of the phase left, a third of the rest
+    assert timed == [{}, {"graph": False}] and "(its first 33.3%, without the graph" in capsys.readouterr().out
 
 
 def test_val_samples_validates_on_samples_spread_over_the_split(tmp_path, capsys):
