@@ -45,8 +45,12 @@ class TrainData:
 
     @property
     def steps_per_epoch(self) -> int:
-        """Whole global batches per epoch (an incomplete last one is dropped)."""
-        return len(self.train_set) // self.global_batch_size
+        return epoch_steps(len(self.train_set), self.global_batch_size)
+
+
+def epoch_steps(samples: int, global_batch: int) -> int:
+    """Whole global batches per epoch of ``samples`` training samples (an incomplete last one is dropped)."""
+    return samples // global_batch
 
 
 def validation_ages(cfg: DictConfig) -> list[int]:

@@ -22,7 +22,7 @@ from dagr_lite.engine.clock import TrainingClock, make_clock
 from dagr_lite.engine.distributed import (Distributed, broadcast_object, cleanup, global_normaliser, setup,
                                           synchronise_batch_norm)
 from dagr_lite.engine.loading import batch_maker
-from dagr_lite.engine.loop import NullWriter, TrainLoop, make_data, resumed_done
+from dagr_lite.engine.loop import NullWriter, TrainLoop, epoch_steps, make_data, resumed_done
 from dagr_lite.engine.precision import PrecisionTrial, amp_dtype, memory_format, prefers_trial, time_precisions
 from dagr_lite.engine.runs import record_resume, resolve_device, seed_everything, write_run_files
 from dagr_lite.engine.starting import resume, resumed_config, shared_run_folder, start_from, start_weights
@@ -103,7 +103,7 @@ def _train(cfg: DictConfig, place: Distributed, device: torch.device) -> dict:
         if place.is_main:               # timed before the processes share batch norm and the loss normaliser
             first = [train_set[(0, index)] for index in range(min(cfg.loader.batch_size, len(train_set)))]
             done = (resumed_done(trainer, load_checkpoint(resume_from).training,
-                                 len(train_set) // (cfg.loader.batch_size * place.world_size))
+                                 epoch_steps(len(train_set), cfg.loader.batch_size * place.world_size))
                     if resume_from is not None and trainer.first_phase else 0.0)
             trial = schedule_trial(model, batch_maker(model.graph_spec)(first), trainer, done)
         trial = broadcast_object(trial, place)
