@@ -25,6 +25,7 @@ import numpy as np
 from dagr_lite.errors import UserError
 from dagr_lite.data import format as fmt
 from dagr_lite.synth.stub import Splits, boxes_of, cached_dataset, paint_ellipse, scene_at, write_scenes
+from dagr_lite.synth.dvs import LUMA_WEIGHTS, DVSParams
 from dagr_lite.synth.video import choose_dvs_model
 
 # Bump when the generated data changes, so caches made by an older recipe are not reused.
@@ -280,13 +281,41 @@ class EgoScene:
     def boxes(self, k: int) -> np.ndarray:
         """``(M, 4)`` xywh around the visible pixels of each hand at frame ``k`` (hands showing at
         least ``MIN_VISIBLE_PIXELS`` pixels and ``MIN_BOX_SIZE`` px each way)."""
-        owner = self.paint(k / self.fps)[1]
-        corners = []
+        return boxes_of([corners for _, corners in self._visible(self.paint(k / self.fps)[1])], MIN_BOX_SIZE)
+
+    def luma_contrasts(self, k: int, *, margin: int = 6, threshold: float = DVSParams.pos_threshold,
+                       lin_log_dn: float = DVSParams.lin_log_dn) -> np.ndarray:
+        """``(M,)`` each boxed hand's luma contrast with what lies around it at frame ``k``, in the
+        order of :meth:`boxes`: ``|ln(L_hand / L_around)| / threshold``, where ``L_hand`` is the mean
+        BT.601 luma of the pixels painted as the hand and ``L_around`` that of the pixels showing no
+        hand within ``margin`` px of its box, each at least ``lin_log_dn`` (the emulator's lin-log
+        joint). A DVS pixel sees log luma, not colour: a hand's edge fires about this many events a
+        pixel as it passes (the presets' threshold, 0.2), so a hand under one threshold
+        is nearly invisible to the events however its colour differs. NaN where fewer than
+        ``MIN_VISIBLE_PIXELS`` pixels lie around it."""
+        image, owner = self.paint(k / self.fps)
+        luma = np.maximum(image @ LUMA_WEIGHTS.astype(np.float32), lin_log_dn)
+        out = []
+        for index, (x1, y1, x2, y2) in self._visible(owner):
+            if x2 - x1 < MIN_BOX_SIZE or y2 - y1 < MIN_BOX_SIZE:
+                continue  # no box (boxes_of)
+            y0, y3, x0, x3 = max(y1 - margin, 0), y2 + margin, max(x1 - margin, 0), x2 + margin
+            around = owner[y0:y3, x0:x3] == 0
+            if around.sum() < MIN_VISIBLE_PIXELS:
+                out.append(np.nan)
+                continue
+            hand = luma[owner == index].mean()
+            out.append(abs(np.log(hand / luma[y0:y3, x0:x3][around].mean())) / threshold)
+        return np.asarray(out, dtype=np.float64)
+
+    def _visible(self, owner: np.ndarray) -> list[tuple[int, tuple[int, int, int, int]]]:
+        """``(hand index, (x1, y1, x2, y2))`` of each hand showing at least ``MIN_VISIBLE_PIXELS`` pixels."""
+        out = []
         for index in range(1, len(self.hand) + 1):
             rows, cols = np.nonzero(owner == index)
             if len(rows) >= MIN_VISIBLE_PIXELS:
-                corners.append((cols.min(), rows.min(), cols.max() + 1, rows.max() + 1))
-        return boxes_of(corners, MIN_BOX_SIZE)
+                out.append((index, (int(cols.min()), int(rows.min()), int(cols.max()) + 1, int(rows.max()) + 1)))
+        return out
 
 
 def generate_ego(out: Path | str, *, seconds: float = EGO_SECONDS, splits: Splits | None = None,

@@ -10,6 +10,7 @@ from dagr_lite.data import format as fmt
 from dagr_lite.data.check import check_dataset
 from dagr_lite.data.events import EventFile
 from dagr_lite.synth import ego
+from dagr_lite.synth.dvs import LUMA_WEIGHTS as LUMA
 from dagr_lite.synth.ego import EgoScene, generate_ego
 from dagr_lite.synth.stub import generate_stub, generation_workers, split_of_videos
 from tests.settings import sample_set
@@ -120,6 +121,44 @@ def test_boxes_hold_each_hands_visible_pixels_and_occlusion_hides_them():
                 assert not owner[r0:r1, c0:c1].any()  # nothing behind the object counts as hand
                 occluded += 1
     assert occluded > 0
+
+
+def test_luma_contrast_is_the_log_ratio_of_a_hand_to_its_surroundings_in_thresholds():
+    # Hands of one known skin over a flat world, without flicker: every contrast is a per-pixel
+    # loop's over the painted scene, lies within what the hands' shading allows (0.7 to 1 of the skin
+    # towards the rim), and does not change with the light, which scales hand and world alike.
+    scene = EgoScene(3)
+    world_rgb, skin = np.array([90.0, 100.0, 110.0], np.float32), np.array([200.0, 140.0, 100.0], np.float32)
+    scene.world[:] = world_rgb
+    scene.flicker_amp, scene.occluder = 0.0, None
+    for hand in scene.hand:
+        hand["skin"], hand["sleeve"] = skin, None
+    low, high = (np.log(np.array([0.7, 1.0]) * (skin @ LUMA) / (world_rgb @ LUMA)) / 0.2)
+    seen = 0
+    for k in range(0, scene.num_frames, 7):
+        boxes, contrasts = scene.boxes(k), scene.luma_contrasts(k)
+        assert contrasts.shape == (len(boxes),)
+        image, owner = scene.paint(k / scene.fps)
+        luma = np.maximum(image.astype(np.float64) @ LUMA, 20.0)
+        for (x, y, w, h), contrast in zip(boxes.astype(int), contrasts):
+            index = np.bincount(owner[y:y + h, x:x + w].ravel(), minlength=2)[1:].argmax() + 1
+            around = []
+            for r in range(max(y - 6, 0), min(y + h + 6, scene.height)):
+                for c in range(max(x - 6, 0), min(x + w + 6, scene.width)):
+                    if owner[r, c] == 0:
+                        around.append(luma[r, c])
+            hand = luma[owner == index]
+            reference = abs(np.log(np.mean(hand) / np.mean(around))) / 0.2 if len(around) >= 30 else np.nan
+            np.testing.assert_allclose(contrast, reference, rtol=1e-5)  # float32 luma against float64
+            if np.isfinite(contrast):
+                assert low - 1e-6 <= contrast <= high + 1e-6
+                seen += 1
+        np.testing.assert_allclose(scene.luma_contrasts(k, threshold=0.1), 2 * contrasts, rtol=1e-9)
+    assert seen > 0
+    before = [scene.luma_contrasts(k) for k in range(0, scene.num_frames, 7)]
+    scene.light_phase += 1.5
+    for k, contrasts in zip(range(0, scene.num_frames, 7), before):
+        np.testing.assert_allclose(scene.luma_contrasts(k), contrasts, rtol=1e-5)
 
 
 def test_ego_has_skin_coloured_background_and_moves_more_than_the_stub(tmp_path):
