@@ -297,14 +297,14 @@ class EgoScene:
         luma = np.maximum(image @ LUMA_WEIGHTS.astype(np.float32), lin_log_dn)
         out = []
         for index, (x1, y1, x2, y2) in self._visible(owner):
-            if x2 - x1 < MIN_BOX_SIZE or y2 - y1 < MIN_BOX_SIZE:
-                continue  # no box (boxes_of)
+            if not len(boxes_of([(x1, y1, x2, y2)], MIN_BOX_SIZE)):
+                continue  # a hand without a box
             y0, y3, x0, x3 = max(y1 - margin, 0), y2 + margin, max(x1 - margin, 0), x2 + margin
             around = owner[y0:y3, x0:x3] == 0
             if around.sum() < MIN_VISIBLE_PIXELS:
                 out.append(np.nan)
                 continue
-            hand = luma[owner == index].mean()
+            hand = luma[y1:y2, x1:x2][owner[y1:y2, x1:x2] == index].mean()  # its box holds all its pixels
             out.append(abs(np.log(hand / luma[y0:y3, x0:x3][around].mean())) / threshold)
         return np.asarray(out, dtype=np.float64)
 
