@@ -138,7 +138,7 @@ def stream_run(model: Detector, rec: Recording, update_us: float, t0: float, t1:
     stream.push_events(**{key: v[begin:start] for key, v in ev.items()})  # warm-up, not timed
     stream.detect(t0)
     stream.timings = {}
-    counter = MacCounter(model)
+    counter = MacCounter(stream.net)  # the copy that answers
     latencies, events_in, next_frame = [], 0, k + 1
     now = t0
     while now < t1:

@@ -36,6 +36,7 @@ rebuilt from the horizon's nodes. With a sample's graph context of at least that
 """
 from __future__ import annotations
 
+import copy
 import math
 import time
 from contextlib import contextmanager
@@ -50,6 +51,7 @@ from dagr_lite.data.spec import SampleSpec
 from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.graph.pool import PooledGraph, recency_cells, recency_from_latest
 from dagr_lite.graph.streaming import StreamingGraph
+from dagr_lite.nn.blocks import fold_batch_norms
 from dagr_lite.nn.detector import Detector, DetectorConfig
 from dagr_lite.nn.gcn import GraphOperator
 from dagr_lite.nn.head import postprocess
@@ -148,7 +150,7 @@ class _Segment:
     node ``base + i``."""
 
     def __init__(self, detector: "StreamingDetector", origin_us: float):
-        model, branch = detector.model, detector.model.events
+        model, branch = detector.net, detector.net.events
         spec = model.graph_spec
         self.origin_us, self.base = origin_us, 0
         self.first_us = origin_us  # the earliest event time of the segment's sample
@@ -208,6 +210,10 @@ class StreamingDetector:
         operating: the score threshold and NMS IoU of its answers
             (:class:`~dagr_lite.eval.operating.OperatingPoint`).
 
+    ``model`` stays the model given, which the answers equal; ``net`` is the copy that answers, each
+    convolution's batch norm folded into it (:func:`~dagr_lite.nn.blocks.fold_batch_norms`: equal up
+    to rounding, one operation less per block). Its state is made and changed in inference mode.
+
     Times are microseconds on the stream's clock. Events come as numpy arrays sorted by time;
     ``x``, ``y`` in pixels of the model's frame size, ``p`` in {0, 1}. Bad input raises
     ``ValueError`` naming what was wrong and leaves the detector as it was.
@@ -215,7 +221,9 @@ class StreamingDetector:
 
     def __init__(self, model: Detector, sample: SampleSpec, operating: OperatingPoint):
         check_streamable(model.cfg, sample)
-        self.model = model.eval()
+        self.model = model.eval()  # the model given, which the answers equal
+        # What answers: a copy with each convolution's batch norm folded into it (one operation less per block).
+        self.net = fold_batch_norms(copy.deepcopy(model))
         parameter = next(model.parameters())
         self.dtype, self.device = parameter.dtype, parameter.device
         self.hybrid = model.image is not None
@@ -309,7 +317,8 @@ class StreamingDetector:
     @property
     def origin_us(self) -> float | None:
         """The time event times count from in the model (a hybrid's image time; None before any)."""
-        self._ingest()
+        with torch.inference_mode():
+            self._ingest()
         return None if self._segment is None else self._segment.origin_us
 
     # ---------------------------------------------------------------- input
@@ -337,15 +346,16 @@ class StreamingDetector:
             raise UserError(f"image at t={t_us:g} us needs the events from {read_from:g} us, but "
                              f"only those since {self._kept_from:g} us are kept (an image may be at most "
                              f"{MAX_IMAGE_DELAY_US} us older than the latest event)")
-        with torch.no_grad(), self._part("image features"):
-            image_maps = self.model.frame_maps(self._pixels(image))
-            self._image = (image_maps, self.model.node_maps(image_maps))
-        self._t_image, self._frame = t_us, image
-        self._carry = carry  # the picture restarts from the logged events since the image
-        self._add_to_carry(*(self._log[key].view for key in ("x", "y", "t", "p")))
-        # Events older than the horizon of the earliest answer left to give are not read; the log keeps
-        # those a later image's sample may read (its context, its carry picture's confirmation).
-        self._start_segment(t_us, needed_from, keep_from_us=t_us - self._lead_us)
+        with torch.inference_mode():  # every tensor of the stream's state is made and changed in inference mode
+            with self._part("image features"):
+                image_maps = self.net.frame_maps(self._pixels(image))
+                self._image = (image_maps, self.net.node_maps(image_maps))
+            self._t_image, self._frame = t_us, image
+            self._carry = carry  # the picture restarts from the logged events since the image
+            self._add_to_carry(*(self._log[key].view for key in ("x", "y", "t", "p")))
+            # Events older than the horizon of the earliest answer left to give are not read; the log keeps
+            # those a later image's sample may read (its context, its carry picture's confirmation).
+            self._start_segment(t_us, needed_from, keep_from_us=t_us - self._lead_us)
 
     def push_events(self, x, y, t, p) -> None:
         """Events sorted by ``t`` (any number, including 0), not earlier than any pushed before."""
@@ -409,17 +419,17 @@ class StreamingDetector:
             raise UserError("a hybrid model needs an image before it can detect: call push_image first")
         if self.hybrid and t_us < self._t_image:
             raise UserError(f"detect time {t_us:g} us is earlier than the image ({self._t_image:g} us)")
-        with torch.no_grad():
+        with torch.inference_mode():
             raw, shapes = self._head_outputs(t_us)
-        with torch.no_grad(), self._part("decode + NMS"):
-            result = postprocess(raw, shapes, self.model.answer_strides(shapes), conf_threshold=self.operating.score,
+        with torch.inference_mode(), self._part("decode + NMS"):
+            result = postprocess(raw, shapes, self.net.answer_strides(shapes), conf_threshold=self.operating.score,
                                  nms_threshold=self.operating.nms_iou, image_size=(self.height, self.width))[0]
         return {"boxes": result["boxes"].cpu().numpy(), "scores": result["scores"].cpu().numpy(),
                 "labels": result["labels"].cpu().numpy(), "t_us": t_us}
 
     def head_outputs(self, t_us: float) -> tuple[torch.Tensor, list[tuple[int, int]]]:
         """The head's raw output ``(1, A, 5 + C)`` and map shapes at ``t_us`` (no checks)."""
-        with torch.no_grad():
+        with torch.inference_mode():
             return self._head_outputs(t_us)
 
     def _head_outputs(self, t_us: float) -> tuple[torch.Tensor, list[tuple[int, int]]]:
@@ -433,7 +443,7 @@ class StreamingDetector:
             # No event of the segment has left the horizon: the cells kept up to date serve.
             if segment.maps is None or segment.maps[0] != segment.events.n:  # the pooled stages saw new nodes
                 with self._part("pooled stages"):
-                    maps = self.model.events.maps_from_first_pool(segment.cells.graph(), self._sampler())
+                    maps = self.net.events.maps_from_first_pool(segment.cells.graph(), self._sampler())
                 segment.maps = (segment.events.n, maps)
             event_maps = segment.maps[1]
         else:
@@ -451,7 +461,7 @@ class StreamingDetector:
 
     def _head(self, event_maps: list[torch.Tensor], t_us: float, t_start: float, origin: float):
         image_maps = self._image[0] if self.hybrid else None
-        model = self.model
+        model = self.net
         if model.cfg.late_query:
             with self._part("head towers (changed cells)"):
                 self._segment.towers.update(image_maps, event_maps)
@@ -488,7 +498,7 @@ class StreamingDetector:
         self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - start
 
     def _sampler(self):
-        return self.model.node_sampler(self._image[1]) if self.hybrid else None
+        return self.net.node_sampler(self._image[1]) if self.hybrid else None
 
     def _pixels(self, *parts: np.ndarray) -> torch.Tensor:
         """``(H, W, C_i)`` uint8 pictures, channels joined in order, as the ``(1, sum C_i, H, W)`` batch the
@@ -550,9 +560,9 @@ class StreamingDetector:
 
     def _add(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> None:
         """New events into the graph, the first stage (new nodes only), the cells and the recency times."""
-        segment, branch = self._segment, self.model.events
+        segment, branch = self._segment, self.net.events
         events = torch.from_numpy(np.stack([x, y, t - segment.origin_us, p], axis=1)).to(self.device, self.dtype)
-        spec = self.model.graph_spec
+        spec = self.net.graph_spec
         pos = spec.positions(events)  # (M, 3)
         exact = spec.positions(events.double())  # float64, exact: the graph's and the geometry's
         with self._part("graph"):
@@ -590,7 +600,7 @@ class StreamingDetector:
             segment.cell.extend(segment.cells.cell_of(pos))
             cell = segment.cell.view
             segment.cells.add(segment.h[-1].view[old:], pos, cell[old:], cell[edges - segment.base])
-        for latest, stride, (h, w) in zip(segment.latest, self.model.strides, self.map_sizes):
+        for latest, stride, (h, w) in zip(segment.latest, self.net.strides, self.map_sizes):
             key = recency_cells(events, batch, stride=stride, height=h, width=w)
             latest.scatter_reduce_(0, key, events[:, 2], reduce="amax")
 
@@ -611,7 +621,7 @@ class StreamingDetector:
         """The dense maps over the events since ``t_start``: the nodes of the first ``reach_us`` of
         the horizon recomputed from its events, the rest cached; with a graph context every node
         is cached (its features never depend on the horizon's start) and only the pooling is redone."""
-        segment, branch, spec = self._segment, self.model.events, self.model.graph_spec
+        segment, branch, spec = self._segment, self.net.events, self.net.graph_spec
         sampler = self._sampler()
         t = segment.t_abs.view
         first = int(np.searchsorted(t, t_start, side="left"))

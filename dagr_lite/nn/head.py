@@ -311,8 +311,11 @@ def conv_rows(conv: nn.Conv2d) -> torch.Tensor:
 
 def norm_act_rows(block: nn.Sequential, y: torch.Tensor) -> torch.Tensor:
     """A :func:`~dagr_lite.nn.blocks.conv_bn_act` block's batch norm (evaluation mode) and
-    activation on rows ``y (n, C)`` of its convolution's output."""
-    _, bn, act = block
+    activation on rows ``y (n, C)`` of its convolution's output (without its bias: a block whose
+    batch norm :func:`~dagr_lite.nn.blocks.fold_batch_norms` folded adds its convolution's bias)."""
+    conv, bn, act = block
+    if isinstance(bn, nn.Identity):
+        return act(y + conv.bias)
     return act(F.batch_norm(y, bn.running_mean, bn.running_var, bn.weight, bn.bias, False, 0.0, bn.eps))
 
 
