@@ -421,9 +421,9 @@ class StreamingDetector:
             raise UserError(f"detect time {t_us:g} us is earlier than the image ({self._t_image:g} us)")
         with torch.inference_mode():
             raw, shapes = self._head_outputs(t_us)
-        with torch.inference_mode(), self._part("decode + NMS"):
-            result = postprocess(raw, shapes, self.net.answer_strides(shapes), conf_threshold=self.operating.score,
-                                 nms_threshold=self.operating.nms_iou, image_size=(self.height, self.width))[0]
+            with self._part("decode + NMS"):
+                result = postprocess(raw, shapes, self.net.answer_strides(shapes), conf_threshold=self.operating.score,
+                                     nms_threshold=self.operating.nms_iou, image_size=(self.height, self.width))[0]
         return {"boxes": result["boxes"].cpu().numpy(), "scores": result["scores"].cpu().numpy(),
                 "labels": result["labels"].cpu().numpy(), "t_us": t_us}
 
