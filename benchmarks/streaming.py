@@ -3,11 +3,13 @@
     python benchmarks/streaming.py --ckpt <hybrid>/checkpoints/best.pt [<events_only>/checkpoints/best.pt]
                                    [--seconds 0.5] [--sizes 320x180 640x360] [--camera 320x240]
                                    [--camera-rate 450000] [--updates-ms 0.1 1 5] [--threads 2]
+                                   [--keep-camera DIR]
 
 Scenes: the stub's first test video (320x180); a hand scene of the stub's generator rendered and
 emulated at 640x360; and a camera-rate scene at 320x240 (``--camera``): the same generator
 emulated with contrast thresholds lowered until it emits ``--camera-rate`` events/s (up to 25 %
-more), as a real sensor of one moving hand does (made once into a temporary folder). Images
+more), as a real sensor of one moving hand does (made once into a temporary folder; ``--keep-camera
+DIR`` also keeps it, in the dataset layout, for ``python detect.py input=DIR/test/events/<video>.h5``). Images
 arrive at 30 Hz and are part of the update they arrive in. For each checkpoint, scene and update size it prints:
   * the median and p95 latency of one update (push_events, any push_image, detect) against the
     median of full batch passes (graph build, model, decoding) on the samples of the same moments;
@@ -24,6 +26,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -31,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dagr_lite.data import format as fmt
 from dagr_lite.data.collate import collate
 from dagr_lite.data.dataset import CarryPicture, Sample, channels_first, sample_start_us
 from dagr_lite.data.labels import list_videos
@@ -96,6 +100,18 @@ def camera_recording(size: tuple[int, int], seconds: float, rate: float, workdir
         low, high = (low, scale) if got < rate else (scale, high)
     raise RuntimeError(f"could not emulate {rate:.0f} to {1.25 * rate:.0f} events/s at {width}x{height} "
                        f"(the last try gave {got:.0f})")
+
+
+def keep_scene(workdir: Path, video: str, dest: Path) -> Path:
+    """Copies ``video`` of ``workdir``'s test split (its event file and frame folder) into ``dest``,
+    a new or empty folder, in the same layout; returns the event file's path there."""
+    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
+        raise SystemExit(f"--keep-camera {dest}: exists and is not an empty folder; choose a new one")
+    events = fmt.events_path(dest, "test", video)
+    events.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(fmt.events_path(workdir, "test", video), events)
+    shutil.copytree(fmt.frames_dir(workdir, "test", video), fmt.frames_dir(dest, "test", video))
+    return events
 
 
 def model_at(checkpoint: Checkpoint, height: int, width: int) -> Detector:
@@ -275,10 +291,15 @@ def main() -> None:
     parser.add_argument("--updates-ms", nargs="+", type=float, default=[0.1, 1.0, 5.0])
     parser.add_argument("--full-passes", type=int, default=8, help="moments at which a full pass is timed")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--keep-camera", type=Path, default=None, metavar="DIR",
+                        help="also keep the camera-rate scene in DIR (new or empty), for detect.py")
     parser.add_argument("--graph-context-us", type=int, default=None,
                         help="time the checkpoints on a sample with this graph context (data.graph_context_us) "
                              "instead of their own (0 or at least the graph's reach)")
     args = parser.parse_args()
+    if args.keep_camera is not None and args.keep_camera.exists() and (
+            not args.keep_camera.is_dir() or any(args.keep_camera.iterdir())):
+        parser.error(f"--keep-camera {args.keep_camera}: exists and is not an empty folder; choose a new one")
     torch.set_num_threads(args.threads)
     states = {path: load_checkpoint(path) for path in args.ckpt}
     print(f"torch {torch.__version__}, {args.threads} threads, checkpoints {', '.join(args.ckpt)}")
@@ -289,6 +310,10 @@ def main() -> None:
         if args.camera != "none":
             scenes.append(camera_recording(size_of(args.camera), args.seconds, args.camera_rate, Path(workdir))
                           + ("camera",))
+            if args.keep_camera is not None:
+                kept = keep_scene(Path(workdir), scenes[-1][1].video, args.keep_camera)
+                print(f"camera-rate scene kept: {kept} (its frames beside it); run it with python detect.py "
+                      f"ckpt=CKPT input={kept} rate_hz=100 sensor.model_size=sensor")
         for path, state in states.items():
             model_name = label(state)
             for name, rec, kind in scenes:
