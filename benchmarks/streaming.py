@@ -102,11 +102,19 @@ def camera_recording(size: tuple[int, int], seconds: float, rate: float, workdir
                        f"(the last try gave {got:.0f})")
 
 
+def kept_elsewhere(dest: Path) -> str | None:
+    """Why ``dest`` cannot take a kept scene (it exists and is not an empty folder), or None."""
+    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
+        return f"--keep-camera {dest}: exists and is not an empty folder; choose a new one"
+    return None
+
+
 def keep_scene(workdir: Path, video: str, dest: Path) -> Path:
     """Copies ``video`` of ``workdir``'s test split (its event file and frame folder) into ``dest``,
     a new or empty folder, in the same layout; returns the event file's path there."""
-    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
-        raise SystemExit(f"--keep-camera {dest}: exists and is not an empty folder; choose a new one")
+    refused = kept_elsewhere(dest)
+    if refused:
+        raise SystemExit(refused)
     events = fmt.events_path(dest, "test", video)
     events.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(fmt.events_path(workdir, "test", video), events)
@@ -297,9 +305,8 @@ def main() -> None:
                         help="time the checkpoints on a sample with this graph context (data.graph_context_us) "
                              "instead of their own (0 or at least the graph's reach)")
     args = parser.parse_args()
-    if args.keep_camera is not None and args.keep_camera.exists() and (
-            not args.keep_camera.is_dir() or any(args.keep_camera.iterdir())):
-        parser.error(f"--keep-camera {args.keep_camera}: exists and is not an empty folder; choose a new one")
+    if args.keep_camera is not None and (refused := kept_elsewhere(args.keep_camera)):
+        parser.error(refused)  # before any scene is made
     torch.set_num_threads(args.threads)
     states = {path: load_checkpoint(path) for path in args.ckpt}
     print(f"torch {torch.__version__}, {args.threads} threads, checkpoints {', '.join(args.ckpt)}")

@@ -13,12 +13,18 @@ from dagr_lite.synth.stub import stub_root
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "streaming.py"
 
 
-def test_the_full_pass_reads_the_default_hybrids_carry_picture(trained_checkpoints):
-    """The default hybrid's carry branch reads the frame beside a four-channel picture; the
-    benchmark's full pass builds that sample (a three-channel picture is refused by the model)."""
+def benchmark():
+    """The benchmark script as a module."""
     spec = importlib.util.spec_from_file_location("streaming_benchmark", SCRIPT)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
+    return bench
+
+
+def test_the_full_pass_reads_the_default_hybrids_carry_picture(trained_checkpoints):
+    """The default hybrid's carry branch reads the frame beside a four-channel picture; the
+    benchmark's full pass builds that sample (a three-channel picture is refused by the model)."""
+    bench = benchmark()
     checkpoint = load_checkpoint(trained_checkpoints["hybrid"])
     assert checkpoint.detector.carry_channels == 4 and checkpoint.sample.carry_recent_us > 0
     model = checkpoint.model(checkpoint.detector).eval()
@@ -31,9 +37,7 @@ def test_the_full_pass_reads_the_default_hybrids_carry_picture(trained_checkpoin
 def test_a_kept_scene_reads_as_the_video_it_copies(tmp_path):
     """``--keep-camera``: the scene's event file and frames are copied in the dataset layout (so detect
     and ``Recording`` read it as they read the original), and a folder holding anything is refused."""
-    spec = importlib.util.spec_from_file_location("streaming_benchmark", SCRIPT)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = benchmark()
     root = stub_root()
     original = Recording(root, "test", None)
     kept = bench.keep_scene(root, original.video, tmp_path / "kept")
