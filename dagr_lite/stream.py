@@ -51,7 +51,7 @@ from dagr_lite.data.spec import SampleSpec
 from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.graph.pool import PooledGraph, recency_cells, recency_from_latest
 from dagr_lite.graph.streaming import StreamingGraph
-from dagr_lite.nn.blocks import fold_batch_norms
+from dagr_lite.nn.blocks import fold_batch_norms, pack_convolutions
 from dagr_lite.nn.detector import Detector, DetectorConfig
 from dagr_lite.nn.gcn import GraphOperator
 from dagr_lite.nn.head import postprocess
@@ -209,21 +209,30 @@ class StreamingDetector:
             those a refractory period or the background-activity filter drops, decided as they arrive.
         operating: the score threshold and NMS IoU of its answers
             (:class:`~dagr_lite.eval.operating.OperatingPoint`).
+        packed: the answering copy's convolutions packed for oneDNN, with their activations
+            (:func:`~dagr_lite.nn.blocks.pack_convolutions`; float32 on a CPU); false: torch's own
+            convolutions (the baseline of ``benchmarks/packed_convolutions.py``).
 
     ``model`` stays the model given, which the answers equal; ``net`` is the copy that answers, each
     convolution's batch norm folded into it (:func:`~dagr_lite.nn.blocks.fold_batch_norms`: equal up
-    to rounding, one operation less per block). Its state is made and changed in inference mode.
+    to rounding, one operation less per block) and, with ``packed``, each convolution's weight laid out
+    once for oneDNN with the SiLU after it applied in the same call (equal up to rounding). Its state
+    is made and changed in inference mode.
 
     Times are microseconds on the stream's clock. Events come as numpy arrays sorted by time;
     ``x``, ``y`` in pixels of the model's frame size, ``p`` in {0, 1}. Bad input raises
     ``ValueError`` naming what was wrong and leaves the detector as it was.
     """
 
-    def __init__(self, model: Detector, sample: SampleSpec, operating: OperatingPoint):
+    def __init__(self, model: Detector, sample: SampleSpec, operating: OperatingPoint, packed: bool = True):
         check_streamable(model.cfg, sample)
         self.model = model.eval()  # the model given, which the answers equal
-        # What answers: a copy with each convolution's batch norm folded into it (one operation less per block).
+        # What answers: a copy with each convolution's batch norm folded into it (one operation less per block)
+        # and its convolutions packed for oneDNN with their activations (float32 on a CPU). A late-query head
+        # computes its blocks' rows by hand (TowerCache), so its activations stay modules.
         self.net = fold_batch_norms(copy.deepcopy(model))
+        if packed:
+            self.net = pack_convolutions(self.net, fuse_activations=not model.cfg.late_query)
         parameter = next(model.parameters())
         self.dtype, self.device = parameter.dtype, parameter.device
         self.hybrid = model.image is not None

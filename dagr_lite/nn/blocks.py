@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 
@@ -45,6 +46,89 @@ def fold_batch_norms(module: nn.Module) -> nn.Module:
         folded.weight.data = (weight.double() * scale.view(-1, 1, 1, 1)).to(weight.dtype).contiguous(memory_format=layout)
         folded.bias.data = bias.to(weight.dtype)
         block[0], block[1] = folded, nn.Identity()
+    return module
+
+
+# A 1x1 convolution over fewer input numbers than this runs as torch's own (a matrix product), which is
+# faster there than a oneDNN primitive: the head's predictions and the coarsest maps.
+SMALL_POINTWISE = 20480
+
+
+class PackedConv2d(nn.Conv2d):
+    """A convolution whose weight is laid out once in oneDNN's blocked format for each input shape
+    it sees, run on a channels-last input, with the activation that follows it (``act``: "swish",
+    SiLU, or "none") applied in the same call (``torch.ops.mkldnn._convolution_pointwise``).
+
+    The same parameters as the :class:`nn.Conv2d` it was made from, the same function up to the
+    order of the sums. The packed path runs for float32 on a CPU outside autograd (a streaming
+    answer); any other input (float64, gradients, another device, a 1x1 convolution over fewer than
+    :data:`SMALL_POINTWISE` numbers) takes ``F.conv2d`` and the activation, as the original does.
+    An eager convolution reorders its weight and its input at every call, which on the small maps
+    of a streaming answer costs as much as the arithmetic (``benchmarks/packed_convolutions.py``).
+    """
+
+    def __init__(self, conv: nn.Conv2d, act: str = "none"):
+        if act not in ("none", "swish"):
+            raise ValueError(f"act must be 'none' or 'swish', got {act!r}")
+        if not isinstance(conv.padding, tuple) or conv.padding_mode != "zeros":
+            raise ValueError(f"a packed convolution needs numeric zero padding, got padding={conv.padding!r}, "
+                             f"padding_mode={conv.padding_mode!r}")
+        weight = conv.weight
+        super().__init__(conv.in_channels, conv.out_channels, conv.kernel_size, conv.stride, conv.padding,
+                         conv.dilation, conv.groups, bias=conv.bias is not None, device=weight.device,
+                         dtype=weight.dtype)
+        self.weight, self.bias = conv.weight, conv.bias
+        self.act = act
+        self._packed: dict[tuple[int, ...], torch.Tensor] = {}
+
+    def packs(self, x: torch.Tensor) -> bool:
+        """Whether ``x`` takes the packed path."""
+        return (x.dtype == torch.float32 and x.device.type == "cpu" and x.dim() == 4 and PACKED_AVAILABLE
+                and not (torch.is_grad_enabled() and (x.requires_grad or self.weight.requires_grad))
+                and not (self.kernel_size == (1, 1) and x.numel() < SMALL_POINTWISE))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not self.packs(x):
+            y = F.conv2d(x, self.weight, self.bias, self.stride, self.padding, self.dilation, self.groups)
+            return F.silu(y) if self.act == "swish" else y
+        shape = tuple(x.shape)
+        packed = self._packed.get(shape)
+        if packed is None:
+            packed = self._packed[shape] = torch._C._nn.mkldnn_reorder_conv2d_weight(
+                self.weight.detach().to_mkldnn(), list(self.padding), list(self.stride), list(self.dilation),
+                self.groups, list(shape))
+        bias = None if self.bias is None else self.bias.detach()
+        return torch.ops.mkldnn._convolution_pointwise(
+            x.contiguous(memory_format=torch.channels_last), packed, bias, list(self.padding), list(self.stride),
+            list(self.dilation), self.groups, self.act, [], "")
+
+    def extra_repr(self) -> str:
+        return super().extra_repr() + f", act={self.act}"
+
+
+PACKED_AVAILABLE = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_convolution_pointwise")
+
+
+def pack_convolutions(module: nn.Module, fuse_activations: bool = True) -> nn.Module:
+    """``module`` with every ``nn.Conv2d`` made a :class:`PackedConv2d`, in place, and returned;
+    with ``fuse_activations`` a SiLU that follows a convolution in an ``nn.Sequential`` (a
+    :func:`conv_bn_act` block whose batch norm :func:`fold_batch_norms` folded) is applied by the
+    convolution and replaced by ``nn.Identity``. Without it (a model whose head computes its
+    blocks' rows by hand, :class:`~dagr_lite.nn.head.TowerCache`), every activation stays. For
+    inference: the packed weights are a copy, made from the weights at the first call per shape."""
+    if fuse_activations:
+        for block in [m for m in module.modules() if isinstance(m, nn.Sequential)]:
+            layers = list(block)
+            for i, layer in enumerate(layers):
+                if type(layer) is not nn.Conv2d:
+                    continue
+                after = next((j for j in range(i + 1, len(layers)) if not isinstance(layers[j], nn.Identity)), None)
+                if after is not None and isinstance(layers[after], nn.SiLU):
+                    block[i], block[after] = PackedConv2d(layer, "swish"), nn.Identity()
+    for parent in list(module.modules()):
+        for name, child in list(parent.named_children()):
+            if type(child) is nn.Conv2d:
+                setattr(parent, name, PackedConv2d(child))
     return module
 
 
