@@ -210,8 +210,10 @@ class StreamingDetector:
         operating: the score threshold and NMS IoU of its answers
             (:class:`~dagr_lite.eval.operating.OperatingPoint`).
         packed: the answering copy's convolutions packed for oneDNN, with their activations
-            (:func:`~dagr_lite.nn.blocks.pack_convolutions`; float32 on a CPU); false: torch's own
-            convolutions (the baseline of ``benchmarks/packed_convolutions.py``).
+            (:func:`~dagr_lite.nn.blocks.pack_convolutions`; float32 on a CPU; 1.14x the real-time
+            factor). Off by default: its sums run in another order than the batch model's, so
+            detections whose scores tie to 1e-6 can come in another order, or another one of them
+            be cut at the hundredth (docs/design.md, "The streaming detector").
 
     ``model`` stays the model given, which the answers equal; ``net`` is the copy that answers, each
     convolution's batch norm folded into it (:func:`~dagr_lite.nn.blocks.fold_batch_norms`: equal up
@@ -224,11 +226,11 @@ class StreamingDetector:
     ``ValueError`` naming what was wrong and leaves the detector as it was.
     """
 
-    def __init__(self, model: Detector, sample: SampleSpec, operating: OperatingPoint, packed: bool = True):
+    def __init__(self, model: Detector, sample: SampleSpec, operating: OperatingPoint, packed: bool = False):
         check_streamable(model.cfg, sample)
         self.model = model.eval()  # the model given, which the answers equal
         # What answers: a copy with each convolution's batch norm folded into it (one operation less per block)
-        # and its convolutions packed for oneDNN with their activations (float32 on a CPU). A late-query head
+        # and, with packed, its convolutions packed for oneDNN with their activations (float32 on a CPU). A late-query head
         # computes its blocks' rows by hand (TowerCache), so its activations stay modules.
         self.net = fold_batch_norms(copy.deepcopy(model))
         if packed:

@@ -23,7 +23,7 @@ def test_the_packed_and_the_baseline_detector_stream_the_same_answers(trained_ch
     model = checkpoint.model(checkpoint.detector).eval()
     operating = OperatingPoint(score=0.25, nms_iou=0.65)
     baseline = StreamingDetector(model, checkpoint.sample, operating, packed=False)
-    packed = StreamingDetector(model, checkpoint.sample, operating)
+    packed = StreamingDetector(model, checkpoint.sample, operating, packed=True)
     assert not any(isinstance(m, PackedConv2d) for m in baseline.net.modules())
     assert any(isinstance(m, PackedConv2d) for m in packed.net.modules())
     rec = Recording(stub_root(), "test", None)
