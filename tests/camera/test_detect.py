@@ -76,6 +76,24 @@ def test_detect_answers_one_box_per_hand_at_the_checkpoints_operating_point(stub
     assert sum(map(overlapping_pairs, answers["coco"])) > 100  # COCO's NMS IoU leaves several boxes on a hand
     assert sum(map(overlapping_pairs, answers["operating"])) == 0
 
+def assert_same_detections(answer: dict, expected: dict, k: int, cut: int = 100) -> None:
+    """The streamed detections are the batch model's, paired one to one (boxes within 0.02 px, scores
+    within 2e-4): scores that tie to float32 rounding may come in either order, and where the list was cut
+    at ``cut`` detections, at most three scored as its last may fall on either side of the cut."""
+    from scipy.optimize import linear_sum_assignment
+
+    boxes, scores = np.asarray(answer["boxes"]), np.asarray(answer["scores"])
+    want_boxes, want_scores = expected["boxes"].numpy(), expected["scores"].numpy()
+    cost = np.abs(boxes[:, None] - want_boxes[None]).max(-1) + np.abs(scores[:, None] - want_scores[None])
+    rows, cols = linear_sum_assignment(cost)
+    close = (np.abs(boxes[rows] - want_boxes[cols]).max(-1) <= 0.02) & (np.abs(scores[rows] - want_scores[cols]) <= 2e-4)
+    for values, paired in ((scores, rows[close]), (want_scores, cols[close])):
+        unpaired = np.setdiff1d(np.arange(len(values)), paired)
+        if len(unpaired):
+            assert len(values) == cut and len(unpaired) <= 3, (k, len(values), unpaired)
+            np.testing.assert_allclose(values[unpaired], values.min(), rtol=0, atol=2e-4)
+
+
 def test_detect_on_a_written_aedat4_answers_what_the_batch_model_answers(stub_video, trained_checkpoints, tmp_path):
     ckpt = trained_checkpoints["hybrid"]
     path = write_aedat4(tmp_path / "davis.aedat4", stub_video["events"], stub_video["size"], stub_video["frames"])
@@ -104,9 +122,7 @@ def test_detect_on_a_written_aedat4_answers_what_the_batch_model_answers(stub_vi
             expected = model(collate([sample]), conf_threshold=CONF, nms_threshold=stream.operating.nms_iou)[0]
         answer = answers[int(sample.t_end_us)]
         assert len(answer["boxes"]) == len(expected["boxes"]) > 0, k
-        order = np.argsort(-np.asarray(answer["scores"]))
-        np.testing.assert_allclose(np.asarray(answer["boxes"])[order], expected["boxes"].numpy(), atol=0.02)
-        np.testing.assert_allclose(np.asarray(answer["scores"])[order], expected["scores"].numpy(), atol=2e-4)
+        assert_same_detections(answer, expected, k)
         checked += 1
     assert checked == FRAMES - 1
 
