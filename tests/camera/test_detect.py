@@ -76,6 +76,7 @@ def test_detect_answers_one_box_per_hand_at_the_checkpoints_operating_point(stub
     assert sum(map(overlapping_pairs, answers["coco"])) > 100  # COCO's NMS IoU leaves several boxes on a hand
     assert sum(map(overlapping_pairs, answers["operating"])) == 0
 
+
 def assert_same_detections(answer: dict, expected: dict, k: int, cut: int = 100) -> None:
     """The streamed detections are the batch model's, paired one to one (boxes within 0.02 px, scores
     within 2e-4): scores that tie to float32 rounding may come in either order, and where the list was cut
