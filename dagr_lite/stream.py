@@ -54,6 +54,7 @@ from dagr_lite.graph.streaming import StreamingGraph
 from dagr_lite.nn.blocks import fold_batch_norms, pack_convolutions
 from dagr_lite.nn.detector import Detector, DetectorConfig
 from dagr_lite.nn.gcn import GraphOperator
+from dagr_lite.nn.kernels import NodeGraph, compiled_inference, gcn_block
 from dagr_lite.nn.head import postprocess
 
 # Before the first image, how much of the event stream is kept for its context (an image may be
@@ -296,7 +297,7 @@ class StreamingDetector:
         self._pixel_last = np.full(self.height * self.width, -math.inf) if self.refractory_us else None
         self._support_last = np.full(self.height * self.width, -math.inf) if self.support_us else None
         self._kept_from = -math.inf  # the log holds every event since this time
-        self._image = None  # (image maps, node maps) of the latest image
+        self._image = None  # (image maps, node maps, their sampler) of the latest image
         self._t_image: float | None = None
         self._frame: np.ndarray | None = None  # the latest image's pixels (a carry branch with carry_frame reads them)
         self._carry: CarryPicture | None = None  # a carry branch's picture of the events since the image
@@ -360,7 +361,8 @@ class StreamingDetector:
         with torch.inference_mode():  # every tensor of the stream's state is made and changed in inference mode
             with self._part("image features"):
                 image_maps = self.net.frame_maps(self._pixels(image))
-                self._image = (image_maps, self.net.node_maps(image_maps))
+                node_maps = self.net.node_maps(image_maps)
+                self._image = (image_maps, node_maps, self.net.node_sampler(node_maps))  # one sampler an image
             self._t_image, self._frame = t_us, image
             self._carry = carry  # the picture restarts from the logged events since the image
             self._add_to_carry(*(self._log[key].view for key in ("x", "y", "t", "p")))
@@ -509,7 +511,7 @@ class StreamingDetector:
         self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - start
 
     def _sampler(self):
-        return self.net.node_sampler(self._image[1]) if self.hybrid else None
+        return self._image[2] if self.hybrid else None
 
     def _pixels(self, *parts: np.ndarray) -> torch.Tensor:
         """``(H, W, C_i)`` uint8 pictures, channels joined in order, as the ``(1, sum C_i, H, W)`` batch the
@@ -595,10 +597,15 @@ class StreamingDetector:
         with self._part("first stage (new nodes)"):
             features = branch.node_features(events, segment.exact_pos.view, local, first=old)
             segment.h[0].extend(branch.level_input(0, features, pos, batch, self._sampler()))
-            op = GraphOperator(local, old + m, in_degree=segment.in_degree.view, rows=rows,
-                               **branch.first_stage_offsets(segment.exact_pos.view))
-            for b, block in enumerate(branch.first_stage):
-                segment.h[b + 1].extend(block(segment.h[b].view, op))
+            if not branch.directional and compiled_inference(segment.h[0].view):  # each block one compiled pass
+                graph = NodeGraph(local, old + m, in_degree=segment.in_degree.view, first=old)
+                for b, block in enumerate(branch.first_stage):
+                    segment.h[b + 1].extend(gcn_block(block, segment.h[b].view, graph))
+            else:
+                op = GraphOperator(local, old + m, in_degree=segment.in_degree.view, rows=rows,
+                                   **branch.first_stage_offsets(segment.exact_pos.view))
+                for b, block in enumerate(branch.first_stage):
+                    segment.h[b + 1].extend(block(segment.h[b].view, op))
         with self._part("cells + recency times"):
             self._update_cells(segment, events, pos, batch, edges, old)
 

@@ -19,6 +19,7 @@ import math
 from dataclasses import dataclass, fields
 from typing import Sequence
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -29,6 +30,7 @@ from dagr_lite.graph.pool import recency_maps
 from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.blocks import Residual, conv_bn_act
 from dagr_lite.nn.event_branch import EventBranch
+from dagr_lite.nn.kernels import bilinear_at, channels_last, compiled_inference
 from dagr_lite.nn.head import TowerCache, YOLOXHead, block_rows, postprocess, yolox_losses
 
 
@@ -640,9 +642,15 @@ class Detector(nn.Module):
     def node_sampler(self, node_maps: list[torch.Tensor]):
         """Image features at event nodes: level 0 from the stride-4 map, pooled levels from theirs."""
         strides = self.image.strides
+        flats: dict[int, np.ndarray] = {}  # each map laid out channels last once, for the compiled samples
 
         def sampler(xy: torch.Tensor, node_batch: torch.Tensor, level: int) -> torch.Tensor:
-            return sample_at(node_maps[level], xy, node_batch, strides[level])
+            feature = node_maps[level]
+            if not compiled_inference(feature):
+                return sample_at(feature, xy, node_batch, strides[level])
+            if level not in flats:
+                flats[level] = channels_last(feature)
+            return bilinear_at(flats[level], *feature.shape[-2:], xy, node_batch, strides[level])
 
         return sampler
 

@@ -29,6 +29,7 @@ from dagr_lite.graph.pool import PooledGraph, to_dense, voxel_max_pool
 from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.blocks import Residual, conv_bn_act
 from dagr_lite.nn.gcn import GCNConv, GraphOperator
+from dagr_lite.nn.kernels import NodeGraph, compiled_inference, gcn_block
 
 ImageSampler = Callable[[torch.Tensor, torch.Tensor, int], torch.Tensor]
 
@@ -296,6 +297,11 @@ class EventBranch(nn.Module):
         """``offset_pos``: the positions the first stage's directional offsets read (default ``pos``)."""
         x = self.level_input(level, x, pos, batch, image_sampler)
         offsets = self.first_stage_offsets(pos if offset_pos is None else offset_pos) if level == 0 else {}
+        if not offsets and compiled_inference(x):  # inference on a CPU: each block one compiled pass
+            graph = NodeGraph(edge_index, len(x))
+            for block in self.stages[level]:
+                x = gcn_block(block, x, graph)
+            return x
         op = GraphOperator(edge_index, len(x), **offsets)
         for block in self.stages[level]:
             x = block(x, op)

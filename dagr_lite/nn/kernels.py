@@ -1,0 +1,165 @@
+"""The event branch's GCN blocks and image sampling in one compiled pass each, for inference on a CPU.
+
+An answer of the streaming detector runs a GCN block on a few hundred rows at a time: the first
+stage's new nodes, then each pooled level's cells. By tensor operations a block is some thirty
+small operations (the normalised matrix built, a sparse product, a matrix product, the layer
+norm, the ReLU, the skip), each costing its dispatch on tensors this small. Here a block is one
+pass: each output row's messages summed, its linear layer, norm, ReLU and skip, the same maths
+as :class:`~dagr_lite.nn.event_branch.GCNBlock` over a :class:`~dagr_lite.nn.gcn.GraphOperator`
+(``tests/nn/test_kernels.py`` holds the two together: to 1e-9 in float64, 1e-5 in float32). Only
+the order of the sums differs. No gradient flows; training takes the tensor operations.
+"""
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+
+from dagr_lite.graph import sparse
+from dagr_lite.graph.sparse import KERNEL, counting_order, distinct_in_degree
+
+
+# False: every caller takes the tensor operations (a benchmark's baseline, measured in the same process).
+USE_KERNELS = True
+
+
+def compiled_inference(x: torch.Tensor) -> bool:
+    """Whether layers over ``x`` may take these passes: a float32 or float64 CPU tensor, with gradients
+    off (``torch.no_grad`` or inference mode: the weights' gradients are not wanted either); the graph
+    passes' switch, :data:`~dagr_lite.graph.sparse.USE_COMPILED`, also turns these off."""
+    return (USE_KERNELS and sparse.USE_COMPILED and x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64)
+            and not torch.is_grad_enabled())
+
+
+class NodeGraph:
+    """A GCN layer's graph for :func:`gcn_block`: distinct edges ``j -> i`` (self-loops are left out,
+    the identity adds each node's own), the first output row (rows ``first .. N - 1`` are computed;
+    every edge ends at one of them) and each node's ``d^-1/2``, ``d = 1 +`` in-degree.
+
+    ``in_degree (N,)``: every node's, where ``edge_index`` holds only the edges into some (streaming);
+    counted from ``edge_index`` otherwise (distinct sources, self-loops left out, as ``gcn_norm``)."""
+
+    def __init__(self, edge_index: torch.Tensor, num_nodes: int, *, in_degree: torch.Tensor | None = None,
+                 first: int = 0):
+        self.src = edge_index[0].to(torch.int64).contiguous().numpy()
+        self.dst = edge_index[1].to(torch.int64).contiguous().numpy()
+        if len(self.dst) and (int(self.dst.min()) < first or int(self.dst.max()) >= num_nodes
+                              or int(self.src.min()) < 0 or int(self.src.max()) >= num_nodes):
+            raise ValueError(f"every edge must run between nodes 0..{num_nodes - 1} and end at a row from {first}")
+        degree = distinct_in_degree(self.src, self.dst, num_nodes) if in_degree is None else \
+            in_degree.to(torch.int64).numpy()
+        self.scale = 1.0 / np.sqrt(1.0 + degree.astype(np.float64))
+        self.num_nodes, self.first = num_nodes, first
+
+
+@numba.njit(**KERNEL)
+def _matmul(a, b):
+    """``a @ b`` by loops (no BLAS call: its threads would contend with torch's), the inner one over
+    ``b``'s contiguous rows."""
+    out = np.zeros((a.shape[0], b.shape[1]), dtype=a.dtype)
+    for r in range(a.shape[0]):
+        for k in range(a.shape[1]):
+            value = a[r, k]
+            for c in range(b.shape[1]):
+                out[r, c] += value * b[k, c]
+    return out
+
+
+@numba.njit(**KERNEL)
+def _gcn_block(x, src, dst, first, scale, weight, bias, gamma, beta, eps, skip, identity):
+    """Rows ``first ..`` of ``relu(layer_norm(A x W + b)) + skip(x)``, ``A = D^-1/2 (A + I) D^-1/2``:
+    each row's messages (a repeated edge once, a self-loop through the identity only), then the
+    linear layer, the norm over the row, the ReLU and the skip (``x`` itself with ``identity``)."""
+    n, f_in = x.shape
+    rows = n - first
+    agg = np.zeros((rows, f_in), dtype=x.dtype)
+    for r in range(rows):
+        i = first + r
+        value = scale[i] * scale[i]
+        for c in range(f_in):
+            agg[r, c] = value * x[i, c]
+    stamp = np.full(n, -1, dtype=np.int64)  # the source a destination last took: a repeat is seen in its group
+    for e in counting_order(src, n):
+        s, d = src[e], dst[e]
+        if s == d or stamp[d] == s:
+            continue
+        stamp[d] = s
+        value = scale[d] * scale[s]
+        r = d - first
+        for c in range(f_in):
+            agg[r, c] += value * x[s, c]
+    h = _matmul(agg, weight)
+    f_out = h.shape[1]
+    own = x[first:]
+    extra = own if identity else _matmul(own, skip)
+    for r in range(rows):
+        mean = 0.0
+        for c in range(f_out):
+            h[r, c] += bias[c]
+            mean += h[r, c]
+        mean /= f_out
+        var = 0.0
+        for c in range(f_out):
+            var += (h[r, c] - mean) ** 2
+        inv = 1.0 / np.sqrt(var / f_out + eps)
+        for c in range(f_out):
+            y = (h[r, c] - mean) * inv * gamma[c] + beta[c]
+            h[r, c] = (y if y > 0 else 0.0) + extra[r, c]
+    return h
+
+
+def gcn_block(block, x: torch.Tensor, graph: NodeGraph) -> torch.Tensor:
+    """:class:`~dagr_lite.nn.event_branch.GCNBlock` ``block`` (without offsets) on ``x (N, F_in)`` over
+    ``graph``, in one compiled pass: rows ``graph.first ..`` of its output, ``(N - first, F_out)``."""
+    conv, norm = block.conv, block.norm
+    if conv.weight_offsets is not None:
+        raise ValueError("the compiled GCN block has no offset-weighted messages (a directional first stage)")
+    dtype = x.dtype
+    weight = conv.weight.detach().to(dtype).contiguous().numpy()
+    f_out = weight.shape[1]
+    bias = (conv.bias.detach().to(dtype) if conv.bias is not None else torch.zeros(f_out, dtype=dtype)).numpy()
+    gamma = (norm.weight.detach().to(dtype) if norm.weight is not None else torch.ones(f_out, dtype=dtype)).numpy()
+    beta = (norm.bias.detach().to(dtype) if norm.bias is not None else torch.zeros(f_out, dtype=dtype)).numpy()
+    identity = isinstance(block.skip, torch.nn.Identity)
+    skip = weight[:0] if identity else block.skip.weight.detach().to(dtype).T.contiguous().numpy()
+    out = _gcn_block(x.detach().contiguous().numpy(), graph.src, graph.dst, graph.first, graph.scale, weight,
+                     bias, gamma, beta, float(norm.eps), skip, identity)
+    return torch.from_numpy(out)
+
+
+@numba.njit(**KERNEL)
+def _bilinear(flat, h, w, xy, batch, stride, out):
+    """``out[n] =`` the bilinear sample of sample ``batch[n]``'s map in the ``(B h w, C)`` channels-last
+    maps at pixel ``xy[n]``, as
+    :func:`~dagr_lite.nn.detector.sample_at` computes it (cell ``i`` covers pixels ``[i s, (i + 1) s)``;
+    beyond the outer centres, the edge value)."""
+    for n in range(len(xy)):
+        u = min(max((xy[n, 0] + 0.5) / stride - 0.5, 0.0), w - 1.0)
+        v = min(max((xy[n, 1] + 0.5) / stride - 0.5, 0.0), h - 1.0)
+        u0, v0 = min(int(np.floor(u)), w - 1), min(int(np.floor(v)), h - 1)
+        u1, v1 = min(u0 + 1, w - 1), min(v0 + 1, h - 1)
+        fu, fv = u - u0, v - v0
+        base = batch[n] * h * w
+        a, b, c, d = base + v0 * w + u0, base + v0 * w + u1, base + v1 * w + u0, base + v1 * w + u1
+        for k in range(flat.shape[1]):
+            top = flat[a, k] * (1 - fu) + flat[b, k] * fu
+            bottom = flat[c, k] * (1 - fu) + flat[d, k] * fu
+            out[n, k] = top * (1 - fv) + bottom * fv
+
+
+def channels_last(feature: torch.Tensor) -> np.ndarray:
+    """A ``(B, C, h, w)`` map as the ``(B h w, C)`` array :func:`bilinear_at` reads."""
+    return feature.detach().permute(0, 2, 3, 1).reshape(-1, feature.shape[1]).contiguous().numpy()
+
+
+def bilinear_at(flat: np.ndarray, height: int, width: int, xy: torch.Tensor, batch: torch.Tensor,
+                stride: int) -> torch.Tensor:
+    """:func:`~dagr_lite.nn.detector.sample_at` of maps laid out channels last, ``flat (B h w, C)``
+    (:func:`channels_last`), at ``xy (N, 2)`` pixels of samples ``batch (N,)``, in one compiled pass:
+    ``(N, C)`` of the maps' dtype."""
+    out = np.empty((len(xy), flat.shape[1]), dtype=flat.dtype)
+    if len(batch) and (int(batch.min()) < 0 or (int(batch.max()) + 1) * height * width > len(flat)):
+        raise ValueError(f"node samples must lie in 0..{len(flat) // (height * width) - 1}")
+    _bilinear(flat, height, width, xy.detach().to(torch.float64).contiguous().numpy(),
+              batch.to(torch.int64).contiguous().numpy(), float(stride), out)
+    return torch.from_numpy(out)

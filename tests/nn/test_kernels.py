@@ -1,0 +1,116 @@
+"""The compiled GCN block and image sampling against the tensor operations they replace in inference."""
+import numpy as np
+import pytest
+import torch
+
+from dagr_lite.nn.detector import sample_at
+from dagr_lite.nn.event_branch import GCNBlock
+from dagr_lite.nn.gcn import GraphOperator
+from dagr_lite.nn.kernels import NodeGraph, bilinear_at, channels_last, compiled_inference, gcn_block
+
+TOLERANCE = {torch.float64: 1e-9, torch.float32: 1e-5}
+
+
+def random_graph(n: int, e: int, seed: int) -> torch.Tensor:
+    """Edges with repeats and self-loops, in no order (what gcn_norm accepts)."""
+    g = torch.Generator().manual_seed(seed)
+    src = torch.randint(0, n, (e,), generator=g)
+    dst = torch.randint(0, n, (e,), generator=g)
+    edges = torch.stack([src, dst])
+    return torch.cat([edges, edges[:, :e // 5], torch.stack([src[:7], src[:7]])], dim=1)  # repeats, self-loops
+
+
+def trained_looking(block: GCNBlock, seed: int) -> GCNBlock:
+    """Non-trivial norm and bias parameters (a fresh block has ones and zeros)."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in (block.conv.bias, block.norm.weight, block.norm.bias):
+            p.copy_(torch.randn(p.shape, generator=g))
+    return block.eval()
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("f_in,f_out", [(24, 32), (32, 32), (22, 16)])
+def test_gcn_block_equals_the_tensor_block(dtype, f_in, f_out):
+    torch.manual_seed(0)
+    block = trained_looking(GCNBlock(f_in, f_out), 1).to(dtype)
+    n = 300
+    x = torch.randn(n, f_in, dtype=dtype)
+    edges = random_graph(n, 2000, 2)
+    with torch.no_grad():
+        want = block(x, GraphOperator(edges, n))
+        got = gcn_block(block, x, NodeGraph(edges, n))
+    assert got.dtype == dtype and got.shape == want.shape
+    torch.testing.assert_close(got, want, rtol=TOLERANCE[dtype], atol=TOLERANCE[dtype])
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_gcn_block_of_the_newest_rows_with_given_in_degrees(dtype):
+    """The streaming form: the edges into the last rows only, every node's in-degree given."""
+    torch.manual_seed(0)
+    block = trained_looking(GCNBlock(22, 16), 3).to(dtype)
+    n, first = 400, 330
+    x = torch.randn(n, 22, dtype=dtype)
+    src = torch.randint(0, n - 1, (3000,))
+    dst = src + 1 + torch.randint(0, 40, (3000,))
+    keep = dst < n
+    key = torch.unique(dst[keep] * n + src[keep])  # distinct causal edges, as the graph builder gives
+    edges = torch.stack([key % n, key // n])
+    in_degree = torch.bincount(edges[1], minlength=n)
+    tail = edges[:, edges[1] >= first]
+    rows = torch.arange(first, n)
+    with torch.no_grad():
+        want = block(x, GraphOperator(tail, n, in_degree=in_degree, rows=rows))
+        got = gcn_block(block, x, NodeGraph(tail, n, in_degree=in_degree, first=first))
+    torch.testing.assert_close(got, want, rtol=TOLERANCE[dtype], atol=TOLERANCE[dtype])
+    # and the same rows of a pass over the whole graph
+    with torch.no_grad():
+        whole = block(x, GraphOperator(edges, n))[first:]
+    torch.testing.assert_close(got, whole, rtol=TOLERANCE[dtype], atol=TOLERANCE[dtype])
+
+
+def test_gcn_block_projecting_skip_and_a_node_without_edges():
+    block = trained_looking(GCNBlock(5, 7), 4).double()
+    x = torch.randn(3, 5, dtype=torch.float64)
+    edges = torch.tensor([[0], [1]])  # node 2 has none: its own message alone
+    with torch.no_grad():
+        got = gcn_block(block, x, NodeGraph(edges, 3))
+        conv = block.conv
+        # by hand: d = (1, 2, 1); row 2 is relu(norm(x2 W + b)) + x2 S
+        h2 = x[2] @ conv.weight + conv.bias
+        want2 = torch.relu(block.norm(h2)) + x[2] @ block.skip.weight.T
+    torch.testing.assert_close(got[2], want2, rtol=1e-12, atol=1e-12)
+
+
+def test_node_graph_refuses_an_edge_outside():
+    with pytest.raises(ValueError, match="between nodes 0..2"):
+        NodeGraph(torch.tensor([[0], [3]]), 3)
+    with pytest.raises(ValueError, match="row from 2"):
+        NodeGraph(torch.tensor([[0], [1]]), 3, first=2)
+
+
+def test_compiled_inference_only_without_gradients():
+    x = torch.zeros(2, 2)  # an input wants no gradient, but the weights reading it may
+    assert not compiled_inference(x)
+    with torch.no_grad():
+        assert compiled_inference(x)
+        assert not compiled_inference(torch.zeros(2, 2, dtype=torch.bfloat16))
+    with torch.inference_mode():
+        assert compiled_inference(x)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_bilinear_at_equals_sample_at(dtype):
+    torch.manual_seed(0)
+    feature = torch.randn(3, 6, 12, 20, dtype=dtype)
+    xy = torch.rand(500, 2, dtype=dtype) * torch.tensor([170.0, 110.0], dtype=dtype) - 5  # beyond the edges too
+    batch = torch.randint(0, 3, (500,))
+    want = sample_at(feature, xy, batch, 8)
+    got = bilinear_at(channels_last(feature), 12, 20, xy, batch, 8)
+    torch.testing.assert_close(got, want, rtol=TOLERANCE[dtype], atol=TOLERANCE[dtype])
+    assert np.isfinite(got.numpy()).all()
+
+
+def test_bilinear_at_refuses_a_sample_outside():
+    with pytest.raises(ValueError, match="0..0"):
+        bilinear_at(np.zeros((4, 2), np.float32), 2, 2, torch.zeros(1, 2), torch.tensor([1]), 8)
