@@ -1,6 +1,6 @@
 """Packed convolutions in the streaming answer: the same 5 ms updates with torch's own convolutions
 (the baseline) and with each convolution's weight laid out once for oneDNN, its SiLU in the same call
-(``StreamingDetector(packed=True)``, off by default; docs/design.md, "The streaming detector").
+(``StreamingDetector(packed=True)``, the default; docs/design.md, "The streaming detector").
 
     python benchmarks/packed_convolutions.py --ckpt <hybrid>/checkpoints/best.pt [<events_only>/...]
                                              [--seconds 0.5] [--update-ms 5] [--repeats 3] [--threads 2]

@@ -44,6 +44,7 @@ from dagr_lite.data.spec import SampleSpec
 from dagr_lite.engine.checkpoint import Checkpoint, load_checkpoint
 from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.nn.detector import Detector
+from dagr_lite.nn import kernels
 from dagr_lite.nn.gcn import GCNConv, GraphOperator
 from dagr_lite.stream import StreamingDetector
 from dagr_lite.synth.dvs import DVSParams, preset
@@ -133,16 +134,27 @@ class MacCounter:
     def __init__(self, model: Detector):
         self.total = 0
         self.handles = [m.register_forward_hook(self.hook) for m in model.modules() if isinstance(m, GCNConv)]
+        kernels.OBSERVERS.append(self.compiled)
 
     def hook(self, module: GCNConv, args, output) -> None:
         x, graph = args
         nnz = len(graph._triplets[0]) if isinstance(graph, GraphOperator) else graph.shape[1] + len(x)
+        self.add(module, nnz, output.shape[0])
+
+    def compiled(self, block, x: torch.Tensor, graph: kernels.NodeGraph) -> None:
+        """A block of one compiled pass (nn/kernels.py): its messages are summed before the weight."""
+        rows = graph.num_nodes - graph.first
+        self.total += (len(graph.src) + rows) * block.conv.in_channels
+        self.total += rows * block.conv.in_channels * block.conv.out_channels
+
+    def add(self, module: GCNConv, nnz: int, rows: int) -> None:
         self.total += nnz * min(module.in_channels, module.out_channels)
-        self.total += output.shape[0] * module.in_channels * module.out_channels
+        self.total += rows * module.in_channels * module.out_channels
 
     def close(self) -> None:
         for handle in self.handles:
             handle.remove()
+        kernels.OBSERVERS.remove(self.compiled)
 
 
 def frame_at(rec: Recording, t_us: float) -> int:

@@ -49,7 +49,8 @@ from dagr_lite.errors import UserError
 from dagr_lite.data.dataset import CarryPicture, arrival_keep, carry_channels, channels_first, sample_start_us
 from dagr_lite.data.spec import SampleSpec
 from dagr_lite.eval.operating import OperatingPoint
-from dagr_lite.graph.pool import PooledGraph, recency_cells, recency_from_latest
+from dagr_lite.graph.pool import PooledGraph, add_members, latest_times, recency_cells, recency_from_latest
+from dagr_lite.graph.sparse import compiled_for
 from dagr_lite.graph.streaming import StreamingGraph
 from dagr_lite.nn.blocks import fold_batch_norms, pack_convolutions
 from dagr_lite.nn.detector import Detector, DetectorConfig
@@ -122,6 +123,14 @@ class _Cells:
     def add(self, x: torch.Tensor, pos: torch.Tensor, cell: torch.Tensor, edge_cells: torch.Tensor) -> None:
         """New members ``x (M, C)`` at ``pos (M, 3)`` in cells ``cell (M,)``, and the cells
         ``(2, E)`` (source, destination) of their incoming edges."""
+        if compiled_for(x):  # one compiled pass, the same cells
+            keys = torch.from_numpy(add_members(self.x.numpy(), self.pos_sum.numpy(), self.count.numpy(),
+                                                self.seen.numpy(), x.contiguous().numpy(), pos.contiguous().numpy(),
+                                                cell.contiguous().numpy(), edge_cells[0].contiguous().numpy(),
+                                                edge_cells[1].contiguous().numpy()))
+            if len(keys):
+                self.keys = torch.sort(torch.cat([self.keys, keys])).values
+            return
         self.x.scatter_reduce_(0, cell[:, None].expand(-1, x.shape[1]), x, reduce="amax")
         self.pos_sum.index_add_(0, cell, pos)
         self.count += torch.bincount(cell, minlength=self.size)
@@ -212,9 +221,10 @@ class StreamingDetector:
             (:class:`~dagr_lite.eval.operating.OperatingPoint`).
         packed: the answering copy's convolutions packed for oneDNN, with their activations
             (:func:`~dagr_lite.nn.blocks.pack_convolutions`; float32 on a CPU; 1.14x the real-time
-            factor). Off by default: its sums run in another order than the batch model's, so
-            detections whose scores tie to 1e-6 can come in another order, or another one of them
-            be cut at the hundredth (docs/design.md, "The streaming detector").
+            factor). Its sums run in another order than the batch model's: the raw outputs agree
+            to 1e-5, and detections whose scores tie to 1e-6 can come in another order, or another
+            one of them be cut at the hundredth (docs/design.md, "The streaming detector"). False:
+            torch's own convolutions.
 
     ``model`` stays the model given, which the answers equal; ``net`` is the copy that answers, each
     convolution's batch norm folded into it (:func:`~dagr_lite.nn.blocks.fold_batch_norms`: equal up
@@ -227,7 +237,7 @@ class StreamingDetector:
     ``ValueError`` naming what was wrong and leaves the detector as it was.
     """
 
-    def __init__(self, model: Detector, sample: SampleSpec, operating: OperatingPoint, packed: bool = False):
+    def __init__(self, model: Detector, sample: SampleSpec, operating: OperatingPoint, packed: bool = True):
         check_streamable(model.cfg, sample)
         self.model = model.eval()  # the model given, which the answers equal
         # What answers: a copy with each convolution's batch norm folded into it (one operation less per block)
@@ -619,6 +629,9 @@ class StreamingDetector:
             cell = segment.cell.view
             segment.cells.add(segment.h[-1].view[old:], pos, cell[old:], cell[edges - segment.base])
         for latest, stride, (h, w) in zip(segment.latest, self.net.strides, self.map_sizes):
+            if compiled_for(events):  # one compiled pass, the same maxima
+                latest_times(latest.numpy(), events.contiguous().numpy(), stride, h, w)
+                continue
             key = recency_cells(events, batch, stride=stride, height=h, width=w)
             latest.scatter_reduce_(0, key, events[:, 2], reduce="amax")
 

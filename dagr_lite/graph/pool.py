@@ -11,10 +11,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import torch
 
-from dagr_lite.graph.sparse import compiled_for, unique_inverse, unique_pairs
+from dagr_lite.graph.sparse import KERNEL, compiled_for, unique_inverse, unique_pairs
 
 
 @dataclass
@@ -138,3 +139,41 @@ def recency_from_latest(latest: torch.Tensor, t_query: torch.Tensor, taus_us: tu
     maps = [torch.where(torch.isfinite(since), torch.exp(-since.clamp(min=0) / tau), torch.zeros_like(since))
             for tau in taus_us]
     return torch.cat(maps, dim=1)
+
+
+@numba.njit(**KERNEL)
+def add_members(x, pos_sum, count, seen, features, pos, cell, src_cell, dst_cell):
+    """Cells ``(S, C)`` of running member maxima ``x``, position sums and counts take new members
+    ``features (M, C)`` at ``pos (M, 3)`` in cells ``cell (M,)``, in order (the sums as ``index_add_``
+    adds them); returns the keys ``dst * S + src`` of the members' edge cells not in ``seen`` (``(S S,)``,
+    then marked), each once, in the order first met."""
+    for i in range(len(cell)):
+        c = cell[i]
+        for k in range(features.shape[1]):
+            if features[i, k] > x[c, k]:
+                x[c, k] = features[i, k]
+        for k in range(pos.shape[1]):
+            pos_sum[c, k] += pos[i, k]
+        count[c] += 1
+    size = len(count)
+    new = np.empty(len(src_cell), dtype=np.int64)
+    n = 0
+    for e in range(len(src_cell)):
+        key = dst_cell[e] * size + src_cell[e]
+        if not seen[key]:
+            seen[key] = True
+            new[n] = key
+            n += 1
+    return new[:n]
+
+
+@numba.njit(**KERNEL)
+def latest_times(latest, events, stride, height, width):
+    """:func:`recency_cells` and the running max of ``latest (2 height width,)`` over one sample's
+    ``events (N, 4)`` (x, y, t, p) in one pass: each (polarity, cell) keeps its latest event time."""
+    for i in range(len(events)):
+        col = min(max(int(np.floor(events[i, 0] / stride)), 0), width - 1)
+        row = min(max(int(np.floor(events[i, 1] / stride)), 0), height - 1)
+        key = (int(events[i, 3]) * height + row) * width + col
+        if events[i, 2] > latest[key]:
+            latest[key] = events[i, 2]

@@ -22,6 +22,10 @@ from dagr_lite.graph.sparse import KERNEL, counting_order, distinct_in_degree
 # False: every caller takes the tensor operations (a benchmark's baseline, measured in the same process).
 USE_KERNELS = True
 
+# Called as ``observer(block, x, graph)`` before each compiled block (a benchmark's count of its
+# multiply-adds, as a forward hook counts the tensor operations').
+OBSERVERS: list = []
+
 
 def compiled_inference(x: torch.Tensor) -> bool:
     """Whether layers over ``x`` may take these passes: a float32 or float64 CPU tensor, with gradients
@@ -111,6 +115,8 @@ def _gcn_block(x, src, dst, first, scale, weight, bias, gamma, beta, eps, skip, 
 def gcn_block(block, x: torch.Tensor, graph: NodeGraph) -> torch.Tensor:
     """:class:`~dagr_lite.nn.event_branch.GCNBlock` ``block`` (without offsets) on ``x (N, F_in)`` over
     ``graph``, in one compiled pass: rows ``graph.first ..`` of its output, ``(N - first, F_out)``."""
+    for observer in OBSERVERS:
+        observer(block, x, graph)
     conv, norm = block.conv, block.norm
     if conv.weight_offsets is not None:
         raise ValueError("the compiled GCN block has no offset-weighted messages (a directional first stage)")

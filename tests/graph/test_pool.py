@@ -77,3 +77,50 @@ def test_recency_maps_by_hand():
     empty = recency_maps(events[:0], batch[:0], torch.tensor([1.0]), batch_size=1, stride=4, height=2, width=3,
                          taus_us=(10.0,))
     assert empty.shape == (1, 2, 2, 3) and not empty.any()
+
+
+def test_add_members_equals_the_tensor_updates():
+    """The streaming cells' compiled update against scatter_reduce / index_add / bincount / unique."""
+    from dagr_lite.graph.pool import add_members
+
+    g = torch.Generator().manual_seed(0)
+    size, channels = 30, 5
+    x = torch.full((size, channels), float("-inf"), dtype=torch.float64)
+    pos_sum = torch.zeros((size, 3), dtype=torch.float64)
+    count = torch.zeros(size, dtype=torch.int64)
+    seen = torch.zeros(size * size, dtype=torch.bool)
+    want_x, want_pos, want_count, want_keys = x.clone(), pos_sum.clone(), count.clone(), set()
+    for _ in range(3):  # batches of members, some cells met again
+        m = 40
+        features = torch.randn(m, channels, generator=g, dtype=torch.float64)
+        pos = torch.rand(m, 3, generator=g, dtype=torch.float64) * 100
+        cell = torch.randint(0, size, (m,), generator=g)
+        edge_cells = torch.randint(0, size, (2, 90), generator=g)
+        new = add_members(x.numpy(), pos_sum.numpy(), count.numpy(), seen.numpy(), features.numpy(), pos.numpy(),
+                          cell.numpy(), edge_cells[0].numpy(), edge_cells[1].numpy())
+        want_x.scatter_reduce_(0, cell[:, None].expand(-1, channels), features, reduce="amax")
+        want_pos.index_add_(0, cell, pos)
+        want_count += torch.bincount(cell, minlength=size)
+        keys = set((edge_cells[1] * size + edge_cells[0]).tolist())
+        assert sorted(new.tolist()) == sorted(keys - want_keys) and len(set(new.tolist())) == len(new)
+        want_keys |= keys
+    torch.testing.assert_close(x, want_x, rtol=0, atol=0)
+    torch.testing.assert_close(pos_sum, want_pos, rtol=1e-12, atol=1e-12)
+    assert torch.equal(count, want_count)
+    assert set(torch.nonzero(seen).flatten().tolist()) == want_keys
+
+
+def test_latest_times_equals_recency_cells_and_a_running_max():
+    from dagr_lite.graph.pool import latest_times, recency_cells
+
+    g = torch.Generator().manual_seed(1)
+    n, h, w, stride = 500, 6, 10, 8
+    events = torch.stack([torch.randint(-3, 85, (n,), generator=g).double(),  # some beyond the edges: clamped
+                          torch.randint(0, 50, (n,), generator=g).double(),
+                          torch.rand(n, generator=g, dtype=torch.float64) * 1e4,
+                          torch.randint(0, 2, (n,), generator=g).double()], dim=1)
+    latest = torch.full((2 * h * w,), float("-inf"), dtype=torch.float64)
+    latest_times(latest.numpy(), events.numpy(), stride, h, w)
+    key = recency_cells(events, torch.zeros(n, dtype=torch.int64), stride=stride, height=h, width=w)
+    want = torch.full((2 * h * w,), float("-inf"), dtype=torch.float64).scatter_reduce(0, key, events[:, 2], reduce="amax")
+    assert torch.equal(latest, want)
