@@ -54,8 +54,6 @@ from dagr_lite.graph.sparse import compiled_for
 from dagr_lite.graph.streaming import StreamingGraph
 from dagr_lite.nn.blocks import fold_batch_norms, pack_convolutions
 from dagr_lite.nn.detector import Detector, DetectorConfig
-from dagr_lite.nn.gcn import GraphOperator
-from dagr_lite.nn.kernels import NodeGraph, compiled_inference, gcn_block
 from dagr_lite.nn.head import postprocess
 
 # Before the first image, how much of the event stream is kept for its context (an image may be
@@ -602,20 +600,14 @@ class StreamingDetector:
         # answer) only reaches nodes in the prefix that each answer recomputes from the window's own
         # graph: the first stage here leaves it out rather than read a row that is gone.
         local = local[:, local[0] >= 0]
-        rows = torch.arange(old, old + m, device=self.device)
         batch = torch.zeros(m, dtype=torch.int64, device=self.device)
         with self._part("first stage (new nodes)"):
             features = branch.node_features(events, segment.exact_pos.view, local, first=old)
             segment.h[0].extend(branch.level_input(0, features, pos, batch, self._sampler()))
-            if not branch.directional and compiled_inference(segment.h[0].view):  # each block one compiled pass
-                graph = NodeGraph(local, old + m, in_degree=segment.in_degree.view, first=old)
-                for b, block in enumerate(branch.first_stage):
-                    segment.h[b + 1].extend(gcn_block(block, segment.h[b].view, graph))
-            else:
-                op = GraphOperator(local, old + m, in_degree=segment.in_degree.view, rows=rows,
-                                   **branch.first_stage_offsets(segment.exact_pos.view))
-                for b, block in enumerate(branch.first_stage):
-                    segment.h[b + 1].extend(block(segment.h[b].view, op))
+            op = branch.stage_graph(0, segment.h[0].view, local, segment.exact_pos.view,
+                                    in_degree=segment.in_degree.view, first=old)
+            for b, block in enumerate(branch.first_stage):
+                segment.h[b + 1].extend(block(segment.h[b].view, op))
         with self._part("cells + recency times"):
             self._update_cells(segment, events, pos, batch, edges, old)
 

@@ -88,7 +88,9 @@ class GCNBlock(nn.Module):
     """GCN, per-node LayerNorm (no statistics shared across nodes or time), ReLU, residual.
 
     Shapes:
-        x ``(N, F_in)`` and a :class:`GraphOperator` over the N nodes -> ``(N, F_out)``.
+        x ``(N, F_in)`` and a :class:`GraphOperator` over the N nodes -> ``(N, F_out)``; with a
+        :class:`~dagr_lite.nn.kernels.NodeGraph` (inference, :meth:`EventBranch.stage_graph`), one
+        compiled pass giving rows ``first ..`` only.
     """
 
     def __init__(self, in_channels: int, out_channels: int, offsets: bool = False):
@@ -97,8 +99,10 @@ class GCNBlock(nn.Module):
         self.norm = nn.LayerNorm(out_channels)
         self.skip = nn.Identity() if in_channels == out_channels else nn.Linear(in_channels, out_channels, bias=False)
 
-    def forward(self, x: torch.Tensor, op: GraphOperator) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, op: GraphOperator | NodeGraph) -> torch.Tensor:
         """With ``op.rows`` set, the output holds those rows only (``x`` still holds every node)."""
+        if isinstance(op, NodeGraph):
+            return gcn_block(self, x, op)
         return torch.relu(self.norm(self.conv(x, op))) + self.skip(x if op.rows is None else x[op.rows])
 
 
@@ -296,13 +300,21 @@ class EventBranch(nn.Module):
                image_sampler: ImageSampler | None, offset_pos: torch.Tensor | None = None) -> torch.Tensor:
         """``offset_pos``: the positions the first stage's directional offsets read (default ``pos``)."""
         x = self.level_input(level, x, pos, batch, image_sampler)
-        offsets = self.first_stage_offsets(pos if offset_pos is None else offset_pos) if level == 0 else {}
-        if not offsets and compiled_inference(x):  # inference on a CPU: each block one compiled pass
-            graph = NodeGraph(edge_index, len(x))
-            for block in self.stages[level]:
-                x = gcn_block(block, x, graph)
-            return x
-        op = GraphOperator(edge_index, len(x), **offsets)
+        op = self.stage_graph(level, x, edge_index, pos if offset_pos is None else offset_pos)
         for block in self.stages[level]:
             x = block(x, op)
         return x
+
+    def stage_graph(self, level: int, x: torch.Tensor, edge_index: torch.Tensor, offset_pos: torch.Tensor, *,
+                    in_degree: torch.Tensor | None = None, first: int = 0) -> GraphOperator | NodeGraph:
+        """The graph level ``level``'s blocks read over the nodes of ``x (N, F)``, giving rows ``first ..``:
+        in inference on a CPU without offsets a :class:`~dagr_lite.nn.kernels.NodeGraph` (each block one
+        compiled pass), else a :class:`GraphOperator` (``rows`` from ``first`` where ``first`` or
+        ``in_degree``, the streaming form, is given). ``offset_pos``: the positions the first stage's
+        directional offsets read; ``in_degree``: every node's, where ``edge_index`` holds only the edges
+        into rows ``first ..``."""
+        offsets = self.first_stage_offsets(offset_pos) if level == 0 else {}
+        if not offsets and compiled_inference(x):
+            return NodeGraph(edge_index, len(x), in_degree=in_degree, first=first)
+        rows = None if first == 0 and in_degree is None else torch.arange(first, len(x), device=x.device)
+        return GraphOperator(edge_index, len(x), in_degree=in_degree, rows=rows, **offsets)
