@@ -46,7 +46,7 @@ import numpy as np
 import torch
 
 from dagr_lite.errors import UserError
-from dagr_lite.data.dataset import CarryPicture, arrival_keep, carry_channels, channels_first, sample_start_us
+from dagr_lite.data.dataset import CarryPicture, arrival_keep, carry_channels, sample_start_us
 from dagr_lite.data.spec import SampleSpec
 from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.graph.pool import PooledGraph, add_members, latest_times, recency_cells, recency_from_latest
@@ -242,8 +242,15 @@ class StreamingDetector:
         # and, with packed, its convolutions packed for oneDNN with their activations (float32 on a CPU). A late-query head
         # computes its blocks' rows by hand (TowerCache), so its activations stay modules.
         self.net = fold_batch_norms(copy.deepcopy(model))
+        if not model.cfg.late_query:  # each stride's two towers as one, its predictions as one (nn.head)
+            for head in (self.net.head, self.net.event_head):
+                if head is not None:
+                    head.merge_branches()
         if packed:
             self.net = pack_convolutions(self.net, fuse_activations=not model.cfg.late_query)
+        for branch in (self.net.image, self.net.carry):  # the pixels' scaling folded into a patch stem
+            if branch is not None and branch.stem_kind == "patch":
+                branch.read_raw_pixels()
         parameter = next(model.parameters())
         self.dtype, self.device = parameter.dtype, parameter.device
         self.hybrid = model.image is not None
@@ -523,8 +530,12 @@ class StreamingDetector:
 
     def _pixels(self, *parts: np.ndarray) -> torch.Tensor:
         """``(H, W, C_i)`` uint8 pictures, channels joined in order, as the ``(1, sum C_i, H, W)`` batch the
-        model reads (the dataset's :func:`~dagr_lite.data.dataset.channels_first`)."""
-        return torch.from_numpy(channels_first(parts))[None].to(self.device)
+        model reads (the dataset's :func:`~dagr_lite.data.dataset.channels_first`), laid out channels last:
+        a view of the joined pictures, which the packed convolutions read without a copy."""
+        joined = np.ascontiguousarray(parts[0]) if len(parts) == 1 else np.concatenate(parts, axis=2)
+        if not joined.flags.writeable:  # a caller's read-only frame: torch reads only writable arrays
+            joined = joined.copy()
+        return torch.from_numpy(joined).permute(2, 0, 1)[None].to(self.device)
 
     def _add_to_carry(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> None:
         """Adds events (kept by the arrival filters) to the carry picture's state: those since the

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -48,22 +49,36 @@ def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float, labels:
     if labels is not None:
         labels = labels[order]
         iou = iou * (labels[:, None] == labels[None, :])
-    overlap = (iou > iou_threshold).triu(diagonal=1).cpu()  # i suppresses later j; the loop runs on CPU
-    keep = torch.ones(len(boxes), dtype=torch.bool)
-    for i in range(len(boxes)):
+    overlap = (iou > iou_threshold).triu(diagonal=1).cpu().numpy()  # i suppresses later j; the loop runs on CPU
+    keep = np.ones(len(boxes), dtype=bool)
+    for i in range(len(boxes)):  # numpy rows: a few microseconds each, where tensor indexing costs tens
         if keep[i]:
             keep &= ~overlap[i]
-    return order[keep.to(order.device)]
+    return order[torch.from_numpy(keep).to(order.device)]
+
+
+_ANCHORS: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}  # per (shapes, strides, device), at most 32
 
 
 def anchors_of(shapes: list[tuple[int, int]], strides: list[int], device) -> tuple[torch.Tensor, torch.Tensor]:
-    """Anchor centres ``(A, 2)`` in pixels and their strides ``(A,)``, maps flattened row-major."""
+    """Anchor centres ``(A, 2)`` in pixels and their strides ``(A,)``, maps flattened row-major.
+
+    Made once per shapes, strides and device and shared: read them, never change them in place."""
+    key = (tuple((int(h), int(w)) for h, w in shapes), tuple(int(s) for s in strides), str(torch.device(device)))
+    kept = _ANCHORS.get(key)
+    if kept is not None:
+        return kept
     centres, stride_of = [], []
-    for (h, w), s in zip(shapes, strides):
-        gy, gx = torch.meshgrid(torch.arange(h, device=device), torch.arange(w, device=device), indexing="ij")
-        centres.append(torch.stack([gx.flatten(), gy.flatten()], 1).float().add(0.5).mul(s))  # (h w, 2)
-        stride_of.append(torch.full((h * w,), float(s), device=device))
-    return torch.cat(centres), torch.cat(stride_of)
+    with torch.inference_mode(False):  # ordinary tensors, which training's autograd may also read
+        for (h, w), s in zip(shapes, strides):
+            gy, gx = torch.meshgrid(torch.arange(h, device=device), torch.arange(w, device=device), indexing="ij")
+            centres.append(torch.stack([gx.flatten(), gy.flatten()], 1).float().add(0.5).mul(s))  # (h w, 2)
+            stride_of.append(torch.full((h * w,), float(s), device=device))
+        kept = torch.cat(centres), torch.cat(stride_of)
+    if len(_ANCHORS) >= 32:
+        _ANCHORS.clear()
+    _ANCHORS[key] = kept
+    return kept
 
 
 def decode_boxes(raw: torch.Tensor, centres: torch.Tensor, strides: torch.Tensor) -> torch.Tensor:
@@ -187,6 +202,9 @@ class YOLOXHead(nn.Module):
         prior = -4.6  # sigmoid(-4.6) ~ 0.01: rare objects at the start
         for layer in (*self.cls_preds, *self.obj_preds):
             nn.init.constant_(layer.bias, prior)
+        # Per stride, after merge_branches: the two towers as one (the class tower's channels first) and the
+        # predictions as one 1x1 convolution; None: the branches apart.
+        self.merged: nn.ModuleList | None = None
 
     def forward(self, maps: list[torch.Tensor], query: list[torch.Tensor] | None = None,
                 image: list[torch.Tensor] | None = None) -> tuple[torch.Tensor, list[tuple[int, int]]]:
@@ -194,9 +212,64 @@ class YOLOXHead(nn.Module):
             raise ValueError(f"this head reads {self.late_channels} query channels after its towers and "
                              f"{'an' if self.has_image else 'no'} image input, got "
                              f"{'no' if query is None else 'some'} query maps and {'no' if image is None else 'an'} image")
+        if self.merged is not None:
+            return self._merged_forward(maps)
         towers = [self.towers(i, x) for i, x in enumerate(maps)]
         image_towers = None if image is None else [self.image_towers(i, x) for i, x in enumerate(image)]
         return self.predict(towers, query, image_towers)
+
+    def merge_branches(self) -> "YOLOXHead":
+        """For inference, in place: at each stride the class and box towers as one tower of twice the
+        width (the first layer one convolution to ``2 hidden`` channels, the second a convolution of two
+        groups, one per tower) and the box, objectness and class predictions as one 1x1 convolution over
+        both towers' channels (each output's weights zero over the other tower's). Half the convolutions
+        an answer runs, of the same function up to the order of the sums. Needs batch norms folded
+        into the convolutions (:func:`~dagr_lite.nn.blocks.fold_batch_norms`); a head with query maps
+        after its towers keeps its branches."""
+        if self.late_channels:
+            raise ValueError("a head whose query maps join after its towers keeps its branches apart")
+        if self.merged is not None:
+            return self
+        merged = nn.ModuleList()
+        for cls_branch, reg_branch, cls_pred, reg_pred, obj_pred in zip(
+                self.cls_branches, self.reg_branches, self.cls_preds, self.reg_preds, self.obj_preds):
+            layers = []
+            for depth, (c, r) in enumerate(zip(cls_branch, reg_branch)):
+                cc, rc = c[0], r[0]
+                if not (isinstance(c[1], nn.Identity) and isinstance(r[1], nn.Identity) and cc.bias is not None
+                        and isinstance(c[2], nn.SiLU) and isinstance(r[2], nn.SiLU) and cc.groups == rc.groups == 1):
+                    raise ValueError("merge_branches needs each tower block one convolution with a bias and a SiLU: "
+                                     "fold the batch norms first (nn.blocks.fold_batch_norms)")
+                groups = 1 if depth == 0 else 2  # the first layer reads the stem; the second each its tower's half
+                conv = nn.Conv2d(cc.in_channels * (1 if depth == 0 else 2), 2 * cc.out_channels, cc.kernel_size,
+                                 cc.stride, cc.padding, groups=groups, bias=True,
+                                 device=cc.weight.device, dtype=cc.weight.dtype)
+                with torch.no_grad():
+                    conv.weight.copy_(torch.cat([cc.weight, rc.weight]))
+                    conv.bias.copy_(torch.cat([cc.bias, rc.bias]))
+                layers += [conv, nn.SiLU()]
+            hidden = cls_pred.in_channels
+            outputs = [(reg_pred, hidden), (obj_pred, hidden), (cls_pred, 0)]  # the raw output's order; where each reads
+            pred = nn.Conv2d(2 * hidden, sum(layer.out_channels for layer, _ in outputs), 1,
+                             device=cls_pred.weight.device, dtype=cls_pred.weight.dtype)
+            with torch.no_grad():
+                pred.weight.zero_()
+                row = 0
+                for layer, at in outputs:
+                    pred.weight[row:row + layer.out_channels, at:at + hidden] = layer.weight
+                    pred.bias[row:row + layer.out_channels] = layer.bias
+                    row += layer.out_channels
+            merged.append(nn.Sequential(nn.Sequential(*layers), pred))
+        self.merged = merged
+        return self
+
+    def _merged_forward(self, maps: list[torch.Tensor]) -> tuple[torch.Tensor, list[tuple[int, int]]]:
+        outputs, shapes = [], []
+        for i, x in enumerate(maps):
+            out = self.merged[i](self.stems[i](x))
+            shapes.append(tuple(out.shape[-2:]))
+            outputs.append(out.flatten(2).transpose(1, 2))  # (B, H_s W_s, 5 + C)
+        return torch.cat(outputs, 1), shapes
 
     def towers(self, i: int, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The class and box towers' outputs ``(B, hidden, H_s, W_s)`` at stride ``i`` for input ``x``."""
@@ -280,18 +353,18 @@ def postprocess(raw: torch.Tensor, shapes: list[tuple[int, int]], strides: list[
     """Decoded, class-aware NMS-filtered detections per image: ``boxes (D, 4)``, ``scores (D,)``, ``labels (D,)``."""
     centres, stride_of = anchors_of(shapes, strides, raw.device)
     raw = raw if raw.dtype == torch.float64 else raw.float()  # float64 stays (exactness tests)
-    boxes = decode_boxes(raw[..., :4], centres, stride_of)  # (B, A, 4)
-    if image_size is not None:
-        height, width = image_size
-        boxes = torch.stack([boxes[..., 0].clamp(0, width), boxes[..., 1].clamp(0, height),
-                             boxes[..., 2].clamp(0, width), boxes[..., 3].clamp(0, height)], -1)
     obj = torch.sigmoid(raw[..., 4])
     cls_prob = torch.sigmoid(raw[..., 5:])
     results = []
     for b in range(raw.shape[0]):
         scores, labels = (cls_prob[b] * obj[b, :, None]).max(-1)  # (A,)
-        keep = scores >= conf_threshold
-        bx, sc, lb = boxes[b, keep], scores[keep], labels[keep]
+        keep = torch.nonzero(scores >= conf_threshold).squeeze(1)  # only these anchors' boxes are decoded
+        bx = decode_boxes(raw[b, keep, :4], centres[keep], stride_of[keep])
+        if image_size is not None:
+            height, width = image_size
+            bx = torch.stack([bx[:, 0].clamp(0, width), bx[:, 1].clamp(0, height),
+                              bx[:, 2].clamp(0, width), bx[:, 3].clamp(0, height)], -1)
+        sc, lb = scores[keep], labels[keep]
         if len(sc) > pre_nms:
             top = torch.topk(sc, pre_nms).indices
             bx, sc, lb = bx[top], sc[top], lb[top]

@@ -11,6 +11,8 @@ the order of the sums differs. No gradient flows; training takes the tensor oper
 """
 from __future__ import annotations
 
+import weakref
+
 import numba
 import numpy as np
 import torch
@@ -112,6 +114,40 @@ def _gcn_block(x, src, dst, first, scale, weight, bias, gamma, beta, eps, skip, 
     return h
 
 
+# Per block: the dtype, parameters and their versions its arrays were made from, and the arrays.
+_ARRAYS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _block_arrays(block, dtype: torch.dtype) -> tuple:
+    """``block``'s weight ``(F_in, F_out)``, bias, norm scale and shift, skip weight and whether the skip
+    is the identity, as numpy arrays of ``dtype``: made once and kept while no parameter of the block
+    is replaced or changed in place (each tensor's version counter says so)."""
+    conv, norm = block.conv, block.norm
+    params = [conv.weight, conv.bias, norm.weight, norm.bias, getattr(block.skip, "weight", None)]
+    if any(t is not None and t.is_inference() for t in params):  # no version counter: made afresh each call
+        return _arrays(block, dtype)
+    versions = [None if t is None else t._version for t in params]
+    kept = _ARRAYS.get(block)
+    if (kept is not None and kept[0] == dtype and kept[2] == versions
+            and all(a is b for a, b in zip(kept[1], params))):  # the same tensors (kept, so never an id reused)
+        return kept[3]
+    arrays = _arrays(block, dtype)
+    _ARRAYS[block] = (dtype, params, versions, arrays)
+    return arrays
+
+
+def _arrays(block, dtype: torch.dtype) -> tuple:
+    conv, norm = block.conv, block.norm
+    weight = conv.weight.detach().to(dtype).contiguous().numpy().copy()
+    f_out = weight.shape[1]
+    bias = (conv.bias.detach().to(dtype) if conv.bias is not None else torch.zeros(f_out, dtype=dtype)).numpy().copy()
+    gamma = (norm.weight.detach().to(dtype) if norm.weight is not None else torch.ones(f_out, dtype=dtype)).numpy().copy()
+    beta = (norm.bias.detach().to(dtype) if norm.bias is not None else torch.zeros(f_out, dtype=dtype)).numpy().copy()
+    identity = isinstance(block.skip, torch.nn.Identity)
+    skip = weight[:0] if identity else block.skip.weight.detach().to(dtype).T.contiguous().numpy().copy()
+    return weight, bias, gamma, beta, skip, identity
+
+
 def gcn_block(block, x: torch.Tensor, graph: NodeGraph) -> torch.Tensor:
     """:class:`~dagr_lite.nn.event_branch.GCNBlock` ``block`` (without offsets) on ``x (N, F_in)`` over
     ``graph``, in one compiled pass: rows ``graph.first ..`` of its output, ``(N - first, F_out)``."""
@@ -120,14 +156,7 @@ def gcn_block(block, x: torch.Tensor, graph: NodeGraph) -> torch.Tensor:
     conv, norm = block.conv, block.norm
     if conv.weight_offsets is not None:
         raise ValueError("the compiled GCN block has no offset-weighted messages (a directional first stage)")
-    dtype = x.dtype
-    weight = conv.weight.detach().to(dtype).contiguous().numpy()
-    f_out = weight.shape[1]
-    bias = (conv.bias.detach().to(dtype) if conv.bias is not None else torch.zeros(f_out, dtype=dtype)).numpy()
-    gamma = (norm.weight.detach().to(dtype) if norm.weight is not None else torch.ones(f_out, dtype=dtype)).numpy()
-    beta = (norm.bias.detach().to(dtype) if norm.bias is not None else torch.zeros(f_out, dtype=dtype)).numpy()
-    identity = isinstance(block.skip, torch.nn.Identity)
-    skip = weight[:0] if identity else block.skip.weight.detach().to(dtype).T.contiguous().numpy()
+    weight, bias, gamma, beta, skip, identity = _block_arrays(block, x.dtype)
     out = _gcn_block(x.detach().contiguous().numpy(), graph.src, graph.dst, graph.first, graph.scale, weight,
                      bias, gamma, beta, float(norm.eps), skip, identity)
     return torch.from_numpy(out)

@@ -1,9 +1,11 @@
+import copy
 import math
 
 import pytest
 import torch
 import torch.nn.functional as F
 
+from dagr_lite.nn.blocks import fold_batch_norms
 from dagr_lite.nn.detector import ImageBranch, sample_at
 from dagr_lite.nn.head import (YOLOXHead, anchors_of, box_iou, decode_boxes, nms, postprocess, simota_assign,
                                yolox_losses)
@@ -298,3 +300,52 @@ def test_an_image_of_six_channels_is_the_frame_and_its_picture_each_read(stem):
         six.stem[0][0].weight[:, 3:] = 0.1
     mid_grey[:, 3:] = 0
     assert not torch.allclose(six(images)[0], six(mid_grey)[0])  # the picture now counts
+
+
+@pytest.mark.parametrize("height, width", [(180, 320), (35, 61)])
+def test_raw_pixels_fold_gives_the_scaled_branch(height, width):
+    """read_raw_pixels folds x / 255 - 0.5 into the patch stem: the same maps (float64, 1e-9), a channels-last
+    input read as it is, and the grey edge of a frame that is no whole number of patches kept grey."""
+    torch.manual_seed(0)
+    scaled = ImageBranch(width=4, strides=(8, 16, 32), in_channels=5).double().eval()
+    with torch.no_grad():
+        for m in scaled.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):  # statistics of a trained branch, not the identity
+                m.running_mean.uniform_(-0.5, 0.5)
+                m.running_var.uniform_(0.5, 2.0)
+    raw = copy.deepcopy(scaled).read_raw_pixels()
+    assert raw.raw_pixels and raw.read_raw_pixels() is raw  # a second call folds nothing more
+    images = torch.randint(0, 256, (1, height, width, 5), dtype=torch.uint8).permute(0, 3, 1, 2)  # channels last
+    with torch.no_grad():
+        for want, got in zip(scaled(images.contiguous()), raw(images)):
+            torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-9)
+    with pytest.raises(ValueError, match="patch stem"):
+        ImageBranch(width=4, strides=(8, 16, 32), stem="conv").read_raw_pixels()
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_merged_branches_give_the_head_of_branches_apart(dtype):
+    """merge_branches: one tower of two groups and one prediction layer per stride, the same raw output."""
+    torch.manual_seed(0)
+    head = YOLOXHead([8, 12, 16], [8, 16, 32], hidden=16, num_classes=2).to(dtype).eval()
+    with torch.no_grad():
+        for m in head.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.5, 0.5)
+                m.running_var.uniform_(0.5, 2.0)
+                m.weight.uniform_(0.5, 1.5)
+                m.bias.uniform_(-0.2, 0.2)
+    maps = [torch.randn(2, c, h, w, dtype=dtype) for c, (h, w) in zip([8, 12, 16], [(9, 13), (5, 7), (3, 4)])]
+    with torch.no_grad():
+        want, shapes = head(maps)
+        with pytest.raises(ValueError, match="fold the batch norms"):
+            copy.deepcopy(head).merge_branches()
+        merged = fold_batch_norms(copy.deepcopy(head)).merge_branches()
+        assert merged.merged is not None and merged.merge_branches() is merged
+        got, got_shapes = merged(maps)
+    tolerance = 1e-9 if dtype == torch.float64 else 1e-5
+    assert got_shapes == shapes
+    torch.testing.assert_close(got, want, rtol=tolerance, atol=tolerance)
+    late = YOLOXHead([8], [8], hidden=16, num_classes=1, late_channels=3)
+    with pytest.raises(ValueError, match="keeps its branches"):
+        late.merge_branches()

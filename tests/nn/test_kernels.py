@@ -82,6 +82,37 @@ def test_gcn_block_projecting_skip_and_a_node_without_edges():
     torch.testing.assert_close(got[2], want2, rtol=1e-12, atol=1e-12)
 
 
+def test_gcn_block_reads_changed_and_replaced_parameters():
+    """The numpy weights kept between calls follow an in-place change, a replaced parameter and the dtype."""
+    torch.manual_seed(0)
+    block = trained_looking(GCNBlock(12, 12), 5).double()
+    n = 60
+    x = torch.randn(n, 12, dtype=torch.float64)
+    edges = random_graph(n, 300, 6)
+
+    def check(inputs):
+        with torch.no_grad():
+            want = block(inputs.double(), GraphOperator(edges, n))
+            got = gcn_block(block, inputs, NodeGraph(edges, n))
+        assert got.dtype == inputs.dtype
+        torch.testing.assert_close(got.double(), want, rtol=TOLERANCE[inputs.dtype], atol=TOLERANCE[inputs.dtype])
+
+    check(x)
+    with torch.no_grad():
+        block.conv.weight.mul_(-2.0)  # in place: a new version of the same tensor
+        block.norm.bias.add_(0.5)
+    check(x)
+    block.conv.weight = torch.nn.Parameter(torch.randn_like(block.conv.weight))  # another tensor
+    check(x)
+    check(x.float())  # the same block's arrays in another dtype
+    with torch.inference_mode():  # inference tensors have no version counter: read afresh
+        frozen = trained_looking(GCNBlock(12, 12), 7).double()
+    with torch.inference_mode():
+        want = frozen(x, GraphOperator(edges, n))
+        got = gcn_block(frozen, x, NodeGraph(edges, n))
+    torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-9)
+
+
 def test_node_graph_refuses_an_edge_outside():
     with pytest.raises(ValueError, match="between nodes 0..2"):
         NodeGraph(torch.tensor([[0], [3]]), 3)
