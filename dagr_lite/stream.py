@@ -246,11 +246,13 @@ class StreamingDetector:
             for head in (self.net.head, self.net.event_head):
                 if head is not None:
                     head.merge_branches()
-        if packed:
-            self.net = pack_convolutions(self.net, fuse_activations=not model.cfg.late_query)
         for branch in (self.net.image, self.net.carry):  # the pixels' scaling folded into a patch stem
             if branch is not None and branch.stem_kind == "patch":
                 branch.read_raw_pixels()
+        self._split_carry = self.net.split_carry_frame()  # the frame's share of the carry stem once a frame
+        self._carry_frame_part = None
+        if packed:
+            self.net = pack_convolutions(self.net, fuse_activations=not model.cfg.late_query)
         parameter = next(model.parameters())
         self.dtype, self.device = parameter.dtype, parameter.device
         self.hybrid = model.image is not None
@@ -378,6 +380,8 @@ class StreamingDetector:
                 image_maps = self.net.frame_maps(self._pixels(image))
                 node_maps = self.net.node_maps(image_maps)
                 self._image = (image_maps, node_maps, self.net.node_sampler(node_maps))  # one sampler an image
+                if self._split_carry:
+                    self._carry_frame_part = self.net.carry_frame_part(self._pixels(image))
             self._t_image, self._frame = t_us, image
             self._carry = carry  # the picture restarts from the logged events since the image
             self._add_to_carry(*(self._log[key].view for key in ("x", "y", "t", "p")))
@@ -508,8 +512,11 @@ class StreamingDetector:
         if self._carry is not None:
             with self._part("carry picture + branch"):
                 picture = self._carry.picture(t_us)
-                parts = [self._frame, picture] if model.cfg.carry_frame else [picture]  # the frame beside the picture
-                carry_maps = model.picture_maps(self._pixels(*parts))
+                if self._split_carry:  # the frame's share computed when it came
+                    carry_maps = model.picture_maps_from(self._carry_frame_part, self._pixels(picture))
+                else:
+                    parts = [self._frame, picture] if model.cfg.carry_frame else [picture]  # the frame beside the picture
+                    carry_maps = model.picture_maps(self._pixels(*parts))
         with self._part("recency + fusion + head"):
             event_inputs = model.event_head_inputs(event_maps, recency) if model.cfg.event_answers else None
             return model.answer_outputs(*model.combine(image_maps, event_maps, recency, age, carry_maps), event_inputs)

@@ -83,12 +83,53 @@ class ImageBranch(nn.Module):
     raw_pixels = False
 
     def forward(self, images: torch.Tensor) -> list[torch.Tensor]:
-        x = images.to(self.stem[0][0].weight.dtype)  # keeps the images' layout (channels last: no copy later)
+        x = self.stem(self._pixels(images))  # (B, 2w, ceil(H/4), ceil(W/4))
+        return self._stages(x)
+
+    def _pixels(self, images: torch.Tensor) -> torch.Tensor:
+        """The stem's input: the images in the weights' dtype (in their layout: channels last stays), scaled
+        unless :meth:`read_raw_pixels` folded the scaling, a patch stem's edge padded with grey."""
+        x = images.to(self.stem[0][0].weight.dtype)
         if not self.raw_pixels:
             x = x / 255.0 - 0.5
         if self.stem_kind == "patch" and (x.shape[-1] % 4 or x.shape[-2] % 4):  # whole 4x4 patches: grey at the edge
             x = F.pad(x, (0, -x.shape[-1] % 4, 0, -x.shape[-2] % 4), value=127.5 if self.raw_pixels else 0.0)
-        x = self.stem(x)  # (B, 2w, ceil(H/4), ceil(W/4))
+        return x
+
+    def split_stem(self, fixed: int) -> "ImageBranch":
+        """For inference, in place, after :meth:`read_raw_pixels` and before convolutions are packed: the
+        patch stem's first convolution as two, over the first ``fixed`` input channels (with the bias)
+        and over the rest, so that a part of the input that stays (a carry branch's camera frame) is
+        convolved once (:meth:`fixed_part`) and each call convolves the rest (:meth:`forward_from`)."""
+        block = self.stem[0]
+        conv = block[0]
+        if not (self.raw_pixels and type(conv) is nn.Conv2d and conv.bias is not None and isinstance(block[1], nn.Identity)
+                and isinstance(block[2], nn.SiLU) and 0 < fixed < conv.in_channels):
+            raise ValueError(f"split_stem needs a patch stem reading raw pixels whose batch norm is folded, not packed "
+                             f"yet, and 0 < fixed < {conv.in_channels}, got fixed={fixed}")
+        parts = []
+        for lo, hi, bias in ((0, fixed, True), (fixed, conv.in_channels, False)):
+            part = nn.Conv2d(hi - lo, conv.out_channels, conv.kernel_size, conv.stride, conv.padding, bias=bias,
+                             device=conv.weight.device, dtype=conv.weight.dtype)
+            with torch.no_grad():
+                part.weight.copy_(conv.weight[:, lo:hi])
+                if bias:
+                    part.bias.copy_(conv.bias)
+            parts.append(part)
+        self.stem_fixed, self.stem_rest = parts
+        return self
+
+    def fixed_part(self, images: torch.Tensor) -> torch.Tensor:
+        """After :meth:`split_stem`: the stem convolution's share of the fixed channels ``images (B, fixed, H, W)``."""
+        return self.stem_fixed(self._pixels(images))
+
+    def forward_from(self, fixed: torch.Tensor, images: torch.Tensor) -> list[torch.Tensor]:
+        """After :meth:`split_stem`: :meth:`forward` of the fixed channels, whose :meth:`fixed_part` is
+        ``fixed``, joined with ``images (B, C - fixed, H, W)``, the rest."""
+        x = self.stem[1](F.silu(self.stem_rest(self._pixels(images)) + fixed))  # the SiLU, then the residual block
+        return self._stages(x)
+
+    def _stages(self, x: torch.Tensor) -> list[torch.Tensor]:
         maps = [x]
         for stage in self.stages:
             x = stage(x)
@@ -498,6 +539,24 @@ class Detector(nn.Module):
         """The carry branch's maps at the head's strides of ``(B, C, H, W)`` uint8 pictures of the
         events since the image (``carry_channels``), with ``carry_frame`` behind the frame's channels."""
         return self.carry(pictures)[1:]
+
+    def split_carry_frame(self) -> bool:
+        """For inference (the streaming detector's copy, its carry stem reading raw pixels, before packing):
+        with ``carry_frame``, the carry stem split so that the frame's share is convolved once a frame
+        (:meth:`carry_frame_part`, :meth:`picture_maps_from`). Whether it was split."""
+        if self.carry is None or not self.cfg.carry_frame:
+            return False
+        self.carry.split_stem(RGB_CHANNELS)
+        return True
+
+    def carry_frame_part(self, frame: torch.Tensor) -> torch.Tensor:
+        """After :meth:`split_carry_frame`: the carry stem's share of the camera frame ``(B, 3, H, W)`` uint8."""
+        return self.carry.fixed_part(frame)
+
+    def picture_maps_from(self, frame_part: torch.Tensor, pictures: torch.Tensor) -> list[torch.Tensor]:
+        """:meth:`picture_maps` of the frame whose :meth:`carry_frame_part` is ``frame_part`` and the
+        pictures ``(B, carry_channels, H, W)``."""
+        return self.carry.forward_from(frame_part, pictures)[1:]
 
     @property
     def carry_widths(self) -> list[int]:

@@ -349,3 +349,19 @@ def test_merged_branches_give_the_head_of_branches_apart(dtype):
     late = YOLOXHead([8], [8], hidden=16, num_classes=1, late_channels=3)
     with pytest.raises(ValueError, match="keeps its branches"):
         late.merge_branches()
+
+
+def test_split_stem_gives_the_whole_stem():
+    """split_stem: the fixed channels' share once, the rest per call; the same maps (float64, 1e-9)."""
+    torch.manual_seed(0)
+    branch = ImageBranch(width=4, strides=(8, 16, 32), in_channels=7).double().eval()
+    with pytest.raises(ValueError, match="split_stem needs"):
+        copy.deepcopy(branch).split_stem(3)  # the batch norm not folded, the pixels scaled
+    split = fold_batch_norms(copy.deepcopy(branch)).read_raw_pixels().split_stem(3)
+    images = torch.randint(0, 256, (1, 7, 35, 61), dtype=torch.uint8)
+    with torch.no_grad():
+        got = split.forward_from(split.fixed_part(images[:, :3]), images[:, 3:])
+        for want, one in zip(branch(images), got):
+            torch.testing.assert_close(one, want, rtol=1e-9, atol=1e-9)
+    with pytest.raises(ValueError, match="0 < fixed < 7"):
+        fold_batch_norms(copy.deepcopy(branch)).read_raw_pixels().split_stem(7)
