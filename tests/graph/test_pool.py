@@ -1,5 +1,6 @@
 import math
 
+import pytest
 import torch
 
 from dagr_lite.graph import to_dense, voxel_max_pool
@@ -23,7 +24,8 @@ def loop_pool(x, pos, batch, edge_index, size):
     return keys, feats, mean_pos, cluster, edges
 
 
-def test_pooling_and_dense_maps_equal_a_loop():
+@pytest.mark.parametrize("grad", [False, True])  # the compiled pass (no gradients) and the tensor operations
+def test_pooling_and_dense_maps_equal_a_loop(grad):
     g = torch.Generator().manual_seed(0)
     n = 120
     pos = torch.rand(n, 3, generator=g) * torch.tensor([40.0, 30.0, 1.0])
@@ -33,7 +35,11 @@ def test_pooling_and_dense_maps_equal_a_loop():
     dst = torch.randint(0, n, (300,), generator=g)
     same = batch[src] == batch[dst]
     edge_index = torch.stack([src[same], dst[same]])
-    pooled = voxel_max_pool(x, pos, batch, edge_index, 8)
+    with torch.set_grad_enabled(grad):
+        pooled = voxel_max_pool(x.requires_grad_(grad), pos, batch, edge_index, 8)
+        cells_only = voxel_max_pool(x, pos, batch, None, 8)  # no edges asked for: the same cells, none
+    x = x.detach()
+    pooled.x, cells_only.x = pooled.x.detach(), cells_only.x.detach()
     keys, feats, mean_pos, cluster, edges = loop_pool(x, pos, batch, edge_index, 8)
     assert pooled.cluster.tolist() == cluster
     assert [tuple(k) for k in torch.cat([pooled.batch[:, None], pooled.cell], 1).tolist()] == keys
@@ -41,7 +47,6 @@ def test_pooling_and_dense_maps_equal_a_loop():
     assert torch.allclose(pooled.pos, mean_pos)
     assert [tuple(e) for e in pooled.edge_index.T.tolist()] == edges
     assert any(s == d for s, d in edges)  # edges inside a cell become kept self-loops
-    cells_only = voxel_max_pool(x, pos, batch, None, 8)  # no edges asked for: the same cells, none
     for name in ("x", "pos", "batch", "cell", "cluster"):
         assert torch.equal(getattr(cells_only, name), getattr(pooled, name)), name
     assert cells_only.edge_index.shape == (2, 0) and cells_only.edge_index.dtype == torch.int64
@@ -50,6 +55,28 @@ def test_pooling_and_dense_maps_equal_a_loop():
     for c, (b, row, col) in enumerate(keys):
         expected[b, :, row, col] = feats[c]
     assert torch.equal(dense, expected)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_pooling_equals_the_tensor_operations(dtype):
+    """On a CPU without gradients voxel_max_pool is one compiled pass: the same cells, maxima and edges to
+    the bit, the same means to rounding, for nodes of several samples at fractional positions."""
+    g = torch.Generator().manual_seed(3)
+    n = 2000
+    pos = (torch.rand(n, 3, generator=g) * torch.tensor([320.0, 180.0, 50.0])).to(dtype)
+    batch = torch.sort(torch.randint(0, 4, (n,), generator=g)).values
+    x = torch.randn(n, 12, generator=g).to(dtype)
+    edges = torch.randint(0, n, (2, 9000), generator=g)
+    with torch.no_grad():
+        compiled = voxel_max_pool(x, pos, batch, edges, 4)
+    with torch.enable_grad():
+        tensors = voxel_max_pool(x.clone().requires_grad_(True), pos, batch, edges, 4)
+    for name in ("batch", "cell", "cluster", "edge_index"):
+        assert torch.equal(getattr(compiled, name), getattr(tensors, name)), name
+    assert torch.equal(compiled.x, tensors.x.detach())
+    torch.testing.assert_close(compiled.pos, tensors.pos, rtol=1e-12 if dtype == torch.float64 else 1e-6, atol=0)
+    with pytest.raises(ValueError, match="non-negative"), torch.no_grad():
+        voxel_max_pool(x[:3], -pos[:3], batch[:3], None, 4)
 
 
 def test_max_pool_gradient_reaches_the_maximum_only():
