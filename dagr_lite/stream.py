@@ -49,7 +49,7 @@ from dagr_lite.errors import UserError
 from dagr_lite.data.dataset import CarryPicture, arrival_keep, carry_channels, sample_start_us
 from dagr_lite.data.spec import SampleSpec
 from dagr_lite.eval.operating import OperatingPoint
-from dagr_lite.graph.pool import PooledGraph, add_members, latest_times, recency_cells, recency_from_latest
+from dagr_lite.graph.pool import PooledGraph, add_members, latest_times, recency_cells, recency_since
 from dagr_lite.graph.sparse import compiled_for
 from dagr_lite.graph.streaming import StreamingGraph
 from dagr_lite.nn.blocks import fold_batch_norms, pack_convolutions
@@ -498,12 +498,9 @@ class StreamingDetector:
             with self._part("head towers (changed cells)"):
                 self._segment.towers.update(image_maps, event_maps)
         with self._part("recency + query head (all cells)" if model.cfg.late_query else "recency + fusion + head"):
-            t_query = torch.tensor([t_us - origin], dtype=torch.float64, device=self.device)
-            recency = []
-            for latest, (h, w) in zip(self._segment.latest, self.map_sizes):
-                # A cell whose latest event left the horizon has none in the sample.
-                latest = torch.where(latest >= t_start - origin, latest, torch.full_like(latest, -math.inf))
-                recency.append(recency_from_latest(latest.view(1, 2, h, w), t_query, model.cfg.recency_us))
+            # A cell whose latest event left the horizon has none in the sample.
+            recency = [recency_since(latest, h, w, t_start - origin, t_us - origin, model.cfg.recency_us)
+                       for latest, (h, w) in zip(self._segment.latest, self.map_sizes)]
             age = torch.tensor([t_us - (self._t_image if self.hybrid else origin)], dtype=torch.float64,
                                device=self.device)
             if model.cfg.late_query:

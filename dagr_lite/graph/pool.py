@@ -220,6 +220,41 @@ def recency_from_latest(latest: torch.Tensor, t_query: torch.Tensor, taus_us: tu
     return torch.cat(maps, dim=1)
 
 
+def recency_since(latest: torch.Tensor, height: int, width: int, start: float, t_query: float,
+                  taus_us: tuple[float, ...]) -> torch.Tensor:
+    """:func:`recency_from_latest` of one sample's latest times ``latest (2 height width,)`` at ``t_query``,
+    a cell whose latest event is earlier than ``start`` counted as empty: ``(1, 2 len(taus_us), height,
+    width)``. On a CPU one compiled pass; the times compared and subtracted in ``latest``'s dtype, as
+    the tensor operations do."""
+    if not (compiled_for(latest) and taus_us and latest.dtype in (torch.float32, torch.float64)):
+        kept = torch.where(latest >= start, latest, torch.full_like(latest, -math.inf))
+        query = torch.tensor([t_query], dtype=torch.float64, device=latest.device)
+        return recency_from_latest(kept.view(1, 2, height, width), query, taus_us)
+    array = latest.contiguous().numpy()
+    kind = array.dtype.type
+    out = np.empty(len(taus_us) * len(array), dtype=array.dtype)
+    _recency(array, kind(start), kind(t_query), np.asarray(taus_us, dtype=array.dtype), out)
+    return torch.from_numpy(out).view(1, 2 * len(taus_us), height, width)
+
+
+@numba.njit(**KERNEL)
+def _recency(latest, start, t_query, taus, out):
+    """``out[a, p, cell] = exp(-max(t_query - latest[p, cell], 0) / taus[a])`` (flat), 0 where the latest
+    time is before ``start`` or none (-inf)."""
+    n = len(latest)
+    for j in range(n):
+        t = latest[j]
+        if t >= start and np.isfinite(t):
+            since = t_query - t
+            if since < 0:
+                since = since - since  # 0 in the times' dtype
+            for a in range(len(taus)):
+                out[a * n + j] = np.exp(-since / taus[a])
+        else:
+            for a in range(len(taus)):
+                out[a * n + j] = 0
+
+
 @numba.njit(**KERNEL)
 def add_members(x, pos_sum, count, seen, features, pos, cell, src_cell, dst_cell):
     """Cells ``(S, C)`` of running member maxima ``x``, position sums and counts take new members

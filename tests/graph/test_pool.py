@@ -151,3 +151,27 @@ def test_latest_times_equals_recency_cells_and_a_running_max():
     key = recency_cells(events, torch.zeros(n, dtype=torch.int64), stride=stride, height=h, width=w)
     want = torch.full((2 * h * w,), float("-inf"), dtype=torch.float64).scatter_reduce(0, key, events[:, 2], reduce="amax")
     assert torch.equal(latest, want)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_recency_since_equals_the_tensor_operations(dtype, monkeypatch):
+    """The compiled recency pass against recency_from_latest: cells with no event, one older than the
+    start (empty), one at the query time and later (1), the rest decaying."""
+    from dagr_lite.graph import sparse
+    from dagr_lite.graph.pool import recency_since
+    g = torch.Generator().manual_seed(4)
+    h, w = 6, 9
+    latest = (torch.rand(2 * h * w, generator=g, dtype=torch.float64) * 60_000 - 10_000).to(dtype)
+    latest[::7] = -math.inf
+    latest[3] = 50_000.0  # the query time
+    latest[5] = 50_300.0  # after it: clamped to recency 1
+    start, t_query, taus = 1_234.5, 50_000.0, (10_000.0, 50_000.0)
+    compiled = recency_since(latest, h, w, start, t_query, taus)
+    monkeypatch.setattr(sparse, "USE_COMPILED", False)
+    tensors = recency_since(latest, h, w, start, t_query, taus)
+    assert compiled.shape == tensors.shape == (1, 4, h, w) and compiled.dtype == dtype
+    tolerance = 1e-12 if dtype == torch.float64 else 1e-6
+    torch.testing.assert_close(compiled, tensors, rtol=tolerance, atol=tolerance)
+    empty = (latest < start) | ~torch.isfinite(latest)
+    assert torch.all(compiled.view(2, -1)[:, empty] == 0) and torch.all(compiled.view(2, -1)[:, ~empty] > 0)
+    assert compiled.view(2, -1)[:, 3].tolist() == [1.0, 1.0] and compiled.view(2, -1)[:, 5].tolist() == [1.0, 1.0]
