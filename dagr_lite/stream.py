@@ -266,6 +266,7 @@ class StreamingDetector:
         spec = model.graph_spec
         # How far back in time a node's features reach through the first stage's edges and degrees.
         self.reach_us = (len(model.events.first_stage) + 1) * spec.radius / spec.time_scale
+        self.radius_us = spec.radius / spec.time_scale  # how far back in time an event's edges reach
         self.graph_context_us = sample.graph_context_us
         if 0 < self.graph_context_us < self.reach_us:
             raise UserError(f"sample graph_context_us={self.graph_context_us} is shorter than the "
@@ -671,12 +672,19 @@ class StreamingDetector:
             return branch.pooled_maps(x, pos, batch, edges, 1, sampler)
         stable = int(np.searchsorted(t, t_start + self.reach_us * (1 + 1e-9) + 1.0, side="left"))
         stable = max(stable, first)
+        # Only the nodes within one radius of the window's start had neighbours before it: their edges
+        # are found again among the window's events; the later zone nodes keep the edges they got on
+        # arrival (every candidate of theirs lies in the window), though their features change.
+        hop = int(np.searchsorted(t, t_start + self.radius_us * (1 + 1e-9) + 1.0, side="left"))
+        hop = min(max(hop, first), stable)
         zone = segment.events.view[first:stable]
         zone_batch = torch.zeros(len(zone), dtype=torch.int64, device=self.device)
-        zone_edges = spec.edges(zone, zone_batch, workers=1).to(self.device)
-        x_zone, _, _ = branch.event_nodes(zone, zone_batch, sampler, zone_edges)
         edges = segment.edges.view
-        from_id = int(torch.searchsorted(edges[:, 1].contiguous(), segment.base + stable))
+        head = spec.edges(zone[:hop - first], zone_batch[:hop - first], workers=1).to(self.device)
+        dst = edges[:, 1].contiguous()
+        from_hop, from_id = (int(i) for i in torch.searchsorted(dst, torch.tensor([hop, stable]) + segment.base))
+        zone_edges = torch.cat([head, edges[from_hop:from_id].T - (segment.base + first)], dim=1)
+        x_zone, _, _ = branch.event_nodes(zone, zone_batch, sampler, zone_edges)
         stable_edges = edges[from_id:].T - (segment.base + first)
         x = torch.cat([x_zone, segment.h[-1].view[stable:]])
         pos = segment.pos.view[first:]
