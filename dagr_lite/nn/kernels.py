@@ -40,7 +40,8 @@ def compiled_inference(x: torch.Tensor) -> bool:
 class NodeGraph:
     """A GCN layer's graph for :func:`gcn_block`: distinct edges ``j -> i`` (self-loops are left out,
     the identity adds each node's own), the first output row (rows ``first .. N - 1`` are computed;
-    every edge ends at one of them) and each node's ``d^-1/2``, ``d = 1 +`` in-degree.
+    every edge ends at one of them) and each node's in-degree (the pass takes ``d^-1/2``, ``d = 1 +``
+    in-degree, of the nodes it reads), and whether the edges are sorted by (destination, source).
 
     ``in_degree (N,)``: every node's, where ``edge_index`` holds only the edges into some (streaming);
     counted from ``edge_index`` otherwise (distinct sources, self-loops left out, as ``gcn_norm``)."""
@@ -52,10 +53,10 @@ class NodeGraph:
         if len(self.dst) and (int(self.dst.min()) < first or int(self.dst.max()) >= num_nodes
                               or int(self.src.min()) < 0 or int(self.src.max()) >= num_nodes):
             raise ValueError(f"every edge must run between nodes 0..{num_nodes - 1} and end at a row from {first}")
-        degree = distinct_in_degree(self.src, self.dst, num_nodes) if in_degree is None else \
-            in_degree.to(torch.int64).numpy()
-        self.scale = 1.0 / np.sqrt(1.0 + degree.astype(np.float64))
+        self.degree = distinct_in_degree(self.src, self.dst, num_nodes) if in_degree is None else \
+            in_degree.to(torch.int64).contiguous().numpy()  # each node's d^-1/2 is taken in the pass, where read
         self.num_nodes, self.first = num_nodes, first
+        self.grouped = bool(_grouped(self.src, self.dst))
 
 
 @numba.njit(**KERNEL)
@@ -72,28 +73,56 @@ def _matmul(a, b):
 
 
 @numba.njit(**KERNEL)
-def _gcn_block(x, src, dst, first, scale, weight, bias, gamma, beta, eps, skip, identity):
+def _grouped(src, dst):
+    """Whether the edges are sorted by (destination, source), as the graph builders and the pooling give them."""
+    for e in range(1, len(dst)):
+        if dst[e] < dst[e - 1] or (dst[e] == dst[e - 1] and src[e] < src[e - 1]):
+            return False
+    return True
+
+
+@numba.njit(**KERNEL)
+def _scale(degree, i):
+    """``d^-1/2`` of node ``i``, ``d = 1 +`` its in-degree (float64)."""
+    return 1.0 / np.sqrt(1.0 + np.float64(degree[i]))
+
+
+@numba.njit(**KERNEL)
+def _gcn_block(x, src, dst, first, degree, grouped, weight, bias, gamma, beta, eps, skip, identity):
     """Rows ``first ..`` of ``relu(layer_norm(A x W + b)) + skip(x)``, ``A = D^-1/2 (A + I) D^-1/2``:
     each row's messages (a repeated edge once, a self-loop through the identity only), then the
-    linear layer, the norm over the row, the ReLU and the skip (``x`` itself with ``identity``)."""
+    linear layer, the norm over the row, the ReLU and the skip (``x`` itself with ``identity``).
+    A row's messages are summed by increasing source: edges ``grouped`` by (destination, source) are
+    read in their order, any others in a stable order by source, which sums each row the same way."""
     n, f_in = x.shape
     rows = n - first
     agg = np.zeros((rows, f_in), dtype=x.dtype)
     for r in range(rows):
         i = first + r
-        value = scale[i] * scale[i]
+        own = _scale(degree, i)
+        value = own * own
         for c in range(f_in):
             agg[r, c] = value * x[i, c]
-    stamp = np.full(n, -1, dtype=np.int64)  # the source a destination last took: a repeat is seen in its group
-    for e in counting_order(src, n):
-        s, d = src[e], dst[e]
-        if s == d or stamp[d] == s:
-            continue
-        stamp[d] = s
-        value = scale[d] * scale[s]
-        r = d - first
-        for c in range(f_in):
-            agg[r, c] += value * x[s, c]
+    if grouped:
+        for e in range(len(src)):
+            s, d = src[e], dst[e]
+            if s == d or (e > 0 and s == src[e - 1] and d == dst[e - 1]):
+                continue
+            value = _scale(degree, d) * _scale(degree, s)
+            r = d - first
+            for c in range(f_in):
+                agg[r, c] += value * x[s, c]
+    else:
+        stamp = np.full(n, -1, dtype=np.int64)  # the source a destination last took: a repeat is seen in its group
+        for e in counting_order(src, n):
+            s, d = src[e], dst[e]
+            if s == d or stamp[d] == s:
+                continue
+            stamp[d] = s
+            value = _scale(degree, d) * _scale(degree, s)
+            r = d - first
+            for c in range(f_in):
+                agg[r, c] += value * x[s, c]
     h = _matmul(agg, weight)
     f_out = h.shape[1]
     own = x[first:]
@@ -157,7 +186,7 @@ def gcn_block(block, x: torch.Tensor, graph: NodeGraph) -> torch.Tensor:
     if conv.weight_offsets is not None:
         raise ValueError("the compiled GCN block has no offset-weighted messages (a directional first stage)")
     weight, bias, gamma, beta, skip, identity = _block_arrays(block, x.dtype)
-    out = _gcn_block(x.detach().contiguous().numpy(), graph.src, graph.dst, graph.first, graph.scale, weight,
+    out = _gcn_block(x.detach().contiguous().numpy(), graph.src, graph.dst, graph.first, graph.degree, graph.grouped, weight,
                      bias, gamma, beta, float(norm.eps), skip, identity)
     return torch.from_numpy(out)
 
