@@ -51,7 +51,9 @@ def voxel_max_pool(x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge
     if size <= 0:
         raise ValueError(f"size must be positive, got {size}")
     if compiled_for(x) and len(x) and not (torch.is_grad_enabled() and (x.requires_grad or pos.requires_grad)):
-        return _compiled_pool(x, pos, batch, edge_index, size)
+        compiled = _compiled_pool(x, pos, batch, edge_index, size)
+        if compiled is not None:
+            return compiled
     device = x.device
     col = torch.div(pos[:, 0], size, rounding_mode="floor").to(torch.int64)  # (N,)
     row = torch.div(pos[:, 1], size, rounding_mode="floor").to(torch.int64)  # (N,)
@@ -94,11 +96,10 @@ def voxel_max_pool(x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge
 
 
 @numba.njit(**KERNEL)
-def _pool_cells(x, pos, batch, size):
-    """:func:`voxel_max_pool`'s cells in one pass: each node's cell key, the occupied cells in key
-    order, their member maxima, mean positions (members summed in node order), samples and rows and
-    columns, and each node's cell. None of it needs a sort: the keys index a table of every cell."""
-    n, f = x.shape
+def _cell_keys(pos, batch, size):
+    """Each node's cell key ``(sample row + row) width + column`` and the grid's ``(width, height,
+    samples)``, as :func:`voxel_max_pool` computes them; None where a position is negative."""
+    n = len(pos)
     col = np.empty(n, dtype=np.int64)
     row = np.empty(n, dtype=np.int64)
     width, height, samples = 1, 1, 1
@@ -108,66 +109,42 @@ def _pool_cells(x, pos, batch, size):
         if col[i] < 0 or row[i] < 0:
             return None
         width, height, samples = max(width, col[i] + 1), max(height, row[i] + 1), max(samples, batch[i] + 1)
-    table = np.full(samples * height * width, -1, dtype=np.int64)
-    key = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        key[i] = (batch[i] * height + row[i]) * width + col[i]
-        table[key[i]] = 0
-    num_cells = 0
-    for k in range(len(table)):
-        if table[k] == 0:
-            table[k] = num_cells
-            num_cells += 1
-    unique = np.empty(num_cells, dtype=np.int64)
-    cluster = np.empty(n, dtype=np.int64)
-    pooled = np.empty((num_cells, f), dtype=x.dtype)
-    seen = np.zeros(num_cells, dtype=np.bool_)
-    pos_sum = np.zeros((num_cells, pos.shape[1]), dtype=pos.dtype)
-    counts = np.zeros(num_cells, dtype=np.int64)
-    for i in range(n):
-        c = table[key[i]]
-        cluster[i] = c
-        unique[c] = key[i]
-        if seen[c]:
-            for k in range(f):
-                if x[i, k] > pooled[c, k]:
-                    pooled[c, k] = x[i, k]
-        else:
-            seen[c] = True
-            for k in range(f):
-                pooled[c, k] = x[i, k]
-        for k in range(pos.shape[1]):
-            pos_sum[c, k] += pos[i, k]
-        counts[c] += 1
-    for c in range(num_cells):
-        for k in range(pos.shape[1]):
-            pos_sum[c, k] /= counts[c]
-    cells = np.empty((num_cells, 2), dtype=np.int64)
-    samples_of = np.empty(num_cells, dtype=np.int64)
-    for c in range(num_cells):
-        samples_of[c] = unique[c] // (height * width)
-        cells[c, 0] = (unique[c] // width) % height
-        cells[c, 1] = unique[c] % width
-    return pooled, pos_sum, samples_of, cells, cluster
+    key = (batch * height + row) * width + col
+    return key, width, height, samples
 
 
 def _compiled_pool(x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge_index: torch.Tensor | None,
-                   size: float) -> PooledGraph:
-    """:func:`voxel_max_pool` on a CPU without gradients, in compiled passes (``tests/graph/test_pool.py``
-    holds it to the tensor operations)."""
-    found = _pool_cells(x.detach().contiguous().numpy(), pos.detach().contiguous().numpy(),
-                        batch.to(torch.int64).contiguous().numpy(), float(size))
+                   size: float) -> PooledGraph | None:
+    """:func:`voxel_max_pool` on a CPU without gradients in compiled passes: the cells by the table of
+    :func:`~dagr_lite.graph.sparse.unique_inverse`, the members' maxima and position sums by
+    :func:`add_members` (in node order, as ``index_add`` sums them), the cell edges by ``unique_pairs``
+    (``tests/graph/test_pool.py`` holds it to the tensor operations). None where the table would be
+    too large (the caller sorts instead)."""
+    found = _cell_keys(pos.detach().contiguous().numpy(), batch.to(torch.int64).contiguous().numpy(), float(size))
     if found is None:
         raise ValueError("pooling needs non-negative x and y positions")
-    pooled, pos_c, batch_c, cell, cluster = (torch.from_numpy(a) for a in found)
+    key, width, height, samples = found
+    cells = unique_inverse(key, samples * height * width)
+    if cells is None:
+        return None
+    unique, cluster = cells
+    features = x.detach().contiguous().numpy()
+    points = pos.detach().contiguous().numpy()
+    pooled = np.full((len(unique), features.shape[1]), -np.inf, dtype=features.dtype)
+    pos_sum = np.zeros((len(unique), points.shape[1]), dtype=points.dtype)
+    counts = np.zeros(len(unique), dtype=np.int64)
+    none = np.zeros(0, dtype=np.int64)
+    add_members(pooled, pos_sum, counts, np.zeros(0, dtype=np.bool_), features, points, cluster, none, none)
+    pos_c = pos_sum / counts[:, None].astype(points.dtype)
+    cell = np.stack([(unique // width) % height, unique % width], axis=1)
     if edge_index is None:
-        edges = torch.zeros((2, 0), dtype=torch.int64)
+        edges = np.zeros((2, 0), dtype=np.int64)
     else:
-        members = cluster.numpy()
         index = edge_index.to(torch.int64).contiguous().numpy()
-        src, dst = unique_pairs(members[index[0]], members[index[1]], max(len(pooled), 1))
-        edges = torch.from_numpy(np.stack([src, dst]))
-    return PooledGraph(x=pooled, pos=pos_c, batch=batch_c, cell=cell, edge_index=edges, cluster=cluster)
+        edges = np.stack(unique_pairs(cluster[index[0]], cluster[index[1]], max(len(unique), 1)))
+    return PooledGraph(x=torch.from_numpy(pooled), pos=torch.from_numpy(pos_c),
+                       batch=torch.from_numpy(unique // (height * width)), cell=torch.from_numpy(cell),
+                       edge_index=torch.from_numpy(edges), cluster=torch.from_numpy(cluster))
 
 
 def to_dense(x: torch.Tensor, batch: torch.Tensor, cell: torch.Tensor, *, batch_size: int, height: int,
