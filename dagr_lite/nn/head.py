@@ -264,12 +264,7 @@ class YOLOXHead(nn.Module):
         return self
 
     def _merged_forward(self, maps: list[torch.Tensor]) -> tuple[torch.Tensor, list[tuple[int, int]]]:
-        outputs, shapes = [], []
-        for i, x in enumerate(maps):
-            out = self.merged[i](self.stems[i](x))
-            shapes.append(tuple(out.shape[-2:]))
-            outputs.append(out.flatten(2).transpose(1, 2))  # (B, H_s W_s, 5 + C)
-        return torch.cat(outputs, 1), shapes
+        return raw_output([self.merged[i](self.stems[i](x)) for i, x in enumerate(maps)])
 
     def towers(self, i: int, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The class and box towers' outputs ``(B, hidden, H_s, W_s)`` at stride ``i`` for input ``x``."""
@@ -285,7 +280,7 @@ class YOLOXHead(nn.Module):
                 image_towers: list[tuple[torch.Tensor, torch.Tensor]] | None = None
                 ) -> tuple[torch.Tensor, list[tuple[int, int]]]:
         """The raw output from the towers' outputs of every stride (and the query maps and image towers)."""
-        outputs, shapes = [], []
+        outputs = []
         for i, (cls_feat, reg_feat) in enumerate(towers):
             if self.late_channels:
                 cls_parts, reg_parts = [cls_feat], [reg_feat]
@@ -295,10 +290,15 @@ class YOLOXHead(nn.Module):
                     reg_parts.append(image_towers[i][1] * reg_gate)
                 cls_feat = self.cls_late[i](torch.cat([*cls_parts, query[i]], dim=1))
                 reg_feat = self.reg_late[i](torch.cat([*reg_parts, query[i]], dim=1))
-            out = torch.cat([self.reg_preds[i](reg_feat), self.obj_preds[i](reg_feat), self.cls_preds[i](cls_feat)], 1)
-            shapes.append(tuple(out.shape[-2:]))
-            outputs.append(out.flatten(2).transpose(1, 2))  # (B, H_s W_s, 5 + C)
-        return torch.cat(outputs, 1), shapes  # (B, A, 5 + C)
+            outputs.append(torch.cat([self.reg_preds[i](reg_feat), self.obj_preds[i](reg_feat),
+                                      self.cls_preds[i](cls_feat)], 1))
+        return raw_output(outputs)
+
+
+def raw_output(maps: list[torch.Tensor]) -> tuple[torch.Tensor, list[tuple[int, int]]]:
+    """The raw output ``(B, A, 5 + C)`` of per-stride prediction maps ``(B, 5 + C, H_s, W_s)``, each
+    flattened row-major, and the maps' shapes."""
+    return torch.cat([m.flatten(2).transpose(1, 2) for m in maps], 1), [tuple(m.shape[-2:]) for m in maps]
 
 
 def yolox_losses(raw: torch.Tensor, shapes: list[tuple[int, int]], strides: list[int], gt_boxes: list[torch.Tensor],
