@@ -49,11 +49,6 @@ def fold_batch_norms(module: nn.Module) -> nn.Module:
     return module
 
 
-# A 1x1 convolution over fewer input numbers than this runs as torch's own (a matrix product), which is
-# faster there than a oneDNN primitive: the head's predictions and the coarsest maps.
-SMALL_POINTWISE = 20480
-
-
 class PackedConv2d(nn.Conv2d):
     """A convolution whose weight is laid out once in oneDNN's blocked format for each input shape
     it sees, run on a channels-last input, with the activation that follows it (``act``: "swish",
@@ -61,8 +56,12 @@ class PackedConv2d(nn.Conv2d):
 
     The same parameters as the :class:`nn.Conv2d` it was made from, the same function up to the
     order of the sums. The packed path runs for float32 on a CPU outside autograd (a streaming
-    answer); any other input (float64, gradients, another device, a 1x1 convolution over fewer than
-    :data:`SMALL_POINTWISE` numbers) takes ``F.conv2d`` and the activation, as the original does.
+    answer); any other input (float64, gradients, another device) takes ``F.conv2d`` and the
+    activation, as the original does. On the packed path a 1x1 convolution of stride 1 without
+    padding or groups is one matrix product of the channels-last pixels ``(N H W, C_in)`` by the
+    weight as it is stored (``F.linear``: the bias added in the call, the SiLU in place), its output
+    channels last: on an answer's maps a oneDNN primitive, or torch's own 1x1 path, costs up to 40 us
+    more per call.
     An eager convolution reorders its weight and its input at every call, which on the small maps
     of a streaming answer costs as much as the arithmetic (``benchmarks/packed_convolutions.py``).
     """
@@ -80,17 +79,20 @@ class PackedConv2d(nn.Conv2d):
         self.weight, self.bias = conv.weight, conv.bias
         self.act = act
         self._packed: dict[tuple[int, ...], torch.Tensor] = {}
+        self.pointwise = (self.kernel_size == (1, 1) and self.stride == (1, 1) and self.padding == (0, 0)
+                          and self.dilation == (1, 1) and self.groups == 1)
 
     def packs(self, x: torch.Tensor) -> bool:
         """Whether ``x`` takes the packed path."""
         return (x.dtype == torch.float32 and x.device.type == "cpu" and x.dim() == 4 and PACKED_AVAILABLE
-                and not (torch.is_grad_enabled() and (x.requires_grad or self.weight.requires_grad))
-                and not (self.kernel_size == (1, 1) and x.numel() < SMALL_POINTWISE))
+                and not (torch.is_grad_enabled() and (x.requires_grad or self.weight.requires_grad)))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if not self.packs(x):
             y = F.conv2d(x, self.weight, self.bias, self.stride, self.padding, self.dilation, self.groups)
             return F.silu(y) if self.act == "swish" else y
+        if self.pointwise:
+            return self._pointwise(x)
         shape = tuple(x.shape)
         packed = self._packed.get(shape)
         if packed is None:
@@ -101,6 +103,15 @@ class PackedConv2d(nn.Conv2d):
         return torch.ops.mkldnn._convolution_pointwise(
             x.contiguous(memory_format=torch.channels_last), packed, bias, list(self.padding), list(self.stride),
             list(self.dilation), self.groups, self.act, [], "")
+
+    def _pointwise(self, x: torch.Tensor) -> torch.Tensor:
+        """The 1x1 convolution as ``(N H W, C_in) @ weight (C_out, C_in)^T + bias``, output channels last."""
+        n, c, h, w = x.shape
+        rows = x.permute(0, 2, 3, 1).reshape(n * h * w, c)  # a view of a channels-last input
+        y = F.linear(rows, self.weight.reshape(self.out_channels, c), self.bias)
+        if self.act == "swish":
+            F.silu(y, inplace=True)
+        return y.view(n, h, w, self.out_channels).permute(0, 3, 1, 2)
 
     def extra_repr(self) -> str:
         return super().extra_repr() + f", act={self.act}"

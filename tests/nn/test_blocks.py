@@ -4,7 +4,7 @@ import pytest
 import torch
 from torch import nn
 
-from dagr_lite.nn.blocks import (PACKED_AVAILABLE, SMALL_POINTWISE, PackedConv2d, Residual, conv_bn_act,
+from dagr_lite.nn.blocks import (PACKED_AVAILABLE, PackedConv2d, Residual, conv_bn_act,
                                  fold_batch_norms, pack_convolutions)
 from dagr_lite.nn.head import block_rows, conv_rows, norm_act_rows
 
@@ -68,8 +68,10 @@ def test_folding_refuses_a_module_in_training_mode():
     (3, 8, 4, 4, (24, 40), "swish", True),     # a patch stem
     (8, 16, 3, 1, (23, 40), "swish", True),
     (16, 16, 3, 2, (23, 40), "none", False),   # odd map, stride 2, no bias
-    (64, 4, 1, 1, (23, 40), "none", True),     # a 1x1 over enough numbers: packed
-    (64, 1, 1, 1, (12, 20), "none", True),     # a small 1x1: torch's own
+    (64, 4, 1, 1, (23, 40), "none", True),     # a 1x1: one matrix product
+    (64, 1, 1, 1, (12, 20), "none", True),     # a small 1x1
+    (16, 32, 1, 1, (45, 80), "swish", False),  # a 1x1 with its SiLU, no bias
+    (8, 8, 1, 2, (23, 40), "swish", True),     # a 1x1 of stride 2: oneDNN's
 ])
 def test_a_packed_convolution_answers_as_the_convolution_and_activation_it_replaces(c_in, c_out, k, stride, size,
                                                                                     act, bias):
@@ -85,8 +87,15 @@ def test_a_packed_convolution_answers_as_the_convolution_and_activation_it_repla
             got = packed(x.contiguous(memory_format=layout))
             assert got.shape == expected.shape
             torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-5)
-        assert packed.packs(x) == (not (k == 1 and x.numel() < SMALL_POINTWISE))
-        assert len(packed._packed) == int(packed.packs(x))  # one weight layout for the one input shape
+        assert packed.packs(x)
+        assert packed.pointwise == (k == 1 and stride == 1)
+        assert len(packed._packed) == int(not packed.pointwise)  # one weight layout for the one input shape
+        if packed.pointwise:
+            assert got.is_contiguous(memory_format=torch.channels_last)  # the product's rows are the pixels
+            with torch.no_grad():
+                conv.weight.mul_(2)  # the product reads the weight as it is now
+            torch.testing.assert_close(packed(x), conv(x) if act == "none" else nn.functional.silu(conv(x)),
+                                       rtol=1e-5, atol=1e-5)
     assert not packed.packs(x)  # outside inference, with weights that take gradients: torch's own
 
 
