@@ -251,6 +251,7 @@ class StreamingDetector:
                 branch.read_raw_pixels()
         self._split_carry = self.net.split_carry_frame()  # the frame's share of the carry stem once a frame
         self._carry_frame_part = None
+        self._split_fusion = self.net.split_fusion()  # the image's share of the fusion once an image
         if packed:
             self.net = pack_convolutions(self.net, fuse_activations=not model.cfg.late_query)
         parameter = next(model.parameters())
@@ -316,6 +317,7 @@ class StreamingDetector:
         self._support_last = np.full(self.height * self.width, -math.inf) if self.support_us else None
         self._kept_from = -math.inf  # the log holds every event since this time
         self._image = None  # (image maps, node maps, their sampler) of the latest image
+        self._fusion_image = None  # the image's share of each stride's fusion (split_fusion)
         self._t_image: float | None = None
         self._frame: np.ndarray | None = None  # the latest image's pixels (a carry branch with carry_frame reads them)
         self._carry: CarryPicture | None = None  # a carry branch's picture of the events since the image
@@ -383,6 +385,8 @@ class StreamingDetector:
                 self._image = (image_maps, node_maps, self.net.node_sampler(node_maps))  # one sampler an image
                 if self._split_carry:
                     self._carry_frame_part = self.net.carry_frame_part(self._pixels(image))
+                if self._split_fusion:
+                    self._fusion_image = self.net.fusion_image_part(image_maps)
             self._t_image, self._frame = t_us, image
             self._carry = carry  # the picture restarts from the logged events since the image
             self._add_to_carry(*(self._log[key].view for key in ("x", "y", "t", "p")))
@@ -517,7 +521,8 @@ class StreamingDetector:
                     carry_maps = model.picture_maps(self._pixels(*parts))
         with self._part("recency + fusion + head"):
             event_inputs = model.event_head_inputs(event_maps, recency) if model.cfg.event_answers else None
-            return model.answer_outputs(*model.combine(image_maps, event_maps, recency, age, carry_maps), event_inputs)
+            return model.answer_outputs(*model.combine(image_maps, event_maps, recency, age, carry_maps,
+                                                       image_parts=self._fusion_image), event_inputs)
 
     # ---------------------------------------------------------------- internals
     @contextmanager

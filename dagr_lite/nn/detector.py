@@ -37,6 +37,11 @@ from dagr_lite.nn.head import TowerCache, YOLOXHead, block_rows, postprocess, yo
 IMAGE_STEMS = ("patch", "conv")
 
 
+def flat_rows(x: torch.Tensor) -> torch.Tensor:
+    """``(B, C, h, w) -> (B h w, C)``, cells row-major: a view of a channels-last map."""
+    return x.permute(0, 2, 3, 1).reshape(-1, x.shape[1])
+
+
 class ImageBranch(nn.Module):
     """A small CNN from scratch: a stride-4 stem, then one downsampling stage per doubling of
     the stride up to the largest head stride.
@@ -569,7 +574,7 @@ class Detector(nn.Module):
 
     def combine(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor],
                 recency: list[torch.Tensor], age_us: torch.Tensor, carry_maps: list[torch.Tensor] | None = None,
-                attend: bool = True):
+                attend: bool = True, image_parts: list[torch.Tensor] | None = None):
         """The head's inputs from the event maps, the recency maps (``(B, num_recency, h, w)`` per
         stride, how recently each cell saw events at the query time) and, in a hybrid, the image
         maps (all strides of :class:`ImageBranch`) and the image's age ``(B,)`` in microseconds:
@@ -577,14 +582,20 @@ class Detector(nn.Module):
         (:meth:`query_maps`; None without ``late_query``) and the image maps its own image towers
         read (a hybrid with ``late_query``; else None). ``carry_maps`` (a carry branch's) join the
         fusion after the recency maps, with the carry attention's output behind them (``attend``
-        false: they already hold it, as :attr:`carry_widths` counts)."""
+        false: they already hold it, as :attr:`carry_widths` counts). ``image_parts``: after
+        :meth:`split_fusion`, the image's shares of the fusion (:meth:`fusion_image_part`), which
+        the fusion then adds to the product of the rest."""
         if self.cfg.late_query:
             return (self.fuse_maps(image_maps, event_maps), self.query_maps(recency, age_us),
                     None if image_maps is None else image_maps[1:])
+        if carry_maps is not None and self.attend is not None and attend:
+            carry_maps = self.attended(image_maps, carry_maps)
+        if image_parts is not None:
+            parts = [list(p) for p in zip(event_maps, recency)] if carry_maps is None else \
+                [list(p) for p in zip(event_maps, recency, carry_maps)]
+            return self._fuse_split(image_parts, image_maps, parts, age_us), None, None
         joined = [torch.cat([m, r], dim=1) for m, r in zip(event_maps, recency)]
         if carry_maps is not None:
-            if self.attend is not None and attend:
-                carry_maps = self.attended(image_maps, carry_maps)
             joined = [torch.cat([j, c], dim=1) for j, c in zip(joined, carry_maps)]
         if image_maps is None:
             return joined, None, None
@@ -604,6 +615,59 @@ class Detector(nn.Module):
             if g.shape[-2:] != carry.shape[-2:]:
                 g = F.interpolate(g, size=carry.shape[-2:], mode="nearest")
             out.append(torch.cat([carry, g], dim=1))
+        return out
+
+    def split_fusion(self) -> bool:
+        """For inference (the streaming detector's copy, its batch norms folded, before packing): each
+        stride's fusion as two matrix products, the image map's share with the bias, computed once an
+        image (:meth:`fusion_image_part`), and the rest's, an answer's, with the age plane's weight
+        column as a vector (:meth:`combine` given ``image_parts``). Whether it was split (a hybrid
+        without ``late_query``, whose fusion reads the query maps)."""
+        if self.image is None or self.events is None or self.cfg.late_query:
+            return False
+        if getattr(self, "fuse_parts", None) is not None:
+            return True
+        parts = []
+        for i, block in enumerate(self.fuse):
+            conv = block[0]
+            if not (type(conv) is nn.Conv2d and conv.bias is not None and isinstance(block[1], nn.Identity)
+                    and isinstance(block[2], nn.SiLU)):
+                raise ValueError("split_fusion needs the fusion's batch norms folded (fold_batch_norms), not packed yet")
+            ci = self.image.channels[1 + i]
+            weight = conv.weight.detach().reshape(conv.out_channels, conv.in_channels)
+            image = nn.Linear(ci, conv.out_channels, device=weight.device, dtype=weight.dtype)
+            rest = nn.Linear(conv.in_channels - ci - 1, conv.out_channels, bias=False, device=weight.device,
+                             dtype=weight.dtype)
+            with torch.no_grad():
+                image.weight.copy_(weight[:, :ci])
+                image.bias.copy_(conv.bias)
+                rest.weight.copy_(weight[:, ci:-1])
+            image.requires_grad_(False)
+            rest.requires_grad_(False)
+            parts.append(nn.ModuleDict({"image": image, "rest": rest}))
+            parts[-1].register_buffer("age", weight[:, -1].clone())  # the age plane's column
+        self.fuse_parts = nn.ModuleList(parts)
+        return True
+
+    def fusion_image_part(self, image_maps: list[torch.Tensor]) -> list[torch.Tensor]:
+        """After :meth:`split_fusion`: per head stride, the image map's share of the fusion with its
+        bias, ``(B h w, C)`` rows, cells row-major (channels last)."""
+        return [part["image"](flat_rows(image_map)) for part, image_map in zip(self.fuse_parts, image_maps[1:])]
+
+    def _fuse_split(self, image_parts: list[torch.Tensor], image_maps: list[torch.Tensor],
+                    joined: list[torch.Tensor], age_us: torch.Tensor) -> list[torch.Tensor]:
+        """:meth:`_fuse` from the image's shares (:meth:`fusion_image_part`): the rest's product added to
+        them, the age's column times the age, the SiLU; each map channels last."""
+        out = []
+        for part, image_part, image_map, maps in zip(self.fuse_parts, image_parts, image_maps[1:], joined):
+            b, _, h, w = image_map.shape
+            if maps[0].shape[-2:] != (h, w):  # ceil vs floor on odd sizes, as fuse_at
+                maps = [F.interpolate(m, size=(h, w), mode="nearest") for m in maps]
+            rows = torch.cat([m.permute(0, 2, 3, 1) for m in maps], dim=3).reshape(b * h * w, -1)
+            y = torch.addmm(image_part, rows, part["rest"].weight.T)
+            y.view(b, h * w, -1).add_((age_us.to(y.dtype) / self.cfg.time_scale_us)[:, None, None] * part.age)
+            F.silu(y, inplace=True)
+            out.append(y.view(b, h, w, -1).permute(0, 3, 1, 2))
         return out
 
     def fuse_maps(self, image_maps: list[torch.Tensor] | None, event_maps: list[torch.Tensor]) -> list[torch.Tensor]:

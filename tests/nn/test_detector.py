@@ -376,3 +376,46 @@ def test_a_carry_branch_with_the_frame_reads_both_and_the_nodes_still_only_the_f
         blank = model._features(batch, image=False)[0]
         torch.testing.assert_close(blank, model._features(grey, image=False)[0], rtol=0, atol=0)
     assert Detector(small_detector_config(180, 320, carry_width=0, carry_frame=True)).carry is None  # no branch to read it
+
+
+@pytest.mark.parametrize("carry_width, carry_attend, grown", [(0, 0, 0), (0, 0, 1), (4, 0, 1), (4, 2, 0)])
+def test_the_split_fusion_gives_the_whole_fusion(carry_width, carry_attend, grown):
+    """split_fusion: the image's share once, the rest's product an answer, the age's column as a
+    vector; the same fused maps as the 1x1 convolution over the joined maps (float64, 1e-9), event
+    maps of another size than the image's interpolated as fuse_at does (``grown``)."""
+    import copy
+
+    from dagr_lite.nn.blocks import fold_batch_norms
+
+    torch.manual_seed(0)
+    model = Detector(small_detector_config(45, 61, carry_width=carry_width, carry_attend=carry_attend)).double().eval()
+    with torch.no_grad():
+        for m in model.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.5, 0.5)
+                m.running_var.uniform_(0.5, 2.0)
+    split = fold_batch_norms(copy.deepcopy(model))
+    with pytest.raises(ValueError, match="split_fusion needs"):
+        copy.deepcopy(model).split_fusion()
+    assert split.split_fusion() and split.split_fusion()  # once; a second call keeps it
+    assert not Detector(small_detector_config(45, 61, variant="events_only")).split_fusion()
+    frame = torch.randint(0, 256, (2, 3, 45, 61), dtype=torch.uint8)
+    age = torch.tensor([12_000.0, 70_000.0], dtype=torch.float64)
+    with torch.no_grad():
+        image_maps = model.frame_maps(frame)
+        sizes = [m.shape[-2:] for m in image_maps[1:]]
+        events = [torch.randn(2, c, h + grown, w + grown, dtype=torch.float64)
+                  for c, (h, w) in zip(model.events.out_channels, sizes)]
+        recency = [torch.rand(2, model.num_recency, h + grown, w + grown, dtype=torch.float64) for h, w in sizes]
+        carry = None
+        if carry_width:
+            picture = torch.randint(0, 256, (2, model.cfg.carry_channels, 45, 61), dtype=torch.uint8)
+            carry = [torch.nn.functional.interpolate(c, size=(h + grown, w + grown)) if grown else c
+                     for c, (h, w) in zip(model.carry_maps(torch.cat([frame, picture], dim=1)), sizes)]
+        want = model.combine(image_maps, events, recency, age, carry)[0]
+        got = split.combine(image_maps, events, recency, age, carry,
+                            image_parts=split.fusion_image_part(image_maps))[0]
+    for one, expected in zip(got, want):
+        assert one.shape == expected.shape
+        assert one.is_contiguous(memory_format=torch.channels_last)
+        torch.testing.assert_close(one, expected, rtol=1e-9, atol=1e-9)
