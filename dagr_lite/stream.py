@@ -51,7 +51,7 @@ from dagr_lite.data.spec import SampleSpec
 from dagr_lite.eval.operating import OperatingPoint
 from dagr_lite.graph.pool import PooledGraph, add_members, latest_times, recency_cells, recency_since
 from dagr_lite.graph.sparse import compiled_for
-from dagr_lite.graph.streaming import StreamingGraph
+from dagr_lite.graph.streaming import StreamingGraph, edges_after
 from dagr_lite.nn.blocks import fold_batch_norms, pack_convolutions
 from dagr_lite.nn.detector import Detector, DetectorConfig
 from dagr_lite.nn.head import postprocess
@@ -685,9 +685,13 @@ class StreamingDetector:
         zone = segment.events.view[first:stable]
         zone_batch = torch.zeros(len(zone), dtype=torch.int64, device=self.device)
         edges = segment.edges.view
-        head = spec.edges(zone[:hop - first], zone_batch[:hop - first], workers=1).to(self.device)
         dst = edges[:, 1].contiguous()
-        from_hop, from_id = (int(i) for i in torch.searchsorted(dst, torch.tensor([hop, stable]) + segment.base))
+        from_first, from_hop, from_id = (int(i) for i in torch.searchsorted(dst, torch.tensor([first, hop, stable])
+                                                                            + segment.base))
+        # Their edges on arrival serve where no candidate from before the window was one of their k nearest.
+        head = edges_after(edges[from_first:from_hop], segment.base + first, hop - first, spec.max_neighbors,
+                           lambda query: spec.edges(zone[:hop - first], zone_batch[:hop - first], workers=1,
+                                                    query=query)).to(self.device)
         zone_edges = torch.cat([head, edges[from_hop:from_id].T - (segment.base + first)], dim=1)
         x_zone, _, _ = branch.event_nodes(zone, zone_batch, sampler, zone_edges)
         stable_edges = edges[from_id:].T - (segment.base + first)

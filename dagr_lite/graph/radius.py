@@ -199,7 +199,8 @@ def knn_from_pairs(tree: cKDTree, points: np.ndarray, k: int, r: float) -> np.nd
 BACKENDS = ("auto", "compiled", "kdtree", "torch")
 
 
-def radius_graph(pos, r: float, k: int, batch=None, *, workers: int = -1, backend: str = "auto") -> torch.Tensor:
+def radius_graph(pos, r: float, k: int, batch=None, *, workers: int = -1, backend: str = "auto",
+                 query=None) -> torch.Tensor:
     """Causal radius graph with at most ``k`` nearest earlier neighbours per node.
 
     Args:
@@ -212,6 +213,8 @@ def radius_graph(pos, r: float, k: int, batch=None, *, workers: int = -1, backen
             :mod:`dagr_lite.graph.compiled`), ``kdtree`` (scipy, on the CPU), ``torch`` (pure torch,
             on ``pos``'s device; see :func:`radius_graph_torch`) or ``auto`` (torch for a CUDA
             tensor, else compiled). All give the identical edge set.
+        query: ``(N,)`` bool, or None: only the edges into the nodes it marks (every node still a
+            candidate source); the compiled backend searches only for those.
 
     Returns:
         ``edge_index`` ``(2, E)`` int64, sources in row 0 and destinations in row 1, sorted by
@@ -225,6 +228,13 @@ def radius_graph(pos, r: float, k: int, batch=None, *, workers: int = -1, backen
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     on_cuda = isinstance(pos, torch.Tensor) and pos.is_cuda
+    if query is not None:
+        query = query.detach().cpu().numpy() if isinstance(query, torch.Tensor) else np.asarray(query)
+        if query.shape != (len(pos),) or query.dtype != np.bool_:
+            raise ValueError(f"query must be ({len(pos)},) bool (one mark per node), got {query.shape} {query.dtype}")
+        if backend == "kdtree" or backend == "torch" or (backend == "auto" and on_cuda) or pos.shape[1] != 3:
+            edges = radius_graph(pos, r, k, batch, workers=workers, backend=backend)
+            return edges[:, torch.from_numpy(query).to(edges.device)[edges[1]]]
     if backend == "torch" or (backend == "auto" and on_cuda):
         return radius_graph_torch(pos, r, k, batch)
     device = pos.device if isinstance(pos, torch.Tensor) else torch.device("cpu")
@@ -235,7 +245,7 @@ def radius_graph(pos, r: float, k: int, batch=None, *, workers: int = -1, backen
     slices = sample_slices(batch_np, len(points))
     if backend != "kdtree" and points.shape[1] == 3:
         bounds = np.array([0] + [part.stop for part in slices], dtype=np.int64)
-        return torch.from_numpy(compiled.build(points, bounds, r, k, workers=workers)).to(device)
+        return torch.from_numpy(compiled.build(points, bounds, r, k, workers=workers, query=query)).to(device)
     parts = []
     for part in slices:  # one tree per sample: no edge can cross samples
         sample = points[part]

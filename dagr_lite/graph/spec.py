@@ -60,17 +60,18 @@ class EventGraphSpec:
         return torch.stack([events[:, 0], events[:, 1], self.time_scale * events[:, 2]], dim=1)  # (N, 3)
 
     def edges(self, events: torch.Tensor, batch: torch.Tensor | None = None, *, workers: int = -1,
-              backend: str = "auto") -> torch.Tensor:
+              backend: str = "auto", query: torch.Tensor | None = None) -> torch.Tensor:
         """The causal event graph ``(2, E)`` of events ``(N, 4)`` of samples ``batch (N,)``, on the
         events' device (``backend``: see :func:`~dagr_lite.graph.radius.radius_graph`; ``auto``
-        builds a CUDA tensor's graph on its GPU).
+        builds a CUDA tensor's graph on its GPU); with ``query`` (``(N,)`` bool) only the edges into
+        the events it marks.
 
         Positions are computed in float64 whatever the events' dtype, so every caller (the
         loader's workers, the model, the streaming detector) gets the same edges, and with
         :attr:`time_scale` the same whatever time the events count from.
         """
         return radius_graph(self.positions(events.detach().double()), self.radius, self.max_neighbors, batch,
-                            workers=workers, backend=backend)
+                            workers=workers, backend=backend, query=query)
 
     def as_dict(self) -> dict:
         return asdict(self)

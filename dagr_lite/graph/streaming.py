@@ -13,11 +13,12 @@ for ``R`` recent and ``M`` new events; it stays as the reference the tests compa
 """
 from __future__ import annotations
 
+import numba
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from dagr_lite.graph.compiled import CellChains
+from dagr_lite.graph.compiled import KERNEL, CellChains
 from dagr_lite.graph.radius import as_numpy_pos, knn_within, neighbours_to_edges
 
 # Events are kept this much beyond r in z, so that rounding can never drop a possible neighbour.
@@ -81,3 +82,62 @@ class StreamingGraph:
         first = int(np.searchsorted(held[:, 2], self._last_z - self.r * (1 + KEEP_MARGIN) - KEEP_MARGIN, side="left"))
         self._pos, self._ids = held[first:], held_ids[first:]
         return torch.from_numpy(edges)
+
+
+
+@numba.njit(**KERNEL)
+def _split_arrival(arrival, start, count, k):
+    """:func:`edges_after`'s pass over the arrival rows: the edges kept (``(2, E)``, from ``start``)
+    and which nodes are searched again."""
+    again = np.zeros(count, dtype=np.bool_)
+    kept = np.empty((2, len(arrival)), dtype=np.int64)
+    e, i = 0, 0
+    while i < len(arrival):
+        j, early = i, False
+        while j < len(arrival) and arrival[j, 1] == arrival[i, 1]:
+            early |= arrival[j, 0] < start
+            j += 1
+        node = arrival[i, 1] - start
+        if early and j - i == k:
+            again[node] = True
+        else:
+            for m in range(i, j):
+                if arrival[m, 0] >= start:
+                    kept[0, e], kept[1, e] = arrival[m, 0] - start, node
+                    e += 1
+        i = j
+    return kept[:, :e], again
+
+
+@numba.njit(**KERNEL)
+def _merge_destinations(a, b):
+    """Two edge sets ``(2, E)`` sorted by destination, no destination in both, as one sorted likewise."""
+    out = np.empty((2, a.shape[1] + b.shape[1]), dtype=np.int64)
+    i = j = e = 0
+    while i < a.shape[1] or j < b.shape[1]:
+        if j == b.shape[1] or (i < a.shape[1] and a[1, i] < b[1, j]):
+            out[0, e], out[1, e] = a[0, i], a[1, i]
+            i += 1
+        else:
+            out[0, e], out[1, e] = b[0, j], b[1, j]
+            j += 1
+        e += 1
+    return out
+
+
+def edges_after(arrival: torch.Tensor, start: int, count: int, k: int, search) -> torch.Tensor:
+    """The causal edges ``(2, E)`` into nodes ``[start, start + count)`` once every node before
+    ``start`` is gone, indices counted from ``start``, sorted by (destination, source) as every
+    builder gives them, from the edges those nodes got on arrival (``arrival (E, 2)``: rows of
+    (source, destination), sorted by (destination, source), every earlier node a candidate then).
+
+    A node's arrival edges come from its ``k`` nearest earlier nodes within the radius, or from all
+    of them when there are fewer. With fewer than ``k``, its edges from ``start`` on are those of
+    them from ``start`` on; with ``k``, none from before ``start``, they are still its ``k`` nearest.
+    Only a node with ``k`` edges, some from before ``start``, may now reach a candidate that was
+    further than its ``k``: ``search(query)`` (``query (count,)`` bool marks those) finds their edges
+    again among the nodes from ``start`` (``(2, E')`` counted from ``start``, sorted likewise)."""
+    kept, again = _split_arrival(arrival.cpu().numpy(), int(start), int(count), int(k))
+    if again.any():
+        kept = _merge_destinations(kept, search(torch.from_numpy(again)).cpu().numpy())
+    return torch.from_numpy(kept)

@@ -3,6 +3,7 @@ import pytest
 import torch
 
 from dagr_lite.graph import StreamingGraph, radius_graph
+from dagr_lite.graph.streaming import edges_after
 from tests.graph.test_radius import time_sorted_cloud
 
 
@@ -54,3 +55,40 @@ def test_events_exactly_r_apart():
 def test_positions_must_have_three_columns():
     with pytest.raises(ValueError, match=r"\(M, 3\)"):
         StreamingGraph(1.0, 2).insert(np.zeros((3, 2)))
+
+
+@pytest.mark.parametrize("grid", [None, 1])
+def test_the_edges_after_a_start_from_those_on_arrival_are_the_batch_graphs(grid):
+    """edges_after: the graph of the nodes from ``start`` on, into its first ``count`` nodes, from
+    the whole graph's edges on arrival and a search of only the nodes that lost one of k nearest,
+    equals the batch builder's over those nodes alone; the query search equals the whole search's
+    edges into the marked nodes, for every backend."""
+    rng = np.random.default_rng(3)
+    searched = 0
+    for _ in range(30):
+        pos = time_sorted_cloud(rng, int(rng.integers(20, 400)), extent=float(rng.uniform(4, 12)), grid=grid)
+        r, k = float(rng.uniform(1.0, 3.0)), int(rng.integers(1, 6))
+        whole = radius_graph(torch.from_numpy(pos), r, k)
+        start = int(rng.integers(0, len(pos) - 1))
+        count = int(rng.integers(1, len(pos) - start + 1))
+        rest = torch.from_numpy(pos[start:])
+        want = radius_graph(rest, r, k)
+        want = want[:, want[1] < count]
+        into = whole[:, (whole[1] >= start) & (whole[1] < start + count)]
+        asked = []
+
+        def search(query):
+            asked.append(int(query.sum()))
+            marks = np.zeros(len(rest), dtype=bool)
+            marks[:count] = query.numpy()
+            found = radius_graph(rest, r, k, query=marks)
+            for backend in ("kdtree", "torch"):
+                assert torch.equal(radius_graph(rest, r, k, backend=backend, query=marks), found)
+            return found
+
+        got = edges_after(into.T.contiguous(), start, count, k, search)
+        assert torch.equal(got, want)
+        searched += sum(asked)
+    assert searched  # some nodes lost one of their k nearest and were searched again
+    with pytest.raises(ValueError, match="query must be"):
+        radius_graph(torch.from_numpy(pos), r, k, query=np.ones(3, dtype=bool))
