@@ -43,6 +43,9 @@ def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float, labels:
     """
     if len(boxes) == 0:
         return torch.zeros(0, dtype=torch.int64, device=boxes.device)
+    if boxes.device.type == "cpu":  # numpy's operations on a few boxes cost a few microseconds each, torch's tens
+        return torch.from_numpy(_nms_numpy(boxes.detach().numpy(), scores.detach().numpy(), iou_threshold,
+                                           None if labels is None else labels.detach().numpy()))
     order = torch.argsort(scores, descending=True, stable=True)
     boxes = boxes[order]
     iou = box_iou(boxes, boxes)  # (D, D)
@@ -55,6 +58,29 @@ def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float, labels:
         if keep[i]:
             keep &= ~overlap[i]
     return order[torch.from_numpy(keep).to(order.device)]
+
+
+def _nms_numpy(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float, labels: np.ndarray | None) -> np.ndarray:
+    """:func:`nms` on numpy arrays: the same operations as :func:`box_iou` in the same order, so the
+    same overlaps to the bit and the same boxes kept."""
+    order = np.argsort(-scores, kind="stable")  # by decreasing score, ties in index order
+    boxes = boxes[order]
+    lt = np.maximum(boxes[:, None, :2], boxes[None, :, :2])
+    rb = np.minimum(boxes[:, None, 2:], boxes[None, :, 2:])
+    wh = np.maximum(rb - lt, 0)
+    inter = wh[..., 0] * wh[..., 1]
+    size = np.maximum(boxes[:, 2:] - boxes[:, :2], 0)
+    area = size[:, 0] * size[:, 1]
+    iou = inter / np.maximum(area[:, None] + area[None, :] - inter, boxes.dtype.type(1e-9))
+    overlap = np.triu(iou > iou_threshold, 1)
+    if labels is not None:
+        labels = labels[order]
+        overlap &= labels[:, None] == labels[None, :]
+    keep = np.ones(len(boxes), dtype=bool)
+    for i in range(len(boxes)):
+        if keep[i]:
+            keep &= ~overlap[i]
+    return order[keep].astype(np.int64)
 
 
 _ANCHORS: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}  # per (shapes, strides, device), at most 32

@@ -21,16 +21,24 @@ def brute_force_nms(boxes, scores, threshold, labels):
     return kept
 
 
-def test_nms_equals_a_brute_force_reference():
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_nms_equals_a_brute_force_reference(dtype):
+    """nms (on a CPU: numpy's operations) keeps what a brute-force greedy pass over box_iou keeps,
+    class-aware or not, scores tied in index order, boxes on a grid so that IoUs meet the threshold."""
     g = torch.Generator().manual_seed(0)
-    for _ in range(20):
+    for trial in range(30):
         n = int(torch.randint(0, 60, (1,), generator=g))
         xy = torch.rand(n, 2, generator=g) * 50
-        boxes = torch.cat([xy, xy + 5 + torch.rand(n, 2, generator=g) * 20], 1)
-        scores = torch.rand(n, generator=g)
+        boxes = torch.cat([xy, xy + 5 + torch.rand(n, 2, generator=g) * 20], 1).to(dtype)
+        if trial % 3 == 0:
+            boxes = boxes.round()  # equal IoUs, some exactly at a threshold
+        scores = torch.rand(n, generator=g).to(dtype)
+        if trial % 2:
+            scores = (scores * 4).round() / 4  # ties
         labels = torch.randint(0, 2, (n,), generator=g)
-        for threshold in (0.3, 0.65):
+        for threshold in (0.3, 0.5, 0.65):
             assert nms(boxes, scores, threshold, labels).tolist() == brute_force_nms(boxes, scores, threshold, labels)
+            assert nms(boxes, scores, threshold).tolist() == brute_force_nms(boxes, scores, threshold, torch.zeros(n))
 
 
 def test_anchors_and_decoding_use_the_stride_in_both_axes():
