@@ -155,9 +155,23 @@ def to_dense(x: torch.Tensor, batch: torch.Tensor, cell: torch.Tensor, *, batch_
         x ``(C, F)``, batch ``(C,)``, cell ``(C, 2)`` rows and columns -> ``(B, F, H, W)``.
     """
     dense = x.new_zeros((batch_size, height, width, x.shape[1]))  # (B, H, W, F)
+    if (compiled_for(x) and x.dtype in (torch.float32, torch.float64) and len(x)
+            and not (torch.is_grad_enabled() and x.requires_grad)):  # one compiled pass: the same copies
+        _write_cells(x.detach().contiguous().numpy(), batch.to(torch.int64).contiguous().numpy(),
+                     cell.to(torch.int64).contiguous().numpy(), dense.numpy())
+        return dense.permute(0, 3, 1, 2)
     inside = (cell[:, 0] < height) & (cell[:, 1] < width) & (batch < batch_size)
     dense[batch[inside], cell[inside, 0], cell[inside, 1]] = x[inside]
     return dense.permute(0, 3, 1, 2)  # (B, F, H, W)
+
+
+@numba.njit(**KERNEL)
+def _write_cells(x, batch, cell, dense):
+    """:func:`to_dense`'s writes: row ``c`` of ``x`` into ``dense[batch[c], row, column]``, cells outside dropped."""
+    for c in range(len(x)):
+        b, r, col = batch[c], cell[c, 0], cell[c, 1]
+        if r < dense.shape[1] and col < dense.shape[2] and b < dense.shape[0]:
+            dense[b, r, col, :] = x[c]
 
 
 def recency_maps(events: torch.Tensor, batch: torch.Tensor, t_query: torch.Tensor, *, batch_size: int, stride: int,

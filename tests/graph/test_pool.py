@@ -175,3 +175,26 @@ def test_recency_since_equals_the_tensor_operations(dtype, monkeypatch):
     empty = (latest < start) | ~torch.isfinite(latest)
     assert torch.all(compiled.view(2, -1)[:, empty] == 0) and torch.all(compiled.view(2, -1)[:, ~empty] > 0)
     assert compiled.view(2, -1)[:, 3].tolist() == [1.0, 1.0] and compiled.view(2, -1)[:, 5].tolist() == [1.0, 1.0]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_dense_maps_equal_the_tensor_operations(monkeypatch, dtype):
+    """to_dense on a CPU without gradients is one compiled pass: the same maps to the bit, cells
+    outside the map or of a sample past the batch dropped; with gradients the tensor operations,
+    which pass them back."""
+    from dagr_lite.graph import sparse
+
+    g = torch.Generator().manual_seed(5)
+    cells = torch.randperm(6 * 7 * 3, generator=g)[:60]
+    batch, cell = cells // 42, torch.stack([(cells % 42) // 7, cells % 7], dim=1)  # some rows 5, columns 6: outside
+    x = torch.randn(60, 4, generator=g, dtype=dtype)
+    got = to_dense(x, batch, cell, batch_size=2, height=5, width=6)
+    monkeypatch.setattr(sparse, "USE_COMPILED", False)
+    want = to_dense(x, batch, cell, batch_size=2, height=5, width=6)
+    assert got.shape == (2, 4, 5, 6) and torch.equal(got, want)
+    assert 0 < int((want != 0).any(dim=1).sum()) < 60  # some cells written, some dropped
+    monkeypatch.setattr(sparse, "USE_COMPILED", True)
+    leaf = x.clone().requires_grad_(True)
+    to_dense(leaf, batch, cell, batch_size=2, height=5, width=6).sum().backward()
+    inside = (cell[:, 0] < 5) & (cell[:, 1] < 6) & (batch < 2)
+    assert torch.equal(leaf.grad, inside[:, None].to(dtype).expand(-1, 4))
