@@ -84,7 +84,6 @@ class StreamingGraph:
         return torch.from_numpy(edges)
 
 
-
 @numba.njit(**KERNEL)
 def _split_arrival(arrival, start, count, k):
     """:func:`edges_after`'s pass over the arrival rows: the edges kept (``(2, E)``, from ``start``)

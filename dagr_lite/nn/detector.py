@@ -31,15 +31,10 @@ from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.blocks import Residual, conv_bn_act
 from dagr_lite.nn.event_branch import EventBranch
 from dagr_lite.nn.kernels import bilinear_at, channels_last, compiled_inference
-from dagr_lite.nn.head import TowerCache, YOLOXHead, block_rows, postprocess, yolox_losses
+from dagr_lite.nn.head import TowerCache, YOLOXHead, block_rows, flat_map, postprocess, yolox_losses
 
 
 IMAGE_STEMS = ("patch", "conv")
-
-
-def flat_rows(x: torch.Tensor) -> torch.Tensor:
-    """``(B, C, h, w) -> (B h w, C)``, cells row-major: a view of a channels-last map."""
-    return x.permute(0, 2, 3, 1).reshape(-1, x.shape[1])
 
 
 class ImageBranch(nn.Module):
@@ -434,6 +429,8 @@ class Detector(nn.Module):
                            if cfg.use_image and cfg.use_events and cfg.event_head_weight > 0 else None)
         # Training on several processes sets this: the loss normaliser of the global batch (see yolox_losses).
         self.loss_normaliser = None
+        # Inference only: each stride's fusion split by its inputs (split_fusion, the streaming detector's copy).
+        self.fuse_parts: nn.ModuleList | None = None
 
     @property
     def num_recency(self) -> int:
@@ -625,7 +622,7 @@ class Detector(nn.Module):
         without ``late_query``, whose fusion reads the query maps)."""
         if self.image is None or self.events is None or self.cfg.late_query:
             return False
-        if getattr(self, "fuse_parts", None) is not None:
+        if self.fuse_parts is not None:
             return True
         parts = []
         for i, block in enumerate(self.fuse):
@@ -652,7 +649,7 @@ class Detector(nn.Module):
     def fusion_image_part(self, image_maps: list[torch.Tensor]) -> list[torch.Tensor]:
         """After :meth:`split_fusion`: per head stride, the image map's share of the fusion with its
         bias, ``(B h w, C)`` rows, cells row-major (channels last)."""
-        return [part["image"](flat_rows(image_map)) for part, image_map in zip(self.fuse_parts, image_maps[1:])]
+        return [part["image"](flat_map(image_map)) for part, image_map in zip(self.fuse_parts, image_maps[1:])]
 
     def _fuse_split(self, image_parts: list[torch.Tensor], image_maps: list[torch.Tensor],
                     joined: list[torch.Tensor], age_us: torch.Tensor) -> list[torch.Tensor]:

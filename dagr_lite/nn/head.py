@@ -424,8 +424,8 @@ def block_rows(block: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
 
 
 def flat_map(x: torch.Tensor) -> torch.Tensor:
-    """``(1, C, h, w) -> (h w, C)``, cells row-major (a map channels-last)."""
-    return x[0].permute(1, 2, 0).reshape(-1, x.shape[1])
+    """``(B, C, h, w) -> (B h w, C)``, cells row-major (a map channels-last; a view of a channels-last map)."""
+    return x.permute(0, 2, 3, 1).reshape(-1, x.shape[1])
 
 
 def grow(mask: torch.Tensor) -> torch.Tensor:
