@@ -670,8 +670,10 @@ class StreamingDetector:
         t = segment.t_abs.view
         first = int(np.searchsorted(t, t_start, side="left"))
         if self.graph_context_us:
-            edges = segment.edges.view
-            edges = edges[edges[:, 0] >= segment.base + first].T - (segment.base + first)  # both ends in the horizon
+            edges = None  # dense pooled stages read the nodes' cells alone, not their edges
+            if not branch.dense:
+                edges = segment.edges.view
+                edges = edges[edges[:, 0] >= segment.base + first].T - (segment.base + first)  # both ends in the horizon
             x, pos = segment.h[-1].view[first:], segment.pos.view[first:]
             batch = torch.zeros(len(x), dtype=torch.int64, device=self.device)
             return branch.pooled_maps(x, pos, batch, edges, 1, sampler)
@@ -694,9 +696,10 @@ class StreamingDetector:
                                                     query=query)).to(self.device)
         zone_edges = torch.cat([head, edges[from_hop:from_id].T - (segment.base + first)], dim=1)
         x_zone, _, _ = branch.event_nodes(zone, zone_batch, sampler, zone_edges)
-        stable_edges = edges[from_id:].T - (segment.base + first)
         x = torch.cat([x_zone, segment.h[-1].view[stable:]])
         pos = segment.pos.view[first:]
         batch = torch.zeros(len(x), dtype=torch.int64, device=self.device)
-        edge_index = torch.cat([zone_edges, stable_edges], dim=1)
+        edge_index = None  # dense pooled stages read the nodes' cells alone, not their edges
+        if not branch.dense:
+            edge_index = torch.cat([zone_edges, edges[from_id:].T - (segment.base + first)], dim=1)
         return branch.pooled_maps(x, pos, batch, edge_index, 1, sampler)

@@ -238,13 +238,14 @@ class EventBranch(nn.Module):
             x, pos, batch, edge_index = keep_nodes(pooled, x, pos, batch, edge_index)
         return self.pooled_maps(x, pos, batch, edge_index, batch_size, image_sampler)
 
-    def pooled_maps(self, x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge_index: torch.Tensor,
+    def pooled_maps(self, x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, edge_index: torch.Tensor | None,
                     batch_size: int, image_sampler: ImageSampler | None = None, *,
                     first: PooledGraph | None = None) -> list[torch.Tensor]:
         """The dense maps from the first stage's node features ``x (N, channels[0])``.
 
         ``first``: the first pooled graph when it is already known (the streaming detector keeps it
         up to date as nodes arrive); ``x``, ``pos``, ``batch`` and ``edge_index`` are then unused.
+        Dense pooled stages never read ``edge_index`` (None serves).
         """
         if self.dense:  # the cells' edges are not read
             pooled = first if first is not None else voxel_max_pool(x, pos, batch, None, self.dense)
