@@ -6,7 +6,7 @@ import torch
 from dagr_lite.nn.detector import sample_at
 from dagr_lite.nn.event_branch import GCNBlock
 from dagr_lite.nn.gcn import GraphOperator
-from dagr_lite.nn.kernels import NodeGraph, bilinear_at, channels_last, compiled_inference, gcn_block
+from dagr_lite.nn.kernels import NodeGraph, _matmul, bilinear_at, channels_last, compiled_inference, gcn_block
 
 TOLERANCE = {torch.float64: 1e-9, torch.float32: 1e-5}
 
@@ -129,6 +129,24 @@ def test_gcn_block_reads_changed_and_replaced_parameters():
         want = frozen(x, GraphOperator(edges, n))
         got = gcn_block(frozen, x, NodeGraph(edges, n))
     torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("rows", [1, 4, 7, 13])
+def test_the_loop_matrix_product_sums_each_element_in_order_to_the_bit(dtype, rows):
+    """Four rows at a time (and the rows left over): each element the sum over k in order of its
+    products, rounded at every step as one scalar at a time would round it."""
+    rng = np.random.default_rng(rows)
+    a, b = rng.standard_normal((rows, 11)).astype(dtype), rng.standard_normal((11, 6)).astype(dtype)
+    want = np.zeros((rows, 6), dtype=dtype)
+    for r in range(rows):
+        for c in range(6):
+            total = dtype(0)
+            for k in range(11):
+                total = dtype(total + dtype(a[r, k] * b[k, c]))
+            want[r, c] = total
+    got = _matmul(a, b)
+    assert got.dtype == dtype and np.array_equal(got, want)
 
 
 def test_node_graph_refuses_an_edge_outside():
