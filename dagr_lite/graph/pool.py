@@ -165,6 +165,61 @@ def to_dense(x: torch.Tensor, batch: torch.Tensor, cell: torch.Tensor, *, batch_
     return dense.permute(0, 3, 1, 2)  # (B, F, H, W)
 
 
+def max_pool_to_dense(x: torch.Tensor, pos: torch.Tensor, batch: torch.Tensor, size: float, *, batch_size: int,
+                      height: int, width: int) -> torch.Tensor:
+    """``to_dense`` of ``voxel_max_pool(x, pos, batch, None, size)``: the nodes max-pooled into
+    ``size``-pixel cells, written out as maps (empty cells zero, cells outside dropped). On a CPU
+    without gradients one compiled pass over the nodes writes each cell's running maxima straight
+    into the map, in the comparisons the pooling makes (the same maps to the bit); otherwise the
+    two steps.
+
+    Shapes:
+        x ``(N, F)``, pos ``(N, 3)``, batch ``(N,)`` -> ``(B, F, H, W)``.
+    """
+    if size <= 0:
+        raise ValueError(f"size must be positive, got {size}")
+    if not (compiled_for(x) and x.dtype in (torch.float32, torch.float64) and len(x)
+            and not (torch.is_grad_enabled() and (x.requires_grad or pos.requires_grad))):
+        pooled = voxel_max_pool(x, pos, batch, None, size)
+        return to_dense(pooled.x, pooled.batch, pooled.cell, batch_size=batch_size, height=height, width=width)
+    dense = x.new_zeros((batch_size, height, width, x.shape[1]))  # (B, H, W, F)
+    if not _pool_cells(x.detach().contiguous().numpy(), pos.detach().contiguous().numpy(),
+                       batch.to(torch.int64).contiguous().numpy(), float(size), dense.numpy()):
+        raise ValueError("pooling needs non-negative x and y positions")
+    return dense.permute(0, 3, 1, 2)
+
+
+@numba.njit(**KERNEL)
+def _pool_cells(x, pos, batch, size, dense):
+    """:func:`max_pool_to_dense`'s pass: each node's features into its cell of ``dense (B, H, W, F)``
+    by the running maxima of :func:`add_members` (a cell's first member meets ``-inf``); cells outside
+    dropped. False (nothing written) where a position is negative."""
+    n = len(x)
+    col = np.empty(n, dtype=np.int64)
+    row = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        col[i] = np.int64(np.floor(pos[i, 0] / size))
+        row[i] = np.int64(np.floor(pos[i, 1] / size))
+        if col[i] < 0 or row[i] < 0:
+            return False
+    samples, height, width, channels = dense.shape
+    flat = dense.reshape(samples * height * width, channels)
+    seen = np.zeros(samples * height * width, dtype=np.bool_)
+    for i in range(n):
+        b, r, c = batch[i], row[i], col[i]
+        if r >= height or c >= width or b >= samples:
+            continue
+        key = (b * height + r) * width + c
+        if not seen[key]:
+            seen[key] = True
+            for k in range(channels):
+                flat[key, k] = -np.inf
+        for k in range(channels):  # a select, not a branch: the loop runs in vector lanes
+            value, kept = x[i, k], flat[key, k]
+            flat[key, k] = value if value > kept else kept
+    return True
+
+
 @numba.njit(**KERNEL)
 def _write_cells(x, batch, cell, dense):
     """:func:`to_dense`'s writes: row ``c`` of ``x`` into ``dense[batch[c], row, column]``, cells outside dropped."""

@@ -25,7 +25,7 @@ import torch
 from torch import nn
 
 from dagr_lite.graph.compiled import neighbourhood_moments
-from dagr_lite.graph.pool import PooledGraph, to_dense, voxel_max_pool
+from dagr_lite.graph.pool import PooledGraph, max_pool_to_dense, to_dense, voxel_max_pool
 from dagr_lite.graph.spec import EventGraphSpec
 from dagr_lite.nn.blocks import Residual, conv_bn_act
 from dagr_lite.nn.gcn import GCNConv, GraphOperator
@@ -248,9 +248,10 @@ class EventBranch(nn.Module):
         Dense pooled stages never read ``edge_index`` (None serves).
         """
         if self.dense:  # the cells' edges are not read
-            pooled = first if first is not None else voxel_max_pool(x, pos, batch, None, self.dense)
-            m = to_dense(pooled.x, pooled.batch, pooled.cell, batch_size=batch_size,
-                         height=math.ceil(self.height / self.dense), width=math.ceil(self.width / self.dense))
+            size = {"batch_size": batch_size, "height": math.ceil(self.height / self.dense),
+                    "width": math.ceil(self.width / self.dense)}
+            m = (to_dense(first.x, first.batch, first.cell, **size) if first is not None
+                 else max_pool_to_dense(x, pos, batch, self.dense, **size))
             maps = []
             for stage in self.dense_stages:
                 m = stage(m)

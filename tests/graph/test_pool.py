@@ -198,3 +198,33 @@ def test_compiled_dense_maps_equal_the_tensor_operations(monkeypatch, dtype):
     to_dense(leaf, batch, cell, batch_size=2, height=5, width=6).sum().backward()
     inside = (cell[:, 0] < 5) & (cell[:, 1] < 6) & (batch < 2)
     assert torch.equal(leaf.grad, inside[:, None].to(dtype).expand(-1, 4))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_nodes_max_pooled_straight_into_the_map_equal_pooling_then_writing(monkeypatch, dtype):
+    """max_pool_to_dense's one compiled pass: the maps of voxel_max_pool then to_dense (compiled, and
+    by tensor operations) to the bit, with several nodes a cell, cells outside the map and a sample
+    past the batch dropped; with gradients the two steps, whose maximum alone takes the gradient."""
+    from dagr_lite.graph import sparse
+    from dagr_lite.graph.pool import max_pool_to_dense
+
+    g = torch.Generator().manual_seed(7)
+    n = 400
+    pos = torch.rand(n, 3, generator=g, dtype=dtype) * torch.tensor([30.0, 26.0, 1.0], dtype=dtype)
+    batch = torch.sort(torch.randint(0, 3, (n,), generator=g)).values  # sample 2 lies past a batch of 2
+    x = torch.randn(n, 5, generator=g, dtype=dtype)
+    x[::7] = x[1::7].max() + 1  # ties between members of a cell
+    size = {"batch_size": 2, "height": 5, "width": 6}  # 4-pixel cells: rows 5 and 6, columns 6 and 7 outside
+    got = max_pool_to_dense(x, pos, batch, 4, **size)
+    pooled = voxel_max_pool(x, pos, batch, None, 4)
+    want = to_dense(pooled.x, pooled.batch, pooled.cell, **size)
+    assert got.shape == (2, 5, 5, 6) and torch.equal(got, want)
+    assert 0 < int((want != 0).any(dim=1).sum()) < len(pooled.x)  # some cells written, some dropped
+    monkeypatch.setattr(sparse, "USE_COMPILED", False)
+    assert torch.equal(max_pool_to_dense(x, pos, batch, 4, **size), want)
+    monkeypatch.setattr(sparse, "USE_COMPILED", True)
+    leaf = x.clone().requires_grad_(True)
+    max_pool_to_dense(leaf, pos, batch, 4, **size).sum().backward()
+    assert 0 < int((leaf.grad != 0).sum()) < leaf.numel()
+    with pytest.raises(ValueError, match="non-negative"):
+        max_pool_to_dense(x, pos - 40.0, batch, 4, **size)
