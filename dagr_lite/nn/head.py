@@ -376,9 +376,22 @@ def _yolox_losses(raw, shapes, strides, gt_boxes, gt_labels, *, iou_weight, norm
 def postprocess(raw: torch.Tensor, shapes: list[tuple[int, int]], strides: list[int], *, conf_threshold: float,
                 nms_threshold: float, max_detections: int = 100, pre_nms: int = 1000,
                 image_size: tuple[int, int] | None = None) -> list[dict]:
-    """Decoded, class-aware NMS-filtered detections per image: ``boxes (D, 4)``, ``scores (D,)``, ``labels (D,)``."""
+    """Decoded, class-aware NMS-filtered detections per image: ``boxes (D, 4)``, ``scores (D,)``, ``labels (D,)``.
+
+    On a CPU in numpy's operations (:func:`_postprocess_numpy`: an answer's few thousand anchors cost
+    a few microseconds an operation there, tens in torch's), elsewhere in torch's; the two agree to
+    the rounding of their exponentials (``tests/nn/test_head.py``)."""
     centres, stride_of = anchors_of(shapes, strides, raw.device)
     raw = raw if raw.dtype == torch.float64 else raw.float()  # float64 stays (exactness tests)
+    if raw.device.type == "cpu":
+        return _postprocess_numpy(raw.detach().numpy(), centres.numpy(), stride_of.numpy(), conf_threshold,
+                                  nms_threshold, max_detections, pre_nms, image_size)
+    return _postprocess_tensors(raw, centres, stride_of, conf_threshold, nms_threshold, max_detections, pre_nms,
+                                image_size)
+
+
+def _postprocess_tensors(raw, centres, stride_of, conf_threshold, nms_threshold, max_detections, pre_nms, image_size):
+    """:func:`postprocess` in torch's operations, on any device."""
     obj = torch.sigmoid(raw[..., 4])
     cls_prob = torch.sigmoid(raw[..., 5:])
     results = []
@@ -396,6 +409,40 @@ def postprocess(raw: torch.Tensor, shapes: list[tuple[int, int]], strides: list[
             bx, sc, lb = bx[top], sc[top], lb[top]
         kept = nms(bx, sc, nms_threshold, lb)[:max_detections]
         results.append({"boxes": bx[kept], "scores": sc[kept], "labels": lb[kept]})
+    return results
+
+
+def _postprocess_numpy(raw, centres, stride_of, conf_threshold, nms_threshold, max_detections, pre_nms, image_size):
+    """:func:`postprocess` of a CPU tensor's ``raw`` numpy array: the operations of
+    :func:`_postprocess_tensors` in the same dtypes and order (the candidates above ``pre_nms`` by a
+    stable sort instead of ``topk``), results as tensors."""
+    def sigmoid(v):
+        return 1 / (1 + np.exp(-v))
+
+    obj = sigmoid(raw[..., 4])
+    cls_prob = sigmoid(raw[..., 5:])
+    results = []
+    for b in range(raw.shape[0]):
+        products = cls_prob[b] * obj[b, :, None]  # (A, C)
+        labels = products.argmax(1)
+        scores = np.take_along_axis(products, labels[:, None], 1)[:, 0]
+        keep = np.flatnonzero(scores >= conf_threshold)  # only these anchors' boxes are decoded
+        box, step = raw[b, keep, :4], stride_of[keep, None]
+        xy = centres[keep] + box[:, :2] * step
+        wh = np.exp(np.minimum(box[:, 2:], 10.0)) * step
+        bx = np.concatenate([xy - wh / 2, xy + wh / 2], axis=1)
+        if image_size is not None:
+            height, width = image_size
+            bx = np.stack([np.clip(bx[:, 0], 0, width), np.clip(bx[:, 1], 0, height),
+                           np.clip(bx[:, 2], 0, width), np.clip(bx[:, 3], 0, height)], axis=1)
+        sc, lb = scores[keep], labels[keep]
+        if len(sc) > pre_nms:
+            top = np.argsort(-sc, kind="stable")[:pre_nms]
+            bx, sc, lb = bx[top], sc[top], lb[top]
+        kept = _nms_numpy(bx, sc, nms_threshold, lb)[:max_detections] if len(bx) else np.zeros(0, dtype=np.int64)
+        results.append({"boxes": torch.from_numpy(np.ascontiguousarray(bx[kept])).reshape(-1, 4),
+                        "scores": torch.from_numpy(np.ascontiguousarray(sc[kept])),
+                        "labels": torch.from_numpy(lb[kept].astype(np.int64))})
     return results
 
 

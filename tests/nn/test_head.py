@@ -230,6 +230,32 @@ def test_postprocess_decodes_scores_clamps_and_suppresses_by_hand():
     assert dets[0]["boxes"][-1].tolist() == [8.0, 8.0, 16.0, 16.0] and dets[0]["labels"][-1] == 0
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("image_size", [None, (40, 56)])
+def test_postprocess_on_a_cpu_in_numpy_equals_the_tensor_operations(dtype, image_size):
+    """The numpy path a CPU takes and the tensor path of other devices: the same boxes kept, in the
+    same order, with scores and boxes equal to their exponentials' rounding; two classes, boxes
+    past the image, more candidates than ``pre_nms``, an image without any."""
+    from dagr_lite.nn.head import _postprocess_tensors
+
+    g = torch.Generator().manual_seed(3)
+    shapes, strides = [(5, 7), (3, 4)], [8, 16]
+    raw = torch.randn(3, 47, 7, generator=g, dtype=dtype) * 2
+    raw[2, :, 4] = -20.0  # no candidate
+    for pre_nms in (1000, 9):
+        want = _postprocess_tensors(raw, *anchors_of(shapes, strides, "cpu"), 0.05, 0.5, 100, pre_nms, image_size)
+        got = postprocess(raw, shapes, strides, conf_threshold=0.05, nms_threshold=0.5, pre_nms=pre_nms,
+                          image_size=image_size)
+        tolerance = 1e-5 if dtype == torch.float32 else 1e-12
+        for a, b in zip(got, want):
+            assert a["labels"].tolist() == b["labels"].tolist() and a["labels"].dtype == torch.int64
+            assert a["boxes"].shape == b["boxes"].shape and a["boxes"].dtype == b["boxes"].dtype == dtype
+            torch.testing.assert_close(a["scores"], b["scores"], rtol=tolerance, atol=tolerance)
+            torch.testing.assert_close(a["boxes"], b["boxes"], rtol=tolerance, atol=tolerance)
+        assert len(got[0]["scores"]) > 1 and len(got[2]["scores"]) == 0
+        assert len(got[1]["scores"]) <= pre_nms
+
+
 def loss_case():
     """One GT [2, 2, 7, 7] on a 2 x 2 map at stride 8: only anchor 0 (4, 4) lies inside it."""
     raw = torch.zeros(1, 4, 6)
